@@ -1,0 +1,74 @@
+"""Command-line interface ``seanv-analyze``: a thin click layer.
+
+Each subcommand lives in its own module (``*_cmd.py``) and only parses
+options, calls library functions and formats their results. Library errors
+(:class:`~seanv_analysis.errors.SeanvError`) become one line on stderr and
+exit code 2, with no traceback. A command may return an int exit code
+(e.g. 1 when a batch had bad runs).
+"""
+from __future__ import annotations
+
+import importlib
+import sys
+
+import click
+
+from .. import __version__
+from ..errors import SeanvError
+
+__all__ = ["cli", "main"]
+
+_SUBCOMMAND_MODULES = ("ingest_cmd", "simulate_cmd", "flowfit_cmd", "tracking_cmd",
+                       "validate_cmd", "discover_cmd", "run_cmd", "plots_cmd")
+
+
+class _SeanvGroup(click.Group):
+    """Group that turns SeanvError into 'error: ...' + exit 2 and int returns into exit codes."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            rv = super().invoke(ctx)
+        except SeanvError as exc:
+            click.echo(f"error: {exc}", err=True)
+            ctx.exit(2)
+        if isinstance(rv, int) and rv:
+            ctx.exit(rv)
+        return rv
+
+
+@click.group(cls=_SeanvGroup,
+             context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(__version__, prog_name="seanv-analyze")
+def cli() -> None:
+    """Analyse SEANV water-hydraulic valve rig logs.
+
+    Units everywhere: mm, MPa gauge, deg, s, mm^3/s.
+
+    \b
+    Typical session:
+      seanv-analyze simulate paper-flowsteps --out data/flow   # or use your rig's logs
+      seanv-analyze ingest data/flow                           # validate, derive flow, filter
+      seanv-analyze flowfit data/flow                          # z0, C per side (eq. 3-5)
+    Every command writes under outputs/<dataset>/ and prints JSON with --json.
+    """
+
+
+def _register() -> None:
+    for modname in _SUBCOMMAND_MODULES:
+        try:
+            importlib.import_module(f"{__name__}.{modname}")
+        except ModuleNotFoundError as exc:  # subcommand not built yet
+            if exc.name != f"{__name__}.{modname}":
+                raise
+
+
+_register()
+
+
+def main(argv: list[str] | None = None) -> None:
+    """Console-script entry point."""
+    cli.main(args=argv, prog_name="seanv-analyze")
+
+
+if __name__ == "__main__":  # pragma: no cover
+    main(sys.argv[1:])

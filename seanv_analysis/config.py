@@ -1,0 +1,129 @@
+"""Rig configuration: load, override and query the rig TOML.
+
+Every rig constant lives in ``data_schema/rig/default.toml``; code reads it
+from there and never writes a rig number twice.
+"""
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from .errors import ConfigError
+
+__all__ = ["RigConfig", "load_rig", "default_rig_path", "schema_dir", "load_contract"]
+
+_PACKAGE_DIR = Path(__file__).resolve().parent
+
+
+def schema_dir() -> Path:
+    """Folder holding the data contract and default rig config.
+
+    Installed wheels carry a copy inside the package (``_data_schema``); an
+    editable checkout uses the top-level ``data_schema/``.
+    """
+    for candidate in (_PACKAGE_DIR / "_data_schema", _PACKAGE_DIR.parent / "data_schema"):
+        if (candidate / "contract.toml").is_file():
+            return candidate
+    raise ConfigError("data_schema folder not found next to the package")
+
+
+def default_rig_path() -> Path:
+    """Path of the shipped default rig config."""
+    return schema_dir() / "rig" / "default.toml"
+
+
+def load_contract() -> dict[str, Any]:
+    """The machine-readable data contract (``data_schema/contract.toml``)."""
+    with open(schema_dir() / "contract.toml", "rb") as fh:
+        return tomllib.load(fh)
+
+
+def _deep_update(base: dict, override: Mapping, where: str) -> dict:
+    for key, value in override.items():
+        if key not in base:
+            raise ConfigError(f"{where}: unknown rig key '{key}'")
+        if isinstance(base[key], dict):
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"{where}: rig key '{key}' must be a table")
+            _deep_update(base[key], value, f"{where}.{key}")
+        else:
+            base[key] = value
+    return base
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """Rig constants (nested dict from the TOML) with unit-named keys.
+
+    Use ``rig["actuator"]["piston_diameter_mm"]`` or the derived properties.
+    """
+
+    data: dict[str, Any]
+    source: str = "default"
+    _hash: str = field(default="", compare=False)
+
+    def __getitem__(self, key: str) -> Any:
+        return self.data[key]
+
+    def with_overrides(self, overrides: Mapping | None, *, where: str = "rig") -> "RigConfig":
+        """A copy with ``overrides`` (same nesting as the TOML) applied."""
+        if not overrides:
+            return self
+        data = _deep_update(copy.deepcopy(self.data), overrides, where)
+        return RigConfig(data, source=f"{self.source}+overrides")
+
+    # Derived geometry -------------------------------------------------
+    @property
+    def piston_area_mm2(self) -> float:
+        """Water-actuator piston (head-side) area [mm^2]; 201.06 for 16 mm."""
+        return math.pi / 4 * self.data["actuator"]["piston_diameter_mm"] ** 2
+
+    @property
+    def load_area_mm2(self) -> float:
+        """Pneumatic load piston area on which the load pressure acts [mm^2]."""
+        return math.pi / 4 * self.data["load"]["piston_diameter_mm"] ** 2
+
+    @property
+    def cam_range_deg(self) -> tuple[float, float]:
+        """Model's valid cam range [deg] (-40..10 in the paper)."""
+        v = self.data["valve"]
+        return float(v["cam_min_deg"]), float(v["cam_max_deg"])
+
+    @property
+    def analysis(self) -> dict[str, Any]:
+        """Procedure settings (filter thresholds, derivative window)."""
+        return self.data["analysis"]
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (for manifests and JSON)."""
+        return copy.deepcopy(self.data)
+
+
+def load_rig(path: str | Path | None = None, overrides: Mapping | None = None) -> RigConfig:
+    """Load a rig config TOML (default: the shipped one), then apply overrides.
+
+    A user file may give only some keys; the rest come from the default.
+    """
+    default = default_rig_path()
+    with open(default, "rb") as fh:
+        data = tomllib.load(fh)
+    source = "default"
+    if path is not None:
+        path = Path(path)
+        try:
+            with open(path, "rb") as fh:
+                user = tomllib.load(fh)
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: rig config not found") from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise ConfigError(f"{path}: not a valid TOML file ({exc})") from None
+        user.pop("schema", None)
+        user.pop("name", None)
+        data = _deep_update(data, user, str(path))
+        source = str(path)
+    rig = RigConfig(data, source=source)
+    return rig.with_overrides(overrides) if overrides else rig

@@ -1,0 +1,149 @@
+"""Sealing equilibrium model of the SEANV needle (paper Sec. II-C, eq. 1-4).
+
+Units: mm, MPa (= N/mm^2), N, deg.
+
+The sealing threshold angle theta_d is where the cam-driven needle-head
+height z_c(theta) (eq. 4) equals the spring displacement at which the spring
+force balances the fluid force (eq. 3). Eq. (4) has no closed-form inverse,
+so, as in the paper, it is inverted by interpolation over a monotonic table.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, asdict
+from functools import cached_property
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "NeedleGeometry",
+    "fluid_force_n",
+    "spring_force_n",
+    "threshold_displacement_mm",
+    "needle_height_mm",
+]
+
+# Cam angles over which eq. (4) is tabulated for the inversion [deg]. Wider
+# than the valid cam range so thresholds just outside it are still found.
+_TABLE_RANGE_DEG = (-60.0, 35.0)
+_TABLE_POINTS = 1901
+
+
+@dataclass(frozen=True)
+class NeedleGeometry:
+    """Geometry of one needle (paper Table II) plus its centre (x_c, y_c).
+
+    Attributes
+    ----------
+    needle_diameter_mm : d_n [mm]
+    seat_diameter_mm : d_o [mm]
+    needle_head_radius_mm : r [mm]
+    cam_slope_deg : phi [deg]
+    spring_constant_n_per_mm : k [N/mm]
+    z_p_mm, z_c0_mm : cam-slope intercept and head-centre height at theta=0 [mm]
+    needle_x_c_mm, needle_y_c_mm : needle-head centre in the cam frame [mm]
+    """
+
+    needle_diameter_mm: float
+    seat_diameter_mm: float
+    needle_head_radius_mm: float
+    cam_slope_deg: float
+    spring_constant_n_per_mm: float
+    z_p_mm: float
+    z_c0_mm: float
+    needle_x_c_mm: float
+    needle_y_c_mm: float
+
+    @classmethod
+    def from_rig(cls, rig: Any, side: str) -> "NeedleGeometry":
+        """Geometry of ``side`` ('supply' or 'drain') from a :class:`RigConfig`."""
+        v = rig["valve"]
+        s = v[side]
+        return cls(
+            needle_diameter_mm=float(v["needle_diameter_mm"]),
+            seat_diameter_mm=float(v["seat_diameter_mm"]),
+            needle_head_radius_mm=float(v["needle_head_radius_mm"]),
+            cam_slope_deg=float(v["cam_slope_deg"]),
+            spring_constant_n_per_mm=float(v["spring_constant_n_per_mm"]),
+            z_p_mm=float(v["z_p_mm"]),
+            z_c0_mm=float(v["z_c0_mm"]),
+            needle_x_c_mm=float(s["needle_x_c_mm"]),
+            needle_y_c_mm=float(s["needle_y_c_mm"]),
+        )
+
+    def to_dict(self) -> dict[str, float]:
+        return asdict(self)
+
+    @cached_property
+    def _table(self) -> tuple[np.ndarray, np.ndarray]:
+        """(z_sorted, theta_sorted) for inverting eq. (4) with np.interp."""
+        theta = np.linspace(*_TABLE_RANGE_DEG, _TABLE_POINTS)
+        z = needle_height_mm(theta, self)
+        dz = np.diff(z)
+        if not (np.all(dz > 0) or np.all(dz < 0)):
+            raise ValueError(
+                "needle geometry: eq. (4) is not monotonic over "
+                f"{_TABLE_RANGE_DEG} deg; check needle_x_c_mm/needle_y_c_mm")
+        if dz[0] < 0:
+            return z[::-1].copy(), theta[::-1].copy()
+        return z, theta
+
+    @property
+    def opens_upward(self) -> bool:
+        """True when the valve opens as theta increases (supply-like)."""
+        z, theta = self._table
+        return bool(theta[-1] > theta[0])
+
+    def angle_for_height(self, z_mm: np.ndarray | float) -> np.ndarray:
+        """Invert eq. (4): cam angle [deg] at which the head height is ``z_mm``.
+
+        Linear interpolation on a 0.05 deg table (the paper's ``interp1d``);
+        heights outside the table are clipped to its ends.
+        """
+        z, theta = self._table
+        return np.interp(z_mm, z, theta)
+
+
+def fluid_force_n(p1_mpa, dp_mpa, geometry: NeedleGeometry):
+    """Fluid force lifting the needle, eq. (1): F_w = pi/4 (d_n^2 p1 - d_o^2 dp) [N]."""
+    return math.pi / 4 * (geometry.needle_diameter_mm ** 2 * np.asarray(p1_mpa)
+                          - geometry.seat_diameter_mm ** 2 * np.asarray(dp_mpa))
+
+
+def spring_force_n(z0_mm, z_c_mm, geometry: NeedleGeometry):
+    """Disc-spring contact force, eq. (2): F_s = k (z0 - z_c) [N]."""
+    return geometry.spring_constant_n_per_mm * (np.asarray(z0_mm) - np.asarray(z_c_mm))
+
+
+def threshold_displacement_mm(z0_mm, p1_mpa, dp_mpa, geometry: NeedleGeometry):
+    """Sealing-threshold spring displacement, eq. (3) [mm].
+
+    z_c = z0 - pi/(4k) (d_n^2 p1 - d_o^2 dp): the needle seals while the
+    cam-set head height stays below this value.
+    """
+    return np.asarray(z0_mm) - fluid_force_n(p1_mpa, dp_mpa, geometry) / geometry.spring_constant_n_per_mm
+
+
+def needle_height_mm(theta_deg, geometry: NeedleGeometry):
+    """Needle-head height set by the cam, eq. (4) [mm].
+
+    z_c = (x_c - r sin(phi) cos(theta)) tan(phi) cos(theta)
+          - (y_c - r tan(phi) sin(theta)) tan(phi) sin(theta)
+          + (z_p - r cos(phi)) - z_c0
+
+    Notes
+    -----
+    The paper prints ``- (z_p - r cos phi)``; with Table II values that gives
+    z_c of about -63.7 mm, far from the sub-millimetre spring deflections of
+    eq. (3). The sign is a typo: with ``+`` the constant term is
+    z_p - r cos(phi) - z_c0 = 0.003 mm, consistent with z_c0 being the head
+    height at theta = 0. We use ``+``.
+    """
+    t = np.radians(np.asarray(theta_deg, dtype=float))
+    phi = math.radians(geometry.cam_slope_deg)
+    r = geometry.needle_head_radius_mm
+    tp = math.tan(phi)
+    return ((geometry.needle_x_c_mm - r * math.sin(phi) * np.cos(t)) * tp * np.cos(t)
+            - (geometry.needle_y_c_mm - r * tp * np.sin(t)) * tp * np.sin(t)
+            + (geometry.z_p_mm - r * math.cos(phi)) - geometry.z_c0_mm)

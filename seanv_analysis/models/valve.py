@@ -1,0 +1,220 @@
+"""Flow model of the SEANV (paper Sec. II-D, eq. 5-6), per side.
+
+Units: cam angle deg, pressure MPa (gauge), flow mm^3/s.
+
+Supply side: p1 = p_supply, p2 = p_head, opens for theta > theta_d, C > 0.
+Drain side:  p1 = p_head,   p2 = p_tank, opens for theta < theta_d, C < 0
+(flow out of the actuator is negative, as in the paper).
+"""
+from __future__ import annotations
+
+import json
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .sealing import NeedleGeometry, threshold_displacement_mm
+
+__all__ = ["SIDES", "ValveSide", "ValveModel", "side_pressures", "signed_power"]
+
+SIDES = ("supply", "drain")
+
+
+def side_pressures(side: str, p_supply_mpag, p_head_mpag, p_tank_mpag=0.0):
+    """(p1, dp) of one side [MPa]: supply (p_s, p_s - p_h); drain (p_h, p_h - p_t)."""
+    if side == "supply":
+        return p_supply_mpag, np.subtract(p_supply_mpag, p_head_mpag)
+    if side == "drain":
+        return p_head_mpag, np.subtract(p_head_mpag, p_tank_mpag)
+    raise ValueError(f"side: expected 'supply' or 'drain', got {side!r}")
+
+
+def signed_power(x, exponent: float, *, smooth_mpa: float = 0.0):
+    """sign(x) |x|^n, optionally smoothed near 0 (linear below ``smooth_mpa``).
+
+    The smoothing keeps the slope finite at dp = 0 so a stiff integrator
+    stays stable; at |x| >= smooth_mpa it equals the exact law.
+    """
+    x = np.asarray(x, dtype=float)
+    ax = np.abs(x)
+    out = np.sign(x) * ax ** exponent
+    if smooth_mpa > 0:
+        lin = x * smooth_mpa ** (exponent - 1.0)
+        out = np.where(ax < smooth_mpa, lin, out)
+    return out
+
+
+@dataclass(frozen=True)
+class ValveSide:
+    """One needle of the SEANV: sealing threshold (eq. 3-4) and flow law (eq. 5).
+
+    Q = C (theta - theta_d)^2 dp^n with n = 0.5 in the paper.
+
+    Attributes
+    ----------
+    side : 'supply' or 'drain'
+    z0_mm : initial disc-spring deflection z_0 [mm] (fitted)
+    c_flow : C [mm^3/(s deg^2 MPa^n)], negative on the drain side
+    geometry : needle geometry (Table II + centre)
+    dp_exponent : n, 0.5 for the orifice law
+    """
+
+    side: str
+    z0_mm: float
+    c_flow: float
+    geometry: NeedleGeometry
+    dp_exponent: float = 0.5
+
+    def __post_init__(self):
+        if self.side not in SIDES:
+            raise ValueError(f"side: expected 'supply' or 'drain', got {self.side!r}")
+
+    @property
+    def opens_upward(self) -> bool:
+        """True when theta > theta_d opens the valve (the supply side)."""
+        return self.geometry.opens_upward
+
+    def threshold_deg(self, p1_mpa, dp_mpa, *, z0_mm=None):
+        """Sealing threshold angle theta_d [deg] from eq. (3) + (4) by interpolation."""
+        z0 = self.z0_mm if z0_mm is None else z0_mm
+        z_thr = threshold_displacement_mm(z0, p1_mpa, dp_mpa, self.geometry)
+        return self.geometry.angle_for_height(z_thr)
+
+    def opening_deg(self, theta_deg, p1_mpa, dp_mpa):
+        """Opening past the threshold [deg]: max(theta - theta_d, 0) (supply),
+        max(theta_d - theta, 0) (drain)."""
+        d = np.asarray(theta_deg, dtype=float) - self.threshold_deg(p1_mpa, dp_mpa)
+        return np.maximum(d if self.opens_upward else -d, 0.0)
+
+    def flow(self, theta_deg, p1_mpa, dp_mpa, *, smooth_mpa: float = 0.0):
+        """Flow through this side, eq. (5): Q = C (theta - theta_d)^2 dp^n [mm^3/s].
+
+        Zero when sealed. ``dp`` below 0 gives reverse flow (sign follows dp).
+        """
+        opening = self.opening_deg(theta_deg, p1_mpa, dp_mpa)
+        return self.c_flow * opening ** 2 * signed_power(dp_mpa, self.dp_exponent,
+                                                          smooth_mpa=smooth_mpa)
+
+    def cam_for_flow(self, q_mm3_s, p1_mpa, dp_mpa, *, min_dp_mpa: float = 0.05):
+        """Cam angle for a target flow, eq. (6): theta = theta_d +- sqrt(Q / (C dp^n)) [deg].
+
+        '+' on the supply side, '-' on the drain side. Flows of the wrong sign
+        for this side give theta_d (closed at the threshold). ``dp`` is
+        floored at ``min_dp_mpa`` so a vanishing dp does not ask for infinity.
+        """
+        dp = np.maximum(np.asarray(dp_mpa, dtype=float), min_dp_mpa)
+        ratio = np.asarray(q_mm3_s, dtype=float) / (self.c_flow * dp ** self.dp_exponent)
+        opening = np.sqrt(np.maximum(ratio, 0.0))
+        theta_d = self.threshold_deg(p1_mpa, dp)
+        return theta_d + opening if self.opens_upward else theta_d - opening
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"z0_mm": float(self.z0_mm), "c_flow": float(self.c_flow),
+                "dp_exponent": float(self.dp_exponent), "geometry": self.geometry.to_dict()}
+
+
+@dataclass(frozen=True)
+class ValveModel:
+    """Both needles of the SEANV and the valid cam range.
+
+    This is the model file that ``flowfit`` writes and ``tracking``,
+    ``validate`` and the controller read.
+    """
+
+    supply: ValveSide
+    drain: ValveSide
+    cam_min_deg: float = -40.0
+    cam_max_deg: float = 10.0
+    extras: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_rig(cls, rig: Any) -> "ValveModel":
+        """The rig config's valve (the paper's fitted z0 and C by default)."""
+        sides = {}
+        for side in SIDES:
+            s = rig["valve"][side]
+            sides[side] = ValveSide(side, float(s["z0_mm"]), float(s["c_flow"]),
+                                    NeedleGeometry.from_rig(rig, side))
+        lo, hi = rig.cam_range_deg
+        return cls(sides["supply"], sides["drain"], lo, hi)
+
+    def side(self, name: str) -> ValveSide:
+        if name not in SIDES:
+            raise ValueError(f"side: expected 'supply' or 'drain', got {name!r}")
+        return getattr(self, name)
+
+    def with_side(self, name: str, **changes) -> "ValveModel":
+        """A copy with one side's parameters replaced (``z0_mm``, ``c_flow``, ...)."""
+        return replace(self, **{name: replace(self.side(name), **changes)})
+
+    def net_flow(self, theta_deg, p_supply_mpag, p_head_mpag, p_tank_mpag=0.0,
+                 *, smooth_mpa: float = 0.0):
+        """Flow into the actuator head [mm^3/s]: supply flow + drain flow (eq. 5 each)."""
+        total = 0.0
+        for side in SIDES:
+            p1, dp = side_pressures(side, p_supply_mpag, p_head_mpag, p_tank_mpag)
+            total = total + self.side(side).flow(theta_deg, p1, dp, smooth_mpa=smooth_mpa)
+        return total
+
+    def cam_for_flow(self, q_mm3_s, p_supply_mpag, p_head_mpag, p_tank_mpag=0.0):
+        """Cam command for a target net flow, eq. (6), clipped to the cam range [deg].
+
+        Q > 0 uses the supply side, Q < 0 the drain side, Q = 0 the supply
+        threshold (closed).
+        """
+        q = np.asarray(q_mm3_s, dtype=float)
+        p1s, dps = side_pressures("supply", p_supply_mpag, p_head_mpag, p_tank_mpag)
+        p1d, dpd = side_pressures("drain", p_supply_mpag, p_head_mpag, p_tank_mpag)
+        theta_s = self.supply.cam_for_flow(np.maximum(q, 0.0), p1s, dps)
+        theta_d = self.drain.cam_for_flow(np.minimum(q, 0.0), p1d, dpd)
+        theta = np.where(q >= 0, theta_s, theta_d)
+        return np.clip(theta, self.cam_min_deg, self.cam_max_deg)
+
+    # Serialisation ------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        out = {"schema": "seanv-valve-model/1",
+               "cam_range_deg": [float(self.cam_min_deg), float(self.cam_max_deg)],
+               "supply": self.supply.to_dict(), "drain": self.drain.to_dict()}
+        if self.extras:
+            out["extras"] = self.extras
+        return out
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any], *, rig: Any = None) -> "ValveModel":
+        """Build from :meth:`to_dict` output. A side without ``geometry`` takes it
+        from ``rig`` (default rig when None)."""
+        if rig is None:
+            from ..config import load_rig
+            rig = load_rig()
+        sides = {}
+        for side in SIDES:
+            s = d[side]
+            geom = (NeedleGeometry(**s["geometry"]) if "geometry" in s
+                    else NeedleGeometry.from_rig(rig, side))
+            c = s.get("c_flow", s.get("C"))
+            sides[side] = ValveSide(side, float(s["z0_mm"]), float(c), geom,
+                                    float(s.get("dp_exponent", 0.5)))
+        lo, hi = d.get("cam_range_deg", rig.cam_range_deg)
+        return cls(sides["supply"], sides["drain"], float(lo), float(hi),
+                   dict(d.get("extras", {})))
+
+    @classmethod
+    def load(cls, path: str | Path, *, rig: Any = None) -> "ValveModel":
+        """Read a model file (.json or .toml)."""
+        path = Path(path)
+        from ..errors import ConfigError
+        try:
+            if path.suffix == ".toml":
+                with open(path, "rb") as fh:
+                    d = tomllib.load(fh)
+            else:
+                d = json.loads(path.read_text())
+            return cls.from_dict(d, rig=rig)
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: model file not found") from None
+        except (KeyError, TypeError, ValueError, tomllib.TOMLDecodeError) as exc:
+            raise ConfigError(f"{path}: not a valve model file ({exc})") from None
+
