@@ -1,0 +1,80 @@
+"""Typed in-memory form of one run of the data contract."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from datetime import datetime
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from ..config import RigConfig
+
+__all__ = ["RunMeta", "Run", "SUMMARY_COLUMNS"]
+
+# Columns of the per-run summary table (one row per run) that ingest/derive
+# produce and flowfit, discover and the report consume. Units in the names.
+SUMMARY_COLUMNS = {
+    "run_id": "str",
+    "kind": "str",                  # flow_step | position_control
+    "side": "str",                  # supply | drain | '' (position_control)
+    "started_at": "datetime64[ns, UTC]",
+    "run_index": "int64",           # 0-based order of the run in the data set (started_at order)
+    "load_mpag": "float64",         # run.json load, or median p_load when null
+    "cam_deg": "float64",           # commanded cam angle of a flow_step (NaN otherwise)
+    "cam_measured_deg": "float64",  # median servo feedback during the step window (NaN if none)
+    "cam_approach": "float64",      # +1 cam reached its angle moving up, -1 moving down, 0 unknown
+    "q_mm3_s": "float64",           # per-run flow of the default method
+    "q_peak_mm3_s": "float64",      # paper's method: max (supply) / min (drain) velocity x area
+    "q_steady_mm3_s": "float64",    # steady-motion estimate
+    "dp_mpa": "float64",            # side's pressure difference over the same window as q_mm3_s
+    "p1_mpa": "float64",            # side's upstream pressure over that window
+    "flow_method": "str",           # 'steady' | 'peak'
+    "excluded": "str",              # '' or one of: leakage, friction, cam_range, invalid
+    "excluded_detail": "str",       # human-readable reason
+}
+
+
+@dataclass(frozen=True)
+class RunMeta:
+    """run.json of one run, validated.
+
+    ``load_mpag`` None means it varies (read p_load_mpag); ``side`` and
+    ``cam_deg`` are set for flow_step runs; ``controller`` for
+    position_control runs. ``extra`` keeps unknown fields.
+    """
+
+    run_id: str
+    kind: str
+    started_at: datetime
+    path: Path
+    load_mpag: float | None = None
+    side: str | None = None
+    cam_deg: float | None = None
+    controller: dict[str, Any] | None = None
+    rig_overrides: dict[str, Any] = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Run:
+    """One validated run: metadata, calibrated tables in engineering units,
+    and the rig config with this run's overrides applied.
+
+    ``tables`` maps 'encoder', 'pressure', 'servo' (and 'controller' for
+    position_control) to DataFrames whose first column is ``t_s``
+    (strictly increasing) and whose other columns are the contract's names
+    (position_mm, p_*_mpag, cam_cmd_deg, cam_deg, x_ref_mm, q_ref_mm3_s).
+    """
+
+    meta: RunMeta
+    tables: dict[str, pd.DataFrame]
+    rig: RigConfig
+
+    @property
+    def run_id(self) -> str:
+        return self.meta.run_id
+
+    @property
+    def kind(self) -> str:
+        return self.meta.kind
