@@ -1,0 +1,1 @@
+"""Benchmarks of seanv-analysis (run with `make bench`)."""
