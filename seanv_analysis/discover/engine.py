@@ -1,0 +1,251 @@
+"""Close the loop on flow-step data: residual -> missing effect -> refit.
+
+Procedure (issue 8):
+
+1. chronological split of runs into fit / held-out, per valve side (the
+   last ``fraction`` of each side's runs; never used for fitting or
+   selection);
+2. base fit of eq. (5) on the fit set (both sides, robust loss, weights
+   from a flow-noise model sigma = a + b |Q|);
+3. residual diagnostics on the fit set against run order, dp, opening,
+   load, cam approach direction, flow; Ljung-Box whiteness in run order;
+4. forward selection over candidate effects. A candidate is kept only when
+   (a) its F-test against the current model has p < alpha / m (m candidates),
+   (b) it lowers the error on an inner chronological validation split of
+   the fit set by at least ``min_improvement``, and (c) a residual
+   permutation check (refits on data resampled under the current model)
+   gives p < ``alpha_perm``;
+5. verdict: ``effect_found``; ``unexplained`` when nothing is kept but the
+   residual still trends with a variable; ``none`` otherwise;
+6. held-out RMSE before (base) and after (base + selected effects).
+"""
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from ..errors import FitError
+from ..models import ValveModel, side_pressures
+from .candidates import candidate_specs, fit_candidate
+from .diagnostics import ljung_box, robust_scale, trend_tests
+from .result import Discovery, EffectFinding
+from .split import chrono_split, kfold_splits
+from .static import EffectSpec, FlowData, StaticFit, fit_static, predict_static
+
+__all__ = ["discover_flow_steps", "noise_model"]
+
+_DEBUG = False
+
+
+def noise_model(q_hat: np.ndarray, residual: np.ndarray, *, floor_mm3_s: float = 10.0) -> np.ndarray:
+    """Flow noise sigma_i = a + b |Q_i| [mm^3/s] fitted to |residual| (robust).
+
+    Flow-step noise grows with flow (pump ripple, friction), so equal
+    weights would let the largest flows decide everything.
+    """
+    x = np.abs(np.asarray(q_hat, float))
+    y = np.abs(np.asarray(residual, float))
+    ok = np.isfinite(x) & np.isfinite(y)
+    if ok.sum() < 6:
+        return np.full(x.shape, max(robust_scale(residual), floor_mm3_s))
+    # median regression of |r| on |Q| via iteratively reweighted least squares
+    a, b = float(np.median(y[ok])), 0.0
+    for _ in range(30):
+        r = y[ok] - (a + b * x[ok])
+        w = 1.0 / np.maximum(np.abs(r), 1e-6 * (1 + np.median(y[ok])))
+        A = np.column_stack([np.ones(ok.sum()), x[ok]]) * np.sqrt(w)[:, None]
+        coef, *_ = np.linalg.lstsq(A, y[ok] * np.sqrt(w), rcond=None)
+        a, b = float(coef[0]), float(max(coef[1], 0.0))
+    sigma = 1.4826 * (np.maximum(a, 0.0) + b * x)
+    return np.maximum(sigma, floor_mm3_s)
+
+
+def _fit_base(model: ValveModel, data: FlowData) -> tuple[StaticFit, np.ndarray]:
+    """Two-pass base fit: unweighted-robust, then with the fitted noise model."""
+    first = fit_static(model, data, np.full(len(data), max(robust_scale(data.q_mm3_s), 1.0)))
+    q_hat = predict_static(first.model, data)
+    sigma = noise_model(q_hat, data.q_mm3_s - q_hat)
+    return fit_static(first.model, data, sigma), sigma
+
+
+def _f_test(rss0: float, p0: int, rss1: float, p1: int, n: int) -> tuple[float, float]:
+    df1, df2 = max(p1 - p0, 1), max(n - p1, 1)
+    if rss1 <= 0:
+        return np.inf, 0.0
+    f = ((rss0 - rss1) / df1) / (rss1 / df2)
+    return float(f), float(stats.f.sf(f, df1, df2)) if f > 0 else 1.0
+
+
+def _rmse(x: np.ndarray) -> float:
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    return float(np.sqrt(np.mean(x ** 2))) if x.size else float("nan")
+
+
+def _opening(model: ValveModel, data: FlowData) -> np.ndarray:
+    out = np.full(len(data), np.nan)
+    for s in ("supply", "drain"):
+        m = data.side == s
+        if m.any():
+            p1, dp = side_pressures(s, data.p_supply_mpag[m], data.p_head_mpag[m], data.p_tank_mpag[m])
+            d = data.theta_deg[m] - model.side(s).threshold_deg(p1, dp)
+            out[m] = d if model.side(s).opens_upward else -d
+    return out
+
+
+def _variables(model: ValveModel, data: FlowData, summary_fit: pd.DataFrame) -> dict[str, np.ndarray]:
+    dp = np.where(data.side == "supply", data.p_supply_mpag - data.p_head_mpag,
+                  data.p_head_mpag - data.p_tank_mpag)
+    v = {"run_index": data.run_index, "dp_mpa": dp, "opening_deg": _opening(model, data),
+         "cam_approach": data.approach, "q_mm3_s": np.abs(data.q_mm3_s)}
+    if "load_mpag" in summary_fit:
+        v["load_mpag"] = summary_fit["load_mpag"].to_numpy(float)
+    return v
+
+
+def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: str = "chrono",
+                        fraction: float = 0.3, alpha: float = 0.01, alpha_perm: float = 0.05,
+                        min_improvement: float = 0.10, n_perm: int = 39, max_effects: int = 3,
+                        seed: int = 0) -> Discovery:
+    """Find effects missing from eq. (5) in a per-run flow-step summary.
+
+    Parameters
+    ----------
+    summary : per-run summary (``SUMMARY_COLUMNS``); excluded runs are dropped.
+    model : starting valve model (geometry + initial z0, C).
+    holdout : 'chrono' (last ``fraction`` of runs held out) or 'kfold'
+        (held-out numbers pooled over 5 folds by run; selection on the first
+        fold's fit set).
+    alpha : family-wise level of the F-test screen; ``alpha_perm`` of the
+        permutation check; ``min_improvement``: relative error drop required
+        on the inner validation split ("materially").
+    """
+    df = summary[(summary["kind"] == "flow_step") & (summary["excluded"].fillna("") == "")]
+    df = df[np.isfinite(df["q_mm3_s"]) & np.isfinite(df["dp_mpa"])].sort_values("run_index")
+    if len(df) < 12:
+        raise FitError(f"discover: {len(df)} usable flow_step runs, need >= 12")
+    data = FlowData.from_summary(df)
+    if holdout == "chrono":
+        fit_m, held_m = chrono_split(data.run_index, fraction=fraction, groups=data.side)
+        splits = [(fit_m, held_m)]
+    elif holdout == "kfold":
+        splits = list(kfold_splits(data.run_index, k=5, seed=seed))
+    else:
+        raise ValueError(f"holdout: expected 'chrono' or 'kfold', got {holdout!r}")
+
+    fit_m, held_m = splits[0]
+    fit_data = data.subset(fit_m)
+    selection = _select(model, fit_data, df[fit_m], alpha=alpha, alpha_perm=alpha_perm,
+                        min_improvement=min_improvement, n_perm=n_perm,
+                        max_effects=max_effects, seed=seed)
+    base, final, findings, trends, lb = selection
+
+    # Held-out error, before and after, with fits on the fit part only.
+    before, after, n_held = [], [], 0
+    for f_m, h_m in splits:
+        fd, hd = data.subset(f_m), data.subset(h_m)
+        b_fit = base if f_m is fit_m else _fit_base(model, fd)[0]
+        specs = [spec for spec, _ in final.effects.values()]
+        a_fit = final if f_m is fit_m else fit_static(b_fit.model, fd, _fit_base(model, fd)[1],
+                                                      effects=specs)
+        before.append(hd.q_mm3_s - predict_static(b_fit.model, hd))
+        after.append(hd.q_mm3_s - predict_static(a_fit.model, hd, a_fit.effects))
+        n_held += int(np.unique(hd.run_index).size)
+    rmse_before = _rmse(np.concatenate(before))
+    rmse_after = _rmse(np.concatenate(after))
+
+    if findings:
+        verdict, trend_var = "effect_found", None
+    else:
+        alpha_trend = 1e-3 / max(len(trends), 1)
+        structured = [t for t in trends if t.p_value < alpha_trend and abs(t.rho) > 0.2]
+        if structured or lb[1] < 1e-4:
+            verdict = "unexplained"
+            trend_var = structured[0].variable if structured else "run_index"
+        else:
+            verdict, trend_var = "none", None
+    return Discovery(verdict=verdict, effects=findings, n_heldout_runs=n_held,
+                     rmse_before_mm3_s=rmse_before, rmse_after_mm3_s=rmse_after,
+                     trend_variable=trend_var, base_model=base.model, model=final.model,
+                     effect_fits=final.effects, trends=trends, ljung_box=lb,
+                     residual_before=np.concatenate(before), residual_after=np.concatenate(after),
+                     heldout_data=data.subset(held_m), fit_data=fit_data,
+                     base_fit=base, final_fit=final, holdout=holdout)
+
+
+def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improvement, n_perm,
+            max_effects, seed):
+    base, sigma = _fit_base(model, data)
+    trends = trend_tests(base.weighted_residual, _variables(base.model, data, summary_fit))
+    order = np.argsort(data.run_index, kind="stable")
+    lb = ljung_box(base.weighted_residual[order])
+
+    inner_fit, inner_val = chrono_split(data.run_index, fraction=0.25, groups=data.side)
+    d_in, d_val = data.subset(inner_fit), data.subset(inner_val)
+    s_in, s_val = sigma[inner_fit], sigma[inner_val]
+    rng = np.random.default_rng(seed)
+
+    current = base
+    selected = []
+    findings: list[EffectFinding] = []
+    for _ in range(max_effects):
+        specs = [s for s in candidate_specs(data, base)
+                 if (s.name, s.side) not in {(x.name, x.side) for x in selected}]
+        if not specs:
+            break
+        cur_in = fit_static(current.model, d_in, s_in, effects=selected)
+        rmse_cur_w = _rmse((d_val.q_mm3_s - predict_static(cur_in.model, d_val, cur_in.effects)) / s_val)
+        scored = []
+        for spec in specs:
+            fit, spec_c = fit_candidate(current, data, sigma, spec, selected)
+            f, p = _f_test(current.rss_weighted, current.n_params, fit.rss_weighted, fit.n_params, len(data))
+            new_in, _ = fit_candidate(cur_in, d_in, s_in, spec_c, selected)
+            rmse_new_w = _rmse((d_val.q_mm3_s - predict_static(new_in.model, d_val, new_in.effects)) / s_val)
+            improvement = 1.0 - rmse_new_w / rmse_cur_w if rmse_cur_w > 0 else 0.0
+            scored.append((f, p, improvement, spec_c, fit))
+        m = len(scored)
+        if _DEBUG:
+            for sc in scored:
+                print(f'  {sc[3].label:28s} F={sc[0]:9.2f} p={sc[1]:.2e} impr={sc[2]:+.3f} {sc[3].fixed}')
+        passing = [s for s in scored if s[1] < alpha / m and s[2] >= min_improvement]
+        if not passing:
+            break
+        f, p, improvement, spec_c, fit = max(passing, key=lambda s: s[0])
+        p_perm = _permutation_check(current, data, sigma, spec_c, selected, f, n_perm=n_perm, rng=rng)
+        if p_perm >= alpha_perm:
+            break
+        selected.append(spec_c)
+        current = fit
+        values = dict(zip(spec_c.params, map(float, fit.effects[spec_c.label][1])))
+        values.update({k: v for k, v in spec_c.fixed.items() if v is not None})
+        ci_all = fit.param_ci95()
+        ci = {name: ci_all[f"{spec_c.label}.{name}"] for name in spec_c.params}
+        findings.append(EffectFinding(spec_c.name, spec_c.side, values, ci, p_value=p_perm,
+                                      f_p_value=p, inner_improvement=improvement))
+    return base, current, findings, trends, lb
+
+
+def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected, f_obs, *, n_perm, rng):
+    """p-value of the candidate's F statistic under the current model.
+
+    Standardised residuals of the current fit are permuted among runs and
+    added back to its prediction (data that obey the current model with the
+    same noise); base and candidate are refitted on each replicate.
+    """
+    q_hat = predict_static(current.model, data, current.effects)
+    z = (data.q_mm3_s - q_hat) / sigma
+    exceed = 0
+    for _ in range(n_perm):
+        q_star = q_hat + sigma * rng.permutation(z)
+        d_star = FlowData(data.side, data.theta_deg, data.p_supply_mpag, data.p_head_mpag,
+                          data.p_tank_mpag, data.run_index, data.approach, q_star)
+        cur = fit_static(current.model, d_star, sigma, effects=selected)
+        spec_free = spec
+        if spec.name == "drift":  # re-search period and phase on each replicate
+            spec_free = EffectSpec("drift", spec.side, ("step",), (0.0,), (-0.5,), (0.5,),
+                                   {"every": None, "offset": None})
+        new, _ = fit_candidate(cur, d_star, sigma, spec_free, selected)
+        f, _ = _f_test(cur.rss_weighted, cur.n_params, new.rss_weighted, new.n_params, len(data))
+        exceed += f >= f_obs
+    return (1 + exceed) / (1 + n_perm)

@@ -1,0 +1,48 @@
+"""Fit / held-out splits of runs for model discovery.
+
+Wear shows up over time, so the default hold-out is chronological: the
+last ``fraction`` of runs (in ``started_at`` order) are held out and never
+used for fitting or selection.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["chrono_split", "kfold_splits"]
+
+
+def chrono_split(run_index: np.ndarray, *, fraction: float = 0.3,
+                 groups: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Boolean masks (fit, heldout): held out are the last ``fraction`` of runs in time order.
+
+    ``run_index`` is the 0-based time order of each row's run (several rows
+    may share a run); the cut is at a run boundary. With ``groups`` (e.g.
+    the valve side), the cut is made within each group, so a side measured
+    in one block early in the day still has held-out runs of its own.
+    """
+    if not 0.0 < fraction < 1.0:
+        raise ValueError(f"fraction: expected 0 < fraction < 1, got {fraction}")
+    run_index = np.asarray(run_index)
+    held = np.zeros(run_index.shape, bool)
+    labels = np.zeros(run_index.shape) if groups is None else np.asarray(groups)
+    for g in np.unique(labels):
+        in_g = labels == g
+        runs = np.unique(run_index[in_g])
+        if runs.size < 2:
+            continue
+        n_hold = min(max(1, int(round(fraction * runs.size))), runs.size - 1)
+        held |= in_g & (run_index >= runs[-n_hold])
+    return ~held, held
+
+
+def kfold_splits(run_index: np.ndarray, *, k: int = 5, seed: int = 0):
+    """Yield (fit, heldout) boolean masks for k folds over runs (not rows)."""
+    if k < 2:
+        raise ValueError(f"k: expected k >= 2, got {k}")
+    run_index = np.asarray(run_index)
+    runs = np.unique(run_index)
+    rng = np.random.default_rng(seed)
+    folds = np.array_split(rng.permutation(runs), k)
+    for fold in folds:
+        held = np.isin(run_index, fold)
+        yield ~held, held

@@ -1,0 +1,239 @@
+"""Per-run (static) flow model of both valve sides with optional effects.
+
+The base model is eq. (5) with the sealing threshold of eq. (3)+(4):
+Q = C (theta - theta_d(p1, dp; z0))^2 dp^0.5 per side. Each candidate effect
+adds a few parameters (its functional form comes from
+:mod:`seanv_analysis.models.effects`), and the whole thing is fitted jointly
+over both sides with ``scipy.optimize.least_squares``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..models import ValveModel, side_pressures
+from . import _forms_tmp as fx
+
+__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static",
+           "STATIC_EFFECTS"]
+
+
+@dataclass(frozen=True)
+class FlowData:
+    """Per-run inputs of the static model (one row per run).
+
+    side: 'supply'/'drain'; theta_deg: cam angle; p_supply/p_head/p_tank in
+    MPaG; run_index: 0-based time order; approach: +1/-1/0 cam approach
+    direction; q: measured flow [mm^3/s].
+    """
+
+    side: np.ndarray
+    theta_deg: np.ndarray
+    p_supply_mpag: np.ndarray
+    p_head_mpag: np.ndarray
+    p_tank_mpag: np.ndarray
+    run_index: np.ndarray
+    approach: np.ndarray
+    q_mm3_s: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.q_mm3_s.size)
+
+    def subset(self, mask: np.ndarray) -> "FlowData":
+        return FlowData(*(getattr(self, f)[mask] for f in self.__dataclass_fields__))
+
+    @classmethod
+    def from_summary(cls, summary) -> "FlowData":
+        """Build from a per-run summary table (``SUMMARY_COLUMNS``) of flow_step runs.
+
+        Head and tank pressures are recovered from (p1, dp) per side:
+        supply p_h = p1 - dp, p_s = p1; drain p_h = p1, p_t = p1 - dp.
+        """
+        side = summary["side"].to_numpy(dtype=object).astype(str)
+        p1 = summary["p1_mpa"].to_numpy(float)
+        dp = summary["dp_mpa"].to_numpy(float)
+        sup = side == "supply"
+        p_head = np.where(sup, p1 - dp, p1)
+        p_supply = np.where(sup, p1, np.nan)
+        p_tank = np.where(sup, 0.0, p1 - dp)
+        theta = summary["cam_measured_deg"].to_numpy(float) if "cam_measured_deg" in summary else \
+            np.full(len(summary), np.nan)
+        theta = np.where(np.isfinite(theta), theta, summary["cam_deg"].to_numpy(float))
+        approach = (summary["cam_approach"].to_numpy(float) if "cam_approach" in summary
+                    else np.zeros(len(summary)))
+        return cls(side, theta, p_supply, p_head, p_tank,
+                   summary["run_index"].to_numpy(float), np.nan_to_num(approach),
+                   summary["q_mm3_s"].to_numpy(float))
+
+
+@dataclass(frozen=True)
+class EffectSpec:
+    """One candidate effect instance: name, side ('supply'/'drain'/'both'),
+    continuous parameter names with start values and bounds, and fixed
+    (grid-searched) parameters."""
+
+    name: str
+    side: str
+    params: tuple[str, ...]
+    x0: tuple[float, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    fixed: dict = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        return f"{self.name}[{self.side}]"
+
+
+def _side_mask(data: FlowData, side: str) -> np.ndarray:
+    return np.ones(len(data), bool) if side == "both" else data.side == side
+
+
+def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[EffectSpec, np.ndarray]]
+                   | None = None) -> np.ndarray:
+    """Predicted flow per run [mm^3/s] of ``model`` with ``effects`` applied.
+
+    ``effects`` maps a label to (spec, parameter values).
+    """
+    effects = effects or {}
+    n = len(data)
+    theta = data.theta_deg.astype(float).copy()
+    p_head = data.p_head_mpag.astype(float).copy()
+    z0_shift = np.zeros(n)
+    c_mult = np.ones(n)
+    exponent = {s: model.side(s).dp_exponent for s in ("supply", "drain")}
+    exponent_rows = np.where(data.side == "supply", exponent["supply"], exponent["drain"])
+    caps = np.full(n, np.inf)
+    for spec, values in effects.values():
+        p = dict(zip(spec.params, values), **spec.fixed)
+        m = _side_mask(data, spec.side)
+        if spec.name == "drift":
+            c_mult[m] *= fx.drift_multiplier(data.run_index[m], **p)
+        elif spec.name == "threshold_shift":
+            z0_shift[m] += fx.threshold_shift_mm(data.run_index[m], **p)
+        elif spec.name == "backlash":
+            theta[m] = fx.backlash_cam_deg(theta[m], data.approach[m], **p)
+        elif spec.name == "pressure_law":
+            exponent_rows[m] = p["exponent"]
+        elif spec.name == "saturation":
+            caps[m] = p["q_max_mm3_s"]
+        elif spec.name == "sensor_gain":
+            p_head[m] = fx.true_from_measured(p_head[m], **p)
+        else:
+            raise ValueError(f"effect {spec.name!r} has no static form")
+    q = np.zeros(n)
+    for s in ("supply", "drain"):
+        m = data.side == s
+        if not m.any():
+            continue
+        vs = model.side(s)
+        p1, dp = side_pressures(s, data.p_supply_mpag[m], p_head[m], data.p_tank_mpag[m])
+        theta_d = vs.threshold_deg(p1, dp, z0_mm=vs.z0_mm + z0_shift[m])
+        d = theta[m] - theta_d
+        opening = np.maximum(d if vs.opens_upward else -d, 0.0)
+        qs = vs.c_flow * c_mult[m] * opening ** 2 * np.sign(dp) * np.abs(dp) ** exponent_rows[m]
+        q[m] = fx.saturate_flow(qs, caps[m])
+    return q
+
+
+@dataclass
+class StaticFit:
+    """Result of a joint fit: the valve model, effect parameter values, the
+    weighted residuals (measured - model) / sigma, and the cost."""
+
+    model: ValveModel
+    effects: dict[str, tuple[EffectSpec, np.ndarray]]
+    residual: np.ndarray
+    weighted_residual: np.ndarray
+    rss_weighted: float
+    n_params: int
+    success: bool
+    message: str
+    covariance: np.ndarray | None = None
+    param_names: tuple[str, ...] = ()
+
+    def param_ci95(self) -> dict[str, tuple[float, float]]:
+        """Wald 95 % intervals from the scaled Jacobian covariance (NaN if singular)."""
+        out = {}
+        values = self._values()
+        for i, name in enumerate(self.param_names):
+            if self.covariance is None or not np.isfinite(self.covariance[i, i]):
+                out[name] = (float("nan"), float("nan"))
+            else:
+                half = 1.96 * float(np.sqrt(max(self.covariance[i, i], 0.0)))
+                out[name] = (values[i] - half, values[i] + half)
+        return out
+
+    def _values(self) -> list[float]:
+        vals = [self.model.supply.z0_mm, self.model.supply.c_flow,
+                self.model.drain.z0_mm, self.model.drain.c_flow]
+        for spec, v in self.effects.values():
+            vals.extend(float(x) for x in v)
+        return vals
+
+
+def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
+               effects: list[EffectSpec] = (), loss: str = "soft_l1",
+               fit_sides: tuple[str, ...] = ("supply", "drain")) -> StaticFit:
+    """Fit z0 and C of both sides (and the effects' parameters) to ``data``.
+
+    Residuals are weighted by ``sigma`` (flow noise model [mm^3/s]); the loss
+    is robust (``soft_l1`` with f_scale = 2, i.e. residuals beyond ~2 sigma
+    count less) so a few bad runs cannot drag C.
+    """
+    present = [s for s in fit_sides if np.any(data.side == s)]
+    names = []
+    x0, lo, hi = [], [], []
+    for s in present:
+        vs = model.side(s)
+        c_abs = max(abs(vs.c_flow), 1.0)
+        names += [f"{s}.z0_mm", f"{s}.C"]
+        x0 += [vs.z0_mm, vs.c_flow]
+        lo += [vs.z0_mm - 1.0, -50 * c_abs if vs.c_flow < 0 else 0.0]
+        hi += [vs.z0_mm + 1.0, 0.0 if vs.c_flow < 0 else 50 * c_abs]
+    for spec in effects:
+        names += [f"{spec.label}.{p}" for p in spec.params]
+        x0 += list(spec.x0)
+        lo += list(spec.lower)
+        hi += list(spec.upper)
+    x0 = np.clip(np.array(x0, float), np.array(lo) + 1e-12, np.array(hi) - 1e-12)
+
+    def unpack(x):
+        m = model
+        k = 0
+        for s in present:
+            m = m.with_side(s, z0_mm=float(x[k]), c_flow=float(x[k + 1]))
+            k += 2
+        eff = {}
+        for spec in effects:
+            npar = len(spec.params)
+            eff[spec.label] = (spec, np.asarray(x[k:k + npar], float))
+            k += npar
+        return m, eff
+
+    def resid(x):
+        m, eff = unpack(x)
+        return (data.q_mm3_s - predict_static(m, data, eff)) / sigma
+
+    sol = least_squares(resid, x0, bounds=(lo, hi), loss=loss, f_scale=2.0,
+                        x_scale="jac", max_nfev=400)
+    m, eff = unpack(sol.x)
+    wr = resid(sol.x)
+    cov = None
+    try:
+        jac = sol.jac
+        dof = max(len(data) - len(sol.x), 1)
+        s2 = float(np.sum(wr ** 2)) / dof
+        cov = np.linalg.inv(jac.T @ jac) * s2
+        if not np.all(np.isfinite(cov)):
+            cov = None
+    except np.linalg.LinAlgError:
+        cov = None
+    return StaticFit(m, eff, wr * sigma, wr, float(np.sum(wr ** 2)), len(sol.x),
+                     bool(sol.success), str(sol.message), cov, tuple(names))
+
+
+STATIC_EFFECTS = ("drift", "threshold_shift", "backlash", "pressure_law", "saturation",
+                  "sensor_gain")
