@@ -1,0 +1,119 @@
+"""Discovery engine on per-run summaries generated from the valve model.
+
+These exercise the statistics (selection, false alarms, held-out error) on
+exactly known effects; tests/test_discover_sim.py runs the whole loop on
+simulator data.
+"""
+import numpy as np
+import pandas as pd
+import pytest
+
+from seanv_analysis import ValveModel, load_rig
+from seanv_analysis.discover import chrono_split, discover_flow_steps
+from seanv_analysis.discover import _forms_tmp as fx
+from seanv_analysis.errors import FitError
+from seanv_analysis.models import ValveSide, side_pressures
+
+MODEL = ValveModel.from_rig(load_rig())
+
+
+def synth_summary(seed=0, effect=None, *, rel_noise=0.03, abs_noise=20.0):
+    """Flow-step summary over a paper-like grid; ``effect`` = (name, side, value)."""
+    rng = np.random.default_rng(seed)
+    rows, i = [], 0
+    name, eff_side, value = effect if effect else (None, None, None)
+    for side in ("supply", "drain"):
+        cams = np.arange(-7.5, 10.1, 2.5) if side == "supply" else np.arange(-40, -21, 2.5)
+        for load in (0.3, 0.35, 0.4, 0.45):
+            for cam in cams:
+                for r in range(3):
+                    ph = 4 * load + (0.6 if side == "supply" else -0.6) + rng.normal(0, 0.02)
+                    approach = 1 if (side == "supply") == (r % 2 == 0) else -1
+                    base = MODEL.side(side)
+                    z0, c, n, theta = base.z0_mm, base.c_flow, 0.5, cam
+                    if name == "drift" and eff_side == side:
+                        c = c * fx.drift_multiplier(i, step=value, every=3)
+                    if name == "threshold_shift" and eff_side == side:
+                        z0 = z0 + fx.threshold_shift_mm(i, rate_mm_per_run=value)
+                    if name == "backlash":
+                        theta = fx.backlash_cam_deg(cam, approach, width_deg=value)
+                    if name == "pressure_law" and eff_side == side:
+                        n = value
+                    vs = ValveSide(side, z0, c, base.geometry, n)
+                    p1, dp = side_pressures(side, 3.3, ph, 0.0)
+                    q = float(vs.flow(theta, p1, dp))
+                    if name == "saturation" and eff_side == side:
+                        q = float(fx.saturate_flow(np.array([q]), value)[0])
+                    q = q * (1 + rng.normal(0, rel_noise)) + rng.normal(0, abs_noise)
+                    rows.append(dict(run_id=f"r{i}", kind="flow_step", side=side, run_index=i,
+                                     load_mpag=load, cam_deg=cam, cam_measured_deg=cam,
+                                     cam_approach=approach, q_mm3_s=q, dp_mpa=dp, p1_mpa=p1,
+                                     excluded="" if abs(q) > 50 else "leakage"))
+                    i += 1
+    return pd.DataFrame(rows)
+
+
+CASES = [("drift", "drain", 0.04), ("drift", "supply", -0.03),
+         ("threshold_shift", "supply", 6e-4), ("threshold_shift", "drain", -3e-4),
+         ("backlash", "both", 2.0), ("pressure_law", "drain", 0.8),
+         ("saturation", "supply", 6000.0)]
+
+
+@pytest.mark.parametrize("effect", CASES, ids=lambda e: f"{e[0]}-{e[1]}")
+def test_names_injected_effect_and_cuts_heldout_error(effect):
+    hits = 0
+    for seed in range(3):
+        d = discover_flow_steps(synth_summary(seed, effect), model=MODEL)
+        named = [(e.name, e.side) for e in d.effects]
+        if d.verdict == "effect_found" and named[0] == effect[:2]:
+            hits += 1
+            assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
+    assert hits == 3  # every seed
+
+
+def test_backlash_width_and_exponent_recovered():
+    d = discover_flow_steps(synth_summary(0, ("backlash", "both", 2.0)), model=MODEL)
+    lo, hi = d.effects[0].params_ci95["width_deg"]
+    assert abs(d.effects[0].params["width_deg"] - 2.0) < 0.3 and lo < 2.0 < hi
+    d = discover_flow_steps(synth_summary(0, ("pressure_law", "drain", 0.8)), model=MODEL)
+    assert abs(d.effects[0].params["exponent"] - 0.8) < 0.1
+
+
+def test_clean_data_says_none():
+    verdicts = [discover_flow_steps(synth_summary(100 + s), model=MODEL).verdict for s in range(10)]
+    assert verdicts.count("none") >= 9
+
+
+def test_heldout_runs_are_never_fitted():
+    df = synth_summary(3, ("drift", "drain", 0.04))
+    d = discover_flow_steps(df, model=MODEL)
+    fit_runs = set(d.fit_data.run_index.tolist())
+    held_runs = set(d.heldout_data.run_index.tolist())
+    assert fit_runs.isdisjoint(held_runs)
+    # corrupting the held-out flows must not change what was selected or fitted
+    df2 = df.copy()
+    df2.loc[df2.run_index.isin(held_runs), "q_mm3_s"] *= 3.0
+    d2 = discover_flow_steps(df2, model=MODEL)
+    assert [e.to_json() for e in d2.effects] == [e.to_json() for e in d.effects]
+
+
+def test_json_contract():
+    d = discover_flow_steps(synth_summary(1, ("drift", "drain", 0.04)), model=MODEL)
+    j = d.to_json()
+    assert set(j) >= {"verdict", "effects", "heldout", "trend_variable"}
+    assert set(j["heldout"]) == {"n_runs", "rmse_before_mm3_s", "rmse_after_mm3_s"}
+    e = j["effects"][0]
+    assert set(e) == {"name", "side", "params", "params_ci95", "p_value"}
+    assert e["name"] == "drift" and e["side"] == "drain" and 0 < e["p_value"] <= 0.05
+
+
+def test_chrono_split_per_side():
+    idx = np.arange(20)
+    side = np.array(["supply"] * 10 + ["drain"] * 10)
+    fit, held = chrono_split(idx, fraction=0.3, groups=side)
+    assert held.tolist() == [False] * 7 + [True] * 3 + [False] * 7 + [True] * 3
+
+
+def test_too_few_runs():
+    with pytest.raises(FitError, match="usable flow_step runs"):
+        discover_flow_steps(synth_summary(0).head(5), model=MODEL)
