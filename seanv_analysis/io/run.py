@@ -70,6 +70,10 @@ class Run:
     meta: RunMeta
     tables: dict[str, pd.DataFrame]
     rig: RigConfig
+    #: files the run was read from: {'run.json' | table name: path}
+    files: dict[str, Path] = field(default_factory=dict)
+    #: SHA-256 of each file read {str(path): hex digest} (empty if not hashed)
+    file_sha256: dict[str, str] = field(default_factory=dict)
 
     @property
     def run_id(self) -> str:
@@ -78,3 +82,43 @@ class Run:
     @property
     def kind(self) -> str:
         return self.meta.kind
+
+    @property
+    def span_s(self) -> tuple[float, float]:
+        """Time span [s] covered by every table (the alignment overlap)."""
+        starts = [float(df["t_s"].iloc[0]) for df in self.tables.values() if len(df)]
+        ends = [float(df["t_s"].iloc[-1]) for df in self.tables.values() if len(df)]
+        return max(starts), min(ends)
+
+    def aligned(self, *, t_s=None) -> pd.DataFrame:
+        """All streams of the run on one time base.
+
+        Parameters
+        ----------
+        t_s : time base [s], optional. Default: the encoder's timestamps
+            inside the overlap of every table's time span.
+
+        Returns
+        -------
+        DataFrame: ``t_s`` [s], position_mm, p_supply/head/load/tank_mpag,
+        cam_cmd_deg, cam_deg (and x_ref_mm, q_ref_mm3_s for position_control).
+        Measurements are linearly interpolated; commands (cam_cmd_deg,
+        x_ref_mm, q_ref_mm3_s) hold their previous value; nothing is
+        extrapolated (instants outside the overlap are dropped). Extra and
+        raw columns of the files are not included.
+
+        See :func:`seanv_analysis.signals.align_streams`.
+        """
+        from ..signals import align_streams
+        from .reader import contract_columns
+
+        streams = {}
+        for name, df in self.tables.items():
+            try:
+                wanted = contract_columns(name)
+            except KeyError:
+                continue
+            cols = [c for c in wanted if c in df.columns]
+            streams[name] = df if list(df.columns) == cols else df[cols]  # CoW: no copy
+        base = "encoder" if "encoder" in streams else next(iter(streams))
+        return align_streams(streams, t_s=t_s, base=base)

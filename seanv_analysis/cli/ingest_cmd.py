@@ -1,0 +1,296 @@
+"""``seanv-analyze ingest``: validate, calibrate and align rig logs; write
+Parquet tables, a per-run summary and a manifest."""
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+import math
+import os
+import sys
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Any, Callable
+
+import click
+
+from . import cli
+from ._common import default_out_dir, echo_bad_runs
+
+__all__ = ["ingest_cmd", "ingest"]
+
+
+def _optional(module: str, name: str) -> Callable | None:
+    """``seanv_analysis.<module>.<name>`` if that module exists, else None."""
+    try:
+        mod = importlib.import_module(f"seanv_analysis.{module}")
+    except ModuleNotFoundError as exc:
+        if exc.name == f"seanv_analysis.{module}":
+            return None
+        raise
+    return getattr(mod, name, None)
+
+
+def _inside(child: Path, parent: Path) -> bool:
+    child, parent = child.resolve(), parent.resolve()
+    return child == parent or parent in child.parents
+
+
+def _metadata_summary(run, samples) -> dict[str, Any]:
+    """Summary row from metadata only (used when the derive stage is absent)."""
+    import numpy as np
+    import pandas as pd
+
+    meta = run.meta
+    load = meta.load_mpag
+    if load is None and "p_load_mpag" in samples:
+        load = float(np.nanmedian(samples["p_load_mpag"].to_numpy()))
+    return {
+        "run_id": meta.run_id, "kind": meta.kind, "side": meta.side or "",
+        "started_at": pd.Timestamp(meta.started_at),
+        "load_mpag": math.nan if load is None else float(load),
+        "cam_deg": math.nan if meta.cam_deg is None else float(meta.cam_deg),
+        "cam_measured_deg": math.nan, "cam_approach": 0.0,
+        "q_mm3_s": math.nan, "q_peak_mm3_s": math.nan, "q_steady_mm3_s": math.nan,
+        "dp_mpa": math.nan, "p1_mpa": math.nan, "flow_method": "",
+    }
+
+
+def _summary_frame(rows: list[dict[str, Any]]):
+    """Rows -> DataFrame with exactly SUMMARY_COLUMNS, in order, typed."""
+    import pandas as pd
+
+    from ..io.run import SUMMARY_COLUMNS
+
+    df = pd.DataFrame(rows)
+    for col, dtype in SUMMARY_COLUMNS.items():
+        if col not in df:
+            df[col] = "" if dtype == "str" else (0 if dtype == "int64" else math.nan)
+    df = df[list(SUMMARY_COLUMNS)]
+    for col, dtype in SUMMARY_COLUMNS.items():
+        if dtype == "str":
+            df[col] = df[col].fillna("").astype(str)
+        elif dtype.startswith("datetime64"):
+            df[col] = pd.to_datetime(df[col], utc=True).astype(dtype)
+        else:
+            df[col] = df[col].astype(dtype)
+    return df
+
+
+class _SampleWriter:
+    """One Parquet file per run kind, written run by run (bounded memory),
+    atomically (temp file renamed when the command succeeds)."""
+
+    def __init__(self, out_dir: Path, stack: ExitStack, metadata: dict[str, Any]):
+        self.out_dir, self.stack, self.metadata = out_dir, stack, metadata
+        self.writers: dict[str, Any] = {}
+        self.schemas: dict[str, Any] = {}
+        self.rows: dict[str, int] = {}
+
+    def path(self, kind: str) -> Path:
+        return self.out_dir / f"{kind}.parquet"
+
+    def write(self, kind: str, run_id: str, samples) -> None:
+        import pyarrow as pa
+        import pyarrow.compute as pc
+        import pyarrow.parquet as pq
+
+        from ..io.atomic import atomic_path
+        from ..io.writer import units_from_columns
+
+        if kind in self.schemas:
+            samples = samples.reindex(columns=[n for n in self.schemas[kind].names if n != "run_id"])
+        table = pa.Table.from_pandas(samples, preserve_index=False)
+        ids = pc.fill_null(pa.nulls(table.num_rows, pa.string()), run_id)
+        table = table.add_column(0, "run_id", ids)
+        if kind not in self.writers:
+            units = units_from_columns(table.column_names)
+            fields = [f.with_metadata({b"unit": units[f.name].encode()}) for f in table.schema]
+            meta = {b"seanv.units": json.dumps(units).encode(),
+                    b"seanv.meta": json.dumps({**self.metadata, "kind": kind}, default=str).encode()}
+            schema = pa.schema(fields, metadata=meta)
+            tmp = self.stack.enter_context(atomic_path(self.path(kind)))
+            writer = pq.ParquetWriter(tmp, schema)
+            self.stack.callback(writer.close)
+            self.writers[kind], self.schemas[kind], self.rows[kind] = writer, schema, 0
+        table = table.cast(self.schemas[kind])
+        self.writers[kind].write_table(table)
+        self.rows[kind] += table.num_rows
+
+
+def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[str, Any]:
+    """Library side of the command: read, align, derive, summarise, write.
+
+    Returns a result dict (also the ``--json`` document); raises
+    :class:`~seanv_analysis.errors.DataError` for a single bad run folder.
+    """
+    from ..errors import DataError, SeanvError
+    from ..io.reader import RunError, find_runs, is_run_dir, iter_dataset, read_run
+    from ..io.writer import write_table_parquet
+    from ..manifest import write_manifest
+
+    derive_samples = _optional("derive", "derive_samples")
+    summarize_run = _optional("derive", "summarize_run")
+    apply_filters = _optional("filters", "apply_filters")
+
+    root = Path(data)
+    find_runs(root)  # missing / not a folder -> DataError
+    if _inside(out_dir, root):
+        raise DataError(f"--out: {out_dir} is inside the data folder; outputs never go into raw "
+                        "data: choose another --out (default: outputs/<dataset>/ingest/ under "
+                        "the current folder)", path=root)
+    single = is_run_dir(root)
+    if single:
+        items: Any = [read_run(root, rig=rig)]
+        total = 1
+    else:
+        items = iter_dataset(root, rig=rig)
+        total = len(find_runs(root))
+
+    reuse = summarize_run is not None and derive_samples is not None and \
+        "derived" in inspect.signature(summarize_run).parameters
+
+    def process(run):
+        samples = derive_samples(run) if derive_samples else run.aligned()
+        if summarize_run is None:
+            row = _metadata_summary(run, samples)
+        elif reuse:  # the derived table is computed once
+            row = summarize_run(run, derived=samples)
+        else:
+            row = summarize_run(run)
+        return samples, row
+
+    rows: list[dict[str, Any]] = []
+    errors: list[RunError] = []
+    hashes: dict[str, str] = {}
+    by_kind: dict[str, int] = {}
+    meta = {"rig_source": rig.source, "data": str(root)}
+    with ExitStack() as stack:
+        writer = _SampleWriter(out_dir, stack, meta)
+        if progress and total > 1:
+            from tqdm import tqdm
+            items = stack.enter_context(tqdm(items, total=total, unit="run", file=sys.stderr,
+                                             desc="ingest", leave=False,
+                                             disable=None))
+        for item in items:
+            if isinstance(item, RunError):
+                errors.append(item)
+                continue
+            try:
+                samples, row = process(item)
+            except SeanvError as exc:
+                if single:
+                    raise
+                msg = " ".join(str(exc).split())
+                if str(item.meta.path) not in msg:
+                    msg = f"{item.meta.path}: {msg}"
+                errors.append(RunError(item.meta.path, msg))
+                continue
+            row = dict(row)
+            row["run_index"] = len(rows)
+            rows.append(row)
+            writer.write(item.kind, item.run_id, samples)
+            by_kind[item.kind] = by_kind.get(item.kind, 0) + 1
+            hashes.update(item.file_sha256)
+            del samples, item
+        if not rows:  # no writer was opened: nothing is written
+            return _result(root, out_dir, by_kind, errors, {}, None, derive_samples is not None,
+                           apply_filters is not None, excluded={})
+        summary = _summary_frame(rows)
+        if apply_filters:
+            summary = _summary_frame(apply_filters(summary, rig).to_dict("records"))
+    tables = {kind: str(writer.path(kind)) for kind in writer.rows}
+    summary_path = write_table_parquet(summary, out_dir / "summary.parquet", metadata=meta)
+    excluded = {k: int(v) for k, v in summary["excluded"][summary["excluded"] != ""]
+                .value_counts().items()}
+    result = _result(root, out_dir, by_kind, errors, tables, summary_path,
+                     derive_samples is not None, apply_filters is not None, excluded=excluded)
+    result["rows"] = dict(writer.rows)
+    manifest = write_manifest(out_dir, config=rig, inputs=hashes, command=sys.argv,
+                              extra={"ingest": {k: v for k, v in result.items() if k != "manifest"}})
+    result["manifest"] = str(manifest)
+    return result
+
+
+def _result(root, out_dir, by_kind, errors, tables, summary_path, derived, filtered, *, excluded):
+    return {
+        "data": str(root),
+        "out": str(out_dir),
+        "runs": sum(by_kind.values()),
+        "runs_by_kind": by_kind,
+        "bad_runs": [e.to_json() for e in errors],
+        "tables": tables,
+        "summary": None if summary_path is None else str(summary_path),
+        "excluded": excluded,
+        "derived": derived,
+        "filtered": filtered,
+        "manifest": None,
+    }
+
+
+@cli.command("ingest")
+@click.argument("data", type=click.Path(path_type=Path))
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+              help="Output folder. Default: outputs/<dataset-name>/ingest/ under the current "
+                   "folder (never inside DATA).")
+@click.option("--rig", "rig_file", type=click.Path(dir_okay=False, path_type=Path),
+              help="Rig config TOML with only the keys you change (calibration, "
+                   "analysis.max_plausible_pressure_mpag, ...). Default: "
+                   "data_schema/rig/default.toml.")
+@click.option("--json", "as_json", is_flag=True,
+              help="Print the result as one JSON document on stdout (nothing else on stdout).")
+@click.option("-q", "--quiet", is_flag=True, help="No progress bar on stderr.")
+def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, as_json: bool,
+               quiet: bool) -> int:
+    """Validate, calibrate and align the runs in DATA; write Parquet tables.
+
+    DATA is a data set folder (sub-folders at any depth holding run.json) or
+    one run folder. Every run is checked against the data contract (files,
+    columns, numbers, strictly increasing t_s, pressures in MPa gauge); raw
+    columns (encoder_counts, p_*_v, p_*_kpag, *_pulse) are converted with the
+    rig's [calibration]; missing p_tank_mpag is 0 MPaG. Streams are put on the
+    encoder's time base inside the span all streams cover (measurements
+    interpolated linearly, commands held), and flow is derived when the
+    derive stage is installed.
+
+    \b
+    Writes (under --out, default outputs/<dataset-name>/ingest/):
+      flow_step.parquet, position_control.parquet
+          aligned samples, one row per encoder sample: run_id, t_s [s],
+          position_mm, p_supply/head/load/tank_mpag [MPa gauge],
+          cam_cmd_deg, cam_deg [deg] (x_ref_mm, q_ref_mm3_s for position
+          control); units also in the Parquet schema metadata
+      summary.parquet   one row per run (run_id, started_at, load_mpag,
+                        cam_deg, q_mm3_s, dp_mpa, excluded, ...)
+      manifest.json     package version, git SHA, rig config, SHA-256 of
+                        every input file, command line
+
+    \b
+    Exit codes: 0 all runs read; 1 some runs bad (listed on stderr at the
+    end, the others processed); 2 bad input (a bad single run folder, a
+    missing folder, a bad rig file), one line on stderr.
+
+    \b
+    Example:
+      seanv-analyze ingest data/flow --json
+      seanv-analyze ingest data/flow/supply-load0.35-cam-8.0-r2 --out /tmp/one
+    """
+    from ..config import load_rig
+
+    rig = load_rig(rig_file)
+    out = Path(out_dir) if out_dir else default_out_dir(data, "ingest")
+    progress = not quiet and not os.environ.get("CI")
+    result = ingest(data, out_dir=out, rig=rig, progress=progress)
+    if as_json:
+        click.echo(json.dumps(result))
+    else:
+        kinds = ", ".join(f"{k}: {n}" for k, n in sorted(result["runs_by_kind"].items()))
+        click.echo(f"ingested {result['runs']} run(s) from {data}" + (f" ({kinds})" if kinds else ""))
+        if result["excluded"]:
+            ex = ", ".join(f"{k}: {n}" for k, n in sorted(result["excluded"].items()))
+            click.echo(f"excluded by the filters: {ex}")
+        if not result["derived"]:
+            click.echo("note: derive stage not installed: flow columns of summary.parquet are NaN")
+        if result["summary"]:
+            click.echo(f"outputs: {out}")
+    return echo_bad_runs([e["message"] for e in result["bad_runs"]])

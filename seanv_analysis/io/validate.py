@@ -1,0 +1,314 @@
+"""Validation of the data contract: run.json and column checks.
+
+Every check raises :class:`~seanv_analysis.errors.DataError` whose message
+names the file, the field or column, the row where it applies, the bad value
+and what was expected. Rows are 1-based data rows: the header line is not
+counted (row 1 is the first line after the header; blank lines, which the
+CSV reader skips, are not counted either). Checks are vectorised (numpy);
+only the first offending row is reported.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import math
+import re
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from ..config import load_contract
+from ..errors import DataError
+from .run import RunMeta
+
+__all__ = ["parse_run_json", "read_run_json", "check_finite", "check_increasing",
+           "check_pressure", "check_rig_overrides", "format_value"]
+
+_SAFE_ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9._+=@-]*$")
+
+
+def format_value(value: Any, *, limit: int = 60) -> str:
+    """Short printable form of a bad value for an error message."""
+    if isinstance(value, float):
+        if math.isnan(value):
+            return "NaN"
+        return repr(value)
+    if isinstance(value, (bytes, bytearray)):
+        text = repr(bytes(value[:limit]))
+    else:
+        try:
+            text = json.dumps(value, default=str, ensure_ascii=True)
+        except (TypeError, ValueError):
+            text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+@functools.lru_cache(maxsize=1)
+def _contract() -> dict[str, Any]:
+    """The data contract (read once per process)."""
+    return load_contract()
+
+
+# run.json -----------------------------------------------------------------
+
+def read_run_json(run_dir: str | Path, *, max_pressure_mpag: float = math.inf) -> RunMeta:
+    """Read and validate ``<run_dir>/run.json``.
+
+    Raises
+    ------
+    DataError
+        run.json missing, not UTF-8 JSON, not an object, or breaking the
+        contract (see :func:`parse_run_json`).
+    """
+    run_dir = Path(run_dir)
+    path = run_dir / "run.json"
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise DataError("missing; expected a run folder holding run.json "
+                        "(metadata) and encoder, pressure, servo tables", path=path) from None
+    except IsADirectoryError:
+        raise DataError("is a folder; expected a JSON file", path=path) from None
+    except OSError as exc:
+        raise DataError(f"cannot read file ({exc.strerror}); expected a readable JSON file",
+                        path=path) from None
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise DataError(f"not UTF-8 text (byte {format_value(raw[exc.start:exc.start + 4])} at "
+                        f"offset {exc.start}); expected a JSON object", path=path) from None
+    try:
+        obj = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise DataError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg}); "
+                        'expected a JSON object like {"schema": "seanv-run/1", "run_id": ...}',
+                        path=path) from None
+    return parse_run_json(obj, path=path, max_pressure_mpag=max_pressure_mpag)
+
+
+def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = math.inf) -> RunMeta:
+    """Validate the decoded content of a run.json against the contract.
+
+    Parameters
+    ----------
+    obj : decoded JSON
+    path : the run.json path (named in messages; its folder is the run folder)
+    max_pressure_mpag : plausibility limit for ``load_mpag`` [MPa gauge]
+
+    Raises
+    ------
+    DataError
+        wrong schema version, unknown kind, missing or mistyped field,
+        flow_step without side or cam_deg, position_control without
+        controller, bad started_at, unsafe run_id.
+    """
+    path = Path(path)
+    contract = _contract()
+    spec = contract["run_json"]
+
+    def fail(field: str, message: str):
+        raise DataError(f"field '{field}': {message}", path=path)
+
+    if not isinstance(obj, dict):
+        raise DataError(f"top level is a JSON {type(obj).__name__}; expected a JSON object "
+                        '{"schema": "seanv-run/1", ...}', path=path)
+    for name in spec["required"]:
+        if name not in obj:
+            fail(name, f"missing; required fields are {', '.join(spec['required'])}")
+
+    schema = obj["schema"]
+    if schema != contract["schema"]:
+        fail("schema", f"{format_value(schema)} is not supported; expected "
+                       f"'{contract['schema']}' (data contract version 1)")
+
+    run_id = obj["run_id"]
+    if not isinstance(run_id, str) or not _SAFE_ID.match(run_id) or len(run_id) > 200:
+        fail("run_id", f"{format_value(run_id)} is not a safe file name; expected letters, "
+                       "digits and . _ - + = @ (not starting with '.' or '-', no '/')")
+
+    kind = obj["kind"]
+    if kind not in contract["run_kinds"]:
+        fail("kind", f"{format_value(kind)} is unknown; expected one of "
+                     f"{', '.join(contract['run_kinds'])}")
+
+    started_at = _parse_started_at(obj["started_at"], fail)
+
+    load = obj.get("load_mpag")
+    if load is not None:
+        if not _is_number(load) or not math.isfinite(load):
+            fail("load_mpag", f"{format_value(load)} is not a finite number; expected "
+                              "MPa gauge or null (load varies, read p_load_mpag)")
+        if abs(load) > max_pressure_mpag:
+            fail("load_mpag", f"{format_value(load)} is above the plausible {max_pressure_mpag:g} "
+                              "MPaG (rig analysis.max_plausible_pressure_mpag): looks like kPa "
+                              "or Pa; expected MPa gauge")
+        load = float(load)
+
+    for name in contract["run_json"]["required_by_kind"].get(kind, []):
+        if name not in obj or obj[name] is None:
+            fail(name, f"missing; required for kind '{kind}'")
+
+    side = obj.get("side")
+    cam = obj.get("cam_deg")
+    if kind == "flow_step":
+        if side not in contract["sides"]:
+            fail("side", f"{format_value(side)} is unknown; expected one of "
+                         f"{', '.join(contract['sides'])}")
+        if not _is_number(cam) or not math.isfinite(cam):
+            fail("cam_deg", f"{format_value(cam)} is not a finite number; expected the "
+                            "commanded cam angle [deg]")
+        cam = float(cam)
+    else:
+        side = side if side in contract["sides"] else None
+        cam = float(cam) if _is_number(cam) and math.isfinite(cam) else None
+
+    controller = obj.get("controller")
+    if kind == "position_control":
+        controller = _check_controller(controller, fail)
+    elif not isinstance(controller, dict):
+        controller = None
+
+    rig = obj.get("rig", {})
+    if rig is None:
+        rig = {}
+    if not isinstance(rig, dict):
+        fail("rig", f"{format_value(rig)} is not an object; expected rig-config overrides "
+                    'with the rig file\'s nesting, e.g. {"supply": {"pressure_mpag": 3.2}}')
+
+    known = set(spec["required"]) | set(spec["optional"])
+    extra = {k: v for k, v in obj.items() if k not in known}
+    return RunMeta(run_id=run_id, kind=kind, started_at=started_at, path=path.parent,
+                   load_mpag=load, side=side, cam_deg=cam, controller=controller,
+                   rig_overrides=rig, extra=extra)
+
+
+def _parse_started_at(value: Any, fail) -> datetime:
+    if not isinstance(value, str):
+        fail("started_at", f"{format_value(value)} is not a string; expected an ISO 8601 "
+                           "time like '2026-03-02T10:14:05Z'")
+    try:
+        dt = datetime.fromisoformat(value.strip())
+    except ValueError:
+        fail("started_at", f"{format_value(value)} is not an ISO 8601 time; expected e.g. "
+                           "'2026-03-02T10:14:05Z'")
+    # A time without zone is taken as UTC (documented in read_run).
+    return dt.replace(tzinfo=timezone.utc) if dt.tzinfo is None else dt.astimezone(timezone.utc)
+
+
+def _check_controller(controller: Any, fail) -> dict[str, Any]:
+    spec = _contract()["run_json"]["controller"]
+    if not isinstance(controller, dict):
+        fail("controller", f"{format_value(controller)} is not an object; expected "
+                           '{"kp": 480, "flow_model": true, "rate_hz": 100}')
+    for name in spec["required"]:
+        if name not in controller:
+            fail(f"controller.{name}", "missing; required for kind 'position_control'")
+    kp = controller["kp"]
+    if not _is_number(kp) or not math.isfinite(kp):
+        fail("controller.kp", f"{format_value(kp)} is not a finite number; expected the "
+                              "proportional gain (mm^3/s per mm with the flow model, deg per mm without)")
+    if not isinstance(controller["flow_model"], bool):
+        fail("controller.flow_model", f"{format_value(controller['flow_model'])} is not a "
+                                      "boolean; expected true or false")
+    rate = controller.get("rate_hz")
+    if rate is not None and (not _is_number(rate) or not rate > 0 or not math.isfinite(rate)):
+        fail("controller.rate_hz", f"{format_value(rate)} is not a positive number; "
+                                   "expected the control rate [Hz]")
+    return dict(controller)
+
+
+def check_rig_overrides(overrides: Mapping[str, Any], base: Mapping[str, Any], *,
+                        path: str | Path, where: str = "rig") -> None:
+    """Check run.json "rig" overrides against the rig config: every key must
+    exist there, tables must stay tables and numbers stay numbers.
+
+    Raises
+    ------
+    DataError
+        naming the dotted key (``rig.valve.supply.z0_mm``), the bad value and
+        the keys that exist at that level.
+    """
+    for key, value in overrides.items():
+        here = f"{where}.{key}"
+        if key not in base:
+            known = ", ".join(sorted(base))
+            raise DataError(f"field '{here}': unknown rig key; expected one of {known}", path=path)
+        ref = base[key]
+        if isinstance(ref, Mapping):
+            if not isinstance(value, Mapping):
+                raise DataError(f"field '{here}': {format_value(value)} is not an object; "
+                                "expected a table of rig keys", path=path)
+            check_rig_overrides(value, ref, path=path, where=here)
+        elif _is_number(ref) and not (_is_number(value) and math.isfinite(value)):
+            raise DataError(f"field '{here}': {format_value(value)} is not a finite number; "
+                            f"expected a number like the rig config's {format_value(ref)}",
+                            path=path)
+        elif isinstance(ref, str) and not isinstance(value, str):
+            raise DataError(f"field '{here}': {format_value(value)} is not a string", path=path)
+        elif isinstance(ref, list) and not isinstance(value, list):
+            raise DataError(f"field '{here}': {format_value(value)} is not a list; "
+                            f"expected e.g. {format_value(ref)}", path=path)
+
+
+# columns ------------------------------------------------------------------
+
+def check_finite(values: np.ndarray, *, path: str | Path, column: str,
+                 nullable: bool = False) -> None:
+    """Every value finite (or, for a nullable column, no +-inf).
+
+    An empty cell reads as NaN. ``nullable`` columns (cam_deg, q_ref_mm3_s)
+    may be empty, partly or entirely.
+    """
+    if np.isfinite(np.add.reduce(values)):
+        return  # one pass, no temporary: any NaN or inf would make the sum non-finite
+    bad = np.isinf(values) if nullable else ~np.isfinite(values)
+    if not bad.any():
+        return  # the sum overflowed, or NaN in a nullable column
+    i = int(np.argmax(bad))
+    v = float(values[i])
+    what = "empty cell or NaN" if math.isnan(v) else f"value {v!r}"
+    expect = ("a finite number or an empty cell (column may be empty)" if nullable
+              else "a finite number in every row")
+    raise DataError(f"{what}; expected {expect}", path=path, column=column, row=i + 1)
+
+
+def check_increasing(t: np.ndarray, *, path: str | Path, column: str = "t_s") -> None:
+    """Timestamps strictly increasing (no repeats, no steps back)."""
+    if t.size < 2:
+        return
+    ok = t[1:] > t[:-1]
+    if ok.all():
+        return
+    i = int(np.argmin(ok))
+    a, b = float(t[i]), float(t[i + 1])
+    if a == b:
+        msg = (f"duplicated timestamp {b!r} (same as row {i + 1}); expected strictly "
+               "increasing seconds")
+    else:
+        msg = (f"timestamp {b!r} is before the previous row's {a!r}: not monotonic; "
+               "expected strictly increasing seconds")
+    raise DataError(msg, path=path, column=column, row=i + 2)
+
+
+def check_pressure(values: np.ndarray, *, limit_mpag: float, path: str | Path, column: str,
+                   source: str | None = None) -> None:
+    """Pressure values within +-``limit_mpag`` [MPa gauge]; larger ones are
+    taken as kPa or Pa written in an MPa column (an error, never rescaled)."""
+    if values.size == 0 or (np.fmax.reduce(values) <= limit_mpag
+                            and np.fmin.reduce(values) >= -limit_mpag):
+        return  # fmax/fmin skip NaN (an empty nullable cell is no pressure error)
+    bad = np.abs(values) > limit_mpag
+    if not bad.any():
+        return
+    i = int(np.argmax(bad))
+    conv = f" (converted from '{source}')" if source else ""
+    raise DataError(f"value {float(values[i])!r}{conv} is above the plausible {limit_mpag:g} MPaG "
+                    "(rig analysis.max_plausible_pressure_mpag): looks like kPa or Pa; expected "
+                    "gauge MPa (give kPa as a p_*_kpag column instead)",
+                    path=path, column=column, row=i + 1)

@@ -1,0 +1,156 @@
+"""Signal utilities on sampled logs: putting streams on one time base.
+
+Streams of one run come at different rates (encoder and pressure 1 kHz,
+servo and controller 100 Hz) and start at different instants;
+:func:`align_streams` puts them on a common time base without inventing data
+outside the span every stream covers.
+"""
+from __future__ import annotations
+
+from typing import Collection, Mapping
+
+import numpy as np
+import pandas as pd
+
+from .errors import DataError
+
+__all__ = ["align_streams", "HOLD_COLUMNS"]
+
+#: Commands: piecewise constant between samples (the controller holds them),
+#: so they are aligned with previous-value hold, never interpolated.
+HOLD_COLUMNS = frozenset({"cam_cmd_deg", "x_ref_mm", "q_ref_mm3_s"})
+
+
+def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None = None,
+                  base: str = "encoder", hold: Collection[str] = HOLD_COLUMNS,
+                  time_column: str = "t_s") -> pd.DataFrame:
+    """Put several sampled streams on one time base.
+
+    Parameters
+    ----------
+    streams : {name: DataFrame or {column: array}}; each has the time column
+        ``t_s`` [s] (strictly increasing, as the reader guarantees) and
+        numeric value columns. Value column names must be unique across
+        streams.
+    t_s : time base [s], optional. Default: the ``base`` stream's own
+        timestamps inside the overlap. Instants outside the overlap are
+        dropped (never extrapolated); the order of the others is kept.
+    base : name of the stream whose timestamps are the default time base
+        (the encoder's, the fastest stream of the rig).
+    hold : columns aligned by previous-value hold (commands: cam_cmd_deg,
+        x_ref_mm, q_ref_mm3_s); every other column is linearly interpolated.
+    time_column : name of the time column.
+
+    Returns
+    -------
+    DataFrame with ``t_s`` first, then every value column of every stream in
+    stream order; one row per kept instant.
+
+    Notes
+    -----
+    The overlap is ``[max_k t_k[0], min_k t_k[-1]]`` over the streams k.
+    At an instant t, a measurement column gives
+    ``v_i + (v_{i+1} - v_i) (t - t_i) / (t_{i+1} - t_i)`` with
+    ``t_i <= t <= t_{i+1}``; a held column gives ``v_i`` with the largest
+    ``t_i <= t``. A NaN sample (empty nullable column) gives NaN in the
+    intervals it bounds. On the default time base the base stream's columns
+    are taken as they are (bit-exact; from a float64 DataFrame they are
+    copy-on-write views, so they cost no memory until written).
+
+    Raises
+    ------
+    DataError
+        a stream is empty or the streams' time spans do not overlap.
+    ValueError
+        ``base`` missing (with ``t_s`` None), a column name repeated across
+        streams, or a non-numeric column.
+
+    Examples
+    --------
+    >>> enc = pd.DataFrame({"t_s": [0.0, 0.001, 0.002, 0.003], "position_mm": [0., 1., 2., 3.]})
+    >>> servo = pd.DataFrame({"t_s": [0.0005, 0.0025], "cam_cmd_deg": [-15.0, -8.0]})
+    >>> align_streams({"encoder": enc, "servo": servo})
+         t_s  position_mm  cam_cmd_deg
+    0  0.001          1.0        -15.0
+    1  0.002          2.0        -15.0
+    """
+    if not streams:
+        raise ValueError("streams: expected at least one stream")
+    columns: dict[str, dict[str, np.ndarray]] = {}
+    times: dict[str, np.ndarray] = {}
+    seen: dict[str, str] = {}
+    for name, stream in streams.items():
+        keys = list(stream.columns if isinstance(stream, pd.DataFrame) else stream.keys())
+        if time_column not in keys:
+            raise ValueError(f"streams['{name}']: no '{time_column}' column")
+        cols = {}
+        for col in keys:
+            values = np.asarray(stream[col])
+            if values.dtype.kind not in "biuf":
+                raise ValueError(f"streams['{name}']: column '{col}' is not numeric "
+                                 f"({values.dtype})")
+            if col == time_column:
+                continue
+            if col in seen:
+                raise ValueError(f"streams: column '{col}' is in both '{seen[col]}' and '{name}'")
+            seen[col] = name
+            cols[col] = values
+        t = np.asarray(stream[time_column], dtype=np.float64)
+        if t.size == 0:
+            raise DataError(f"stream '{name}' has no samples; expected at least one")
+        times[name], columns[name] = t, cols
+    lo = max(float(t[0]) for t in times.values())
+    hi = min(float(t[-1]) for t in times.values())
+    if lo > hi:
+        spans = ", ".join(f"{n} {t[0]:g}..{t[-1]:g} s" for n, t in times.items())
+        raise DataError(f"streams do not overlap in time ({spans}); expected a common span")
+
+    base_slice = None
+    if t_s is None:
+        if base not in times:
+            raise ValueError(f"base: no stream named '{base}' (streams: {', '.join(times)})")
+        tb = times[base]
+        i0 = int(np.searchsorted(tb, lo, side="left"))
+        i1 = int(np.searchsorted(tb, hi, side="right"))
+        base_slice = slice(i0, i1)
+        t = tb[base_slice]
+    else:
+        t = np.asarray(t_s, dtype=np.float64).ravel()
+        t = t[(t >= lo) & (t <= hi)]  # NaN fails both and is dropped too
+
+    t_sorted = base_slice is not None or bool(np.all(t[1:] >= t[:-1]))
+    out: dict[str, object] = {}
+    hold = set(hold)
+    for name, cols in columns.items():
+        tk = times[name]
+        if base_slice is not None and name == base:
+            stream = streams[name]
+            if isinstance(stream, pd.DataFrame) and all(
+                    stream[c].dtype == np.float64 for c in (time_column, *cols)):
+                # copy-on-write views of the base frame: no copy until written
+                view = stream.iloc[base_slice].reset_index(drop=True)
+                out[time_column] = view[time_column]
+                out.update((c, view[c]) for c in cols)
+            else:
+                out[time_column] = np.array(t, dtype=np.float64)
+                out.update((c, np.array(v[base_slice], dtype=np.float64)) for c, v in cols.items())
+            continue
+        counts = idx = None
+        for c, v in cols.items():
+            v = np.asarray(v, dtype=np.float64)
+            if c not in hold:
+                out[c] = np.interp(t, tk, v)
+            elif t_sorted:
+                if counts is None:
+                    # sample i holds over t in [t_i, t_{i+1}); t >= lo >= tk[0]
+                    starts = np.searchsorted(t, tk, side="left")
+                    counts = np.diff(starts, append=t.size)
+                out[c] = np.repeat(v, counts)
+            else:
+                if idx is None:
+                    idx = np.searchsorted(tk, t, side="right") - 1  # largest t_i <= t
+                out[c] = v[idx]
+    if time_column not in out:
+        out[time_column] = np.array(t, dtype=np.float64)
+    out = {time_column: out.pop(time_column), **out}
+    return pd.DataFrame(out, copy=False)

@@ -1,0 +1,184 @@
+"""Shared fixtures: small synthetic runs written through ``io.writer.write_run``.
+
+Use the fixtures (``make_run``, ``make_dataset``, ``rig``) from any test:
+
+    def test_something(tmp_path, make_run):
+        run_dir = make_run(tmp_path, kind="flow_step", cam_deg=-5.0, side="supply")
+        ...
+
+``make_run(root, kind=..., **overrides)`` writes ``root/<run_id>/`` and returns
+that folder. Overrides:
+
+- run.json fields: ``run_id``, ``side``, ``cam_deg``, ``load_mpag``,
+  ``started_at``, ``controller``, ``rig``; ``meta={...}`` merges any other
+  fields (``DROP`` as a value removes a field, e.g. ``meta={"side": DROP}``);
+- tables: ``tables={"servo": df}`` replaces a table, ``{"servo": None}``
+  omits its file; ``fmt="parquet"`` writes Parquet;
+- signal shape: ``duration_s``, ``seed``, ``flow_mm3_s``, rates
+  (``encoder_rate_hz`` ...) and start instants (``servo_start_s`` ...),
+  ``noise`` (False: exact, noise-free signals). See :func:`synthetic_tables`.
+
+The signals are plausible, not simulated: a flow step holds the cam at the
+servo neutral (-15 deg, both needles closed) for the first 20 % of the run,
+then commands ``cam_deg``; the actuator moves at ``flow_mm3_s / 201.06 mm^2``
+after a 50 ms dead time. Pressures are near the paper's (supply 3.3 MPaG,
+head ~ 4 x load).
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from seanv_analysis.config import load_rig
+from seanv_analysis.io.writer import write_run
+
+DROP = object()  # marker: remove a run.json field
+PISTON_AREA_MM2 = math.pi / 4 * 16.0 ** 2
+
+
+def _times(start_s: float, duration_s: float, rate_hz: float) -> np.ndarray:
+    n = int(math.floor((duration_s - start_s) * rate_hz + 1e-9)) + 1
+    return start_s + np.arange(n) / rate_hz
+
+
+def synthetic_tables(kind: str = "flow_step", *, duration_s: float = 1.0, seed: int = 0,
+                     side: str = "supply", cam_deg: float = -8.0, load_mpag: float | None = 0.35,
+                     flow_mm3_s: float | None = None, noise: bool = True,
+                     encoder_rate_hz: float = 1000.0, pressure_rate_hz: float = 1000.0,
+                     servo_rate_hz: float = 100.0, controller_rate_hz: float = 100.0,
+                     encoder_start_s: float = 0.0, pressure_start_s: float = 0.0,
+                     servo_start_s: float = 0.002, controller_start_s: float = 0.004,
+                     ) -> dict[str, pd.DataFrame]:
+    """Tables of one synthetic run (engineering units), seeded."""
+    rng = np.random.default_rng(seed)
+    load = 0.35 if load_mpag is None else load_mpag
+    t_step = 0.2 * duration_s
+
+    t_enc = _times(encoder_start_s, duration_s, encoder_rate_hz)
+    t_p = _times(pressure_start_s, duration_s, pressure_rate_hz)
+    t_sv = _times(servo_start_s, duration_s, servo_rate_hz)
+
+    def n(size, sigma):
+        return rng.normal(0.0, sigma, size) if noise else np.zeros(size)
+
+    pressure = pd.DataFrame({
+        "t_s": t_p,
+        "p_supply_mpag": 3.3 + n(t_p.size, 0.005),
+        "p_head_mpag": 4 * load + (0.3 if side == "supply" else 0.0) + n(t_p.size, 0.005),
+        "p_load_mpag": load + n(t_p.size, 0.002),
+    })
+
+    if kind == "flow_step":
+        q = flow_mm3_s if flow_mm3_s is not None else (2000.0 if side == "supply" else -2000.0)
+        v = q / PISTON_AREA_MM2
+        x0 = 10.0 if side == "supply" else 60.0
+        x = x0 + v * np.clip(t_enc - t_step - 0.05, 0.0, None)
+        cmd = np.where(t_sv < t_step, -15.0, cam_deg)
+        fb = np.where(t_sv < t_step, -15.0,
+                      cam_deg + (-15.0 - cam_deg) * np.exp(-(t_sv - t_step) / 0.06))
+        tables = {
+            "encoder": pd.DataFrame({"t_s": t_enc, "position_mm": np.round(x, 3)}),
+            "pressure": pressure,
+            "servo": pd.DataFrame({"t_s": t_sv, "cam_cmd_deg": cmd,
+                                   "cam_deg": fb + n(t_sv.size, 0.02)}),
+        }
+        return tables
+    if kind != "position_control":
+        raise ValueError(f"kind: expected flow_step or position_control, got {kind!r}")
+    t_c = _times(controller_start_s, duration_s, controller_rate_hz)
+    x_ref = np.where(t_c < t_step, 10.0, 40.0)
+    x = 10.0 + 30.0 * (1 - np.exp(-np.clip(t_enc - t_step, 0.0, None) / 0.3))
+    x_at_c = np.interp(t_c, t_enc, x)
+    q_ref = np.clip(480.0 * (x_ref - x_at_c), -6000.0, 6000.0)
+    cmd = np.clip(-15.0 + q_ref / 600.0, -40.0, 10.0)
+    cmd_sv = np.interp(t_sv, t_c, cmd)
+    return {
+        "encoder": pd.DataFrame({"t_s": t_enc, "position_mm": np.round(x, 3)}),
+        "pressure": pressure,
+        "servo": pd.DataFrame({"t_s": t_sv, "cam_cmd_deg": cmd_sv,
+                               "cam_deg": cmd_sv + n(t_sv.size, 0.02)}),
+        "controller": pd.DataFrame({"t_s": t_c, "x_ref_mm": x_ref, "q_ref_mm3_s": q_ref}),
+    }
+
+
+_META_KEYS = ("side", "cam_deg", "load_mpag")
+
+
+def write_synthetic_run(root: str | Path, kind: str = "flow_step", *, run_id: str | None = None,
+                        fmt: str = "csv", started_at: str = "2026-03-02T10:14:05Z",
+                        meta: dict[str, Any] | None = None,
+                        tables: dict[str, pd.DataFrame | None] | None = None,
+                        controller: dict[str, Any] | None = None, rig: dict | None = None,
+                        **params: Any) -> Path:
+    """Write one valid synthetic run under ``root`` and return its folder."""
+    side = params.get("side", "supply")
+    cam = params.get("cam_deg", -8.0)
+    load = params.get("load_mpag", 0.35)
+    if run_id is None:
+        run_id = (f"{side}-load{load}-cam{cam}" if kind == "flow_step" else "position") \
+            + f"-s{params.get('seed', 0)}"
+    data = synthetic_tables(kind, **params)
+    for name, df in (tables or {}).items():
+        if df is None:
+            data.pop(name, None)
+        else:
+            data[name] = df
+    doc: dict[str, Any] = {"schema": "seanv-run/1", "run_id": run_id, "kind": kind,
+                           "started_at": started_at, "load_mpag": load}
+    if kind == "flow_step":
+        doc.update(side=side, cam_deg=cam)
+    else:
+        doc["controller"] = controller or {"kp": 480, "flow_model": True, "rate_hz": 100}
+    if rig is not None:
+        doc["rig"] = rig
+    for key, value in (meta or {}).items():
+        if value is DROP:
+            doc.pop(key, None)
+        else:
+            doc[key] = value
+    return write_run(Path(root) / run_id, doc, data, fmt=fmt)
+
+
+def write_synthetic_dataset(root: str | Path, *, n_flow: int = 3, n_position: int = 0,
+                            fmt: str = "csv", duration_s: float = 0.5, **params: Any) -> Path:
+    """A small data set: ``n_flow`` flow-step runs (alternating supply/drain)
+    and ``n_position`` position-control runs, one minute apart, written in
+    reverse time order of their folder names so ordering is exercised."""
+    root = Path(root)
+    k = 0
+    for i in range(n_flow):
+        side = "supply" if i % 2 == 0 else "drain"
+        cam = -8.0 + i if side == "supply" else -30.0 + i
+        write_synthetic_run(root, "flow_step", run_id=f"z{n_flow - i:03d}-{side}", side=side,
+                            cam_deg=cam, seed=i, fmt=fmt, duration_s=duration_s,
+                            started_at=f"2026-03-02T10:{k:02d}:00Z", **params)
+        k += 1
+    for i in range(n_position):
+        write_synthetic_run(root, "position_control", run_id=f"pos{i:03d}", seed=100 + i,
+                            fmt=fmt, duration_s=duration_s,
+                            started_at=f"2026-03-02T10:{k:02d}:00Z", **params)
+        k += 1
+    return root
+
+
+@pytest.fixture
+def make_run():
+    """``make_run(root, kind='flow_step', **overrides) -> run folder``."""
+    return write_synthetic_run
+
+
+@pytest.fixture
+def make_dataset():
+    """``make_dataset(root, n_flow=3, n_position=0, fmt='csv', **params) -> root``."""
+    return write_synthetic_dataset
+
+
+@pytest.fixture(scope="session")
+def rig():
+    """The shipped default rig config."""
+    return load_rig()
