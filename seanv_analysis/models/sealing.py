@@ -22,12 +22,50 @@ __all__ = [
     "spring_force_n",
     "threshold_displacement_mm",
     "needle_height_mm",
+    "fluid_force_core",
+    "threshold_displacement_core",
+    "needle_height_core",
+    "angle_for_height_core",
 ]
 
 # Cam angles over which eq. (4) is tabulated for the inversion [deg]. Wider
 # than the valid cam range so thresholds just outside it are still found.
 _TABLE_RANGE_DEG = (-60.0, 35.0)
 _TABLE_POINTS = 1901
+
+
+# Scalar/array cores ---------------------------------------------------------
+# Plain arithmetic on floats or numpy arrays, so the same source serves the
+# numpy API below and, compiled with ``numba.njit``, the simulator's kernel
+# and the controllers (one home per equation).
+
+def fluid_force_core(p1_mpa, dp_mpa, needle_diameter_mm, seat_diameter_mm):
+    """Eq. (1) on plain numbers: F_w = pi/4 (d_n^2 p1 - d_o^2 dp) [N]."""
+    return math.pi / 4 * (needle_diameter_mm ** 2 * p1_mpa - seat_diameter_mm ** 2 * dp_mpa)
+
+
+def threshold_displacement_core(z0_mm, fluid_force, spring_constant_n_per_mm):
+    """Eq. (3) on plain numbers: z_c = z0 - F_w / k [mm] (F_w from eq. 1, N)."""
+    return z0_mm - fluid_force / spring_constant_n_per_mm
+
+
+def needle_height_core(theta_deg, needle_x_c_mm, needle_y_c_mm, needle_head_radius_mm,
+                       cam_slope_deg, z_p_mm, z_c0_mm):
+    """Eq. (4) on plain numbers (sign of the constant term corrected, see
+    :func:`needle_height_mm`) [mm]."""
+    t = np.radians(theta_deg)
+    phi = math.radians(cam_slope_deg)
+    r = needle_head_radius_mm
+    tp = math.tan(phi)
+    return ((needle_x_c_mm - r * math.sin(phi) * np.cos(t)) * tp * np.cos(t)
+            - (needle_y_c_mm - r * tp * np.sin(t)) * tp * np.sin(t)
+            + (z_p_mm - r * math.cos(phi)) - z_c0_mm)
+
+
+def angle_for_height_core(z_mm, z_table_mm, theta_table_deg):
+    """Inverse of eq. (4) by linear interpolation in an increasing height
+    table (:attr:`NeedleGeometry.height_table`) [deg]; clipped at its ends."""
+    return np.interp(z_mm, z_table_mm, theta_table_deg)
 
 
 @dataclass(frozen=True)
@@ -90,6 +128,11 @@ class NeedleGeometry:
         return z, theta
 
     @property
+    def height_table(self) -> tuple[np.ndarray, np.ndarray]:
+        """(z [mm] increasing, theta [deg]): the table that inverts eq. (4)."""
+        return self._table
+
+    @property
     def opens_upward(self) -> bool:
         """True when the valve opens as theta increases (supply-like)."""
         z, theta = self._table
@@ -102,13 +145,13 @@ class NeedleGeometry:
         heights outside the table are clipped to its ends.
         """
         z, theta = self._table
-        return np.interp(z_mm, z, theta)
+        return angle_for_height_core(z_mm, z, theta)
 
 
 def fluid_force_n(p1_mpa, dp_mpa, geometry: NeedleGeometry):
     """Fluid force lifting the needle, eq. (1): F_w = pi/4 (d_n^2 p1 - d_o^2 dp) [N]."""
-    return math.pi / 4 * (geometry.needle_diameter_mm ** 2 * np.asarray(p1_mpa)
-                          - geometry.seat_diameter_mm ** 2 * np.asarray(dp_mpa))
+    return fluid_force_core(np.asarray(p1_mpa), np.asarray(dp_mpa),
+                            geometry.needle_diameter_mm, geometry.seat_diameter_mm)
 
 
 def spring_force_n(z0_mm, z_c_mm, geometry: NeedleGeometry):
@@ -122,7 +165,8 @@ def threshold_displacement_mm(z0_mm, p1_mpa, dp_mpa, geometry: NeedleGeometry):
     z_c = z0 - pi/(4k) (d_n^2 p1 - d_o^2 dp): the needle seals while the
     cam-set head height stays below this value.
     """
-    return np.asarray(z0_mm) - fluid_force_n(p1_mpa, dp_mpa, geometry) / geometry.spring_constant_n_per_mm
+    return threshold_displacement_core(np.asarray(z0_mm), fluid_force_n(p1_mpa, dp_mpa, geometry),
+                                       geometry.spring_constant_n_per_mm)
 
 
 def needle_height_mm(theta_deg, geometry: NeedleGeometry):
@@ -140,10 +184,7 @@ def needle_height_mm(theta_deg, geometry: NeedleGeometry):
     z_p - r cos(phi) - z_c0 = 0.003 mm, consistent with z_c0 being the head
     height at theta = 0. We use ``+``.
     """
-    t = np.radians(np.asarray(theta_deg, dtype=float))
-    phi = math.radians(geometry.cam_slope_deg)
-    r = geometry.needle_head_radius_mm
-    tp = math.tan(phi)
-    return ((geometry.needle_x_c_mm - r * math.sin(phi) * np.cos(t)) * tp * np.cos(t)
-            - (geometry.needle_y_c_mm - r * tp * np.sin(t)) * tp * np.sin(t)
-            + (geometry.z_p_mm - r * math.cos(phi)) - geometry.z_c0_mm)
+    g = geometry
+    return needle_height_core(np.asarray(theta_deg, dtype=float), g.needle_x_c_mm,
+                              g.needle_y_c_mm, g.needle_head_radius_mm, g.cam_slope_deg,
+                              g.z_p_mm, g.z_c0_mm)

@@ -18,9 +18,43 @@ import numpy as np
 
 from .sealing import NeedleGeometry, threshold_displacement_mm
 
-__all__ = ["SIDES", "ValveSide", "ValveModel", "side_pressures", "signed_power"]
+__all__ = ["SIDES", "ValveSide", "ValveModel", "side_pressures", "signed_power",
+           "signed_power_core", "opening_core", "flow_core", "cam_for_flow_core", "MIN_DP_MPA"]
 
 SIDES = ("supply", "drain")
+
+#: eq. (6) floors dp at this value [MPa] so a vanishing dp does not ask for infinity
+MIN_DP_MPA = 0.05
+
+
+# Scalar/array cores ---------------------------------------------------------
+# Plain arithmetic on floats or numpy arrays: the numpy API below and the
+# numba-compiled simulator/controllers (``models._jit``) share this source.
+
+def signed_power_core(x, exponent, smooth_mpa):
+    """sign(x) |x|^n, linear (slope smooth^(n-1)) for |x| < ``smooth_mpa`` (> 0),
+    exact when ``smooth_mpa`` is 0."""
+    ax = np.abs(x)
+    slope = smooth_mpa ** (exponent - 1.0) if smooth_mpa > 0 else 0.0
+    return np.where(ax < smooth_mpa, x * slope, np.sign(x) * ax ** exponent)
+
+
+def opening_core(theta_deg, theta_d_deg, opens_upward):
+    """Opening past the sealing threshold [deg]: max(+-(theta - theta_d), 0)."""
+    d = theta_deg - theta_d_deg
+    return np.maximum(d if opens_upward else -d, 0.0)
+
+
+def flow_core(opening_deg, dp_power, c_flow):
+    """Eq. (5) on plain numbers: Q = C opening^2 dp^n [mm^3/s] (dp^n given)."""
+    return c_flow * opening_deg * opening_deg * dp_power
+
+
+def cam_for_flow_core(q_mm3_s, theta_d_deg, dp_power, c_flow, opens_upward):
+    """Eq. (6) on plain numbers: theta = theta_d +- sqrt(Q / (C dp^n)) [deg];
+    flows of the wrong sign give theta_d."""
+    opening = np.sqrt(np.maximum(q_mm3_s / (c_flow * dp_power), 0.0))
+    return theta_d_deg + opening if opens_upward else theta_d_deg - opening
 
 
 def side_pressures(side: str, p_supply_mpag, p_head_mpag, p_tank_mpag=0.0):
@@ -39,12 +73,7 @@ def signed_power(x, exponent: float, *, smooth_mpa: float = 0.0):
     stays stable; at |x| >= smooth_mpa it equals the exact law.
     """
     x = np.asarray(x, dtype=float)
-    ax = np.abs(x)
-    out = np.sign(x) * ax ** exponent
-    if smooth_mpa > 0:
-        lin = x * smooth_mpa ** (exponent - 1.0)
-        out = np.where(ax < smooth_mpa, lin, out)
-    return out
+    return signed_power_core(x, float(exponent), float(smooth_mpa))
 
 
 @dataclass(frozen=True)
@@ -86,8 +115,8 @@ class ValveSide:
     def opening_deg(self, theta_deg, p1_mpa, dp_mpa):
         """Opening past the threshold [deg]: max(theta - theta_d, 0) (supply),
         max(theta_d - theta, 0) (drain)."""
-        d = np.asarray(theta_deg, dtype=float) - self.threshold_deg(p1_mpa, dp_mpa)
-        return np.maximum(d if self.opens_upward else -d, 0.0)
+        return opening_core(np.asarray(theta_deg, dtype=float),
+                            self.threshold_deg(p1_mpa, dp_mpa), self.opens_upward)
 
     def flow(self, theta_deg, p1_mpa, dp_mpa, *, smooth_mpa: float = 0.0):
         """Flow through this side, eq. (5): Q = C (theta - theta_d)^2 dp^n [mm^3/s].
@@ -95,10 +124,10 @@ class ValveSide:
         Zero when sealed. ``dp`` below 0 gives reverse flow (sign follows dp).
         """
         opening = self.opening_deg(theta_deg, p1_mpa, dp_mpa)
-        return self.c_flow * opening ** 2 * signed_power(dp_mpa, self.dp_exponent,
-                                                          smooth_mpa=smooth_mpa)
+        return flow_core(opening, signed_power(dp_mpa, self.dp_exponent, smooth_mpa=smooth_mpa),
+                         self.c_flow)
 
-    def cam_for_flow(self, q_mm3_s, p1_mpa, dp_mpa, *, min_dp_mpa: float = 0.05):
+    def cam_for_flow(self, q_mm3_s, p1_mpa, dp_mpa, *, min_dp_mpa: float = MIN_DP_MPA):
         """Cam angle for a target flow, eq. (6): theta = theta_d +- sqrt(Q / (C dp^n)) [deg].
 
         '+' on the supply side, '-' on the drain side. Flows of the wrong sign
@@ -106,10 +135,8 @@ class ValveSide:
         floored at ``min_dp_mpa`` so a vanishing dp does not ask for infinity.
         """
         dp = np.maximum(np.asarray(dp_mpa, dtype=float), min_dp_mpa)
-        ratio = np.asarray(q_mm3_s, dtype=float) / (self.c_flow * dp ** self.dp_exponent)
-        opening = np.sqrt(np.maximum(ratio, 0.0))
-        theta_d = self.threshold_deg(p1_mpa, dp)
-        return theta_d + opening if self.opens_upward else theta_d - opening
+        return cam_for_flow_core(np.asarray(q_mm3_s, dtype=float), self.threshold_deg(p1_mpa, dp),
+                                 dp ** self.dp_exponent, self.c_flow, self.opens_upward)
 
     def to_dict(self) -> dict[str, Any]:
         return {"z0_mm": float(self.z0_mm), "c_flow": float(self.c_flow),

@@ -1,0 +1,124 @@
+"""numba-compiled forms of the model equations for the simulator and controllers.
+
+Nothing here is new physics: each compiled function is ``numba.njit`` applied
+to the plain core function of :mod:`.sealing`, :mod:`.valve` or
+:mod:`.effects`, so the kernel, the controllers and :class:`ValveSide` run
+the same source. The composites (threshold angle, a side's flow, eq. 6 for
+the whole valve) chain the cores exactly as :class:`ValveSide` and
+:class:`ValveModel` do.
+
+A valve side is packed for compiled code as ``(params, z_table, theta_table)``
+with ``params`` indexed by the ``SP_*`` constants (see :func:`pack_side`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from . import effects as _effects
+from . import sealing as _sealing
+from . import valve as _valve
+
+__all__ = ["SP_Z0", "SP_C", "SP_EXPONENT", "SP_DN", "SP_DO", "SP_K", "SP_UP", "SP_QMAX",
+           "SP_SHARP", "SP_SIZE", "pack_side", "pack_model",
+           "fluid_force", "threshold_displacement", "angle_for_height", "signed_power",
+           "opening", "flow", "cam_for_flow", "saturate", "threshold_deg", "side_flow",
+           "model_cam_for_flow", "backlash_play"]
+
+# packed side parameters
+SP_Z0, SP_C, SP_EXPONENT, SP_DN, SP_DO, SP_K, SP_UP, SP_QMAX, SP_SHARP = range(9)
+SP_SIZE = 9
+
+_opts = dict(cache=True, nogil=True)
+
+fluid_force = njit(**_opts)(_sealing.fluid_force_core)
+threshold_displacement = njit(**_opts)(_sealing.threshold_displacement_core)
+angle_for_height = njit(**_opts)(_sealing.angle_for_height_core)
+signed_power = njit(**_opts)(_valve.signed_power_core)
+opening = njit(**_opts)(_valve.opening_core)
+flow = njit(**_opts)(_valve.flow_core)
+cam_for_flow = njit(**_opts)(_valve.cam_for_flow_core)
+saturate = njit(**_opts)(_effects.saturate_flow_core)
+backlash_play = njit(**_opts)(_effects.backlash_play_deg)
+
+
+def pack_side(side, *, c_multiplier: float = 1.0, z0_offset_mm: float = 0.0,
+              dp_exponent: float | None = None, q_max_mm3_s: float = math.inf,
+              sharpness: float = 8.0):
+    """(params, z_table, theta_table) of a :class:`ValveSide` for compiled code,
+    optionally with effect modifications folded in (C multiplier, z0 offset,
+    dp exponent, flow cap)."""
+    g = side.geometry
+    params = np.empty(SP_SIZE)
+    params[SP_Z0] = side.z0_mm + z0_offset_mm
+    params[SP_C] = side.c_flow * c_multiplier
+    params[SP_EXPONENT] = side.dp_exponent if dp_exponent is None else dp_exponent
+    params[SP_DN] = g.needle_diameter_mm
+    params[SP_DO] = g.seat_diameter_mm
+    params[SP_K] = g.spring_constant_n_per_mm
+    params[SP_UP] = 1.0 if side.opens_upward else 0.0
+    params[SP_QMAX] = q_max_mm3_s
+    params[SP_SHARP] = sharpness
+    z, theta = g.height_table
+    return params, np.ascontiguousarray(z, dtype=float), np.ascontiguousarray(theta, dtype=float)
+
+
+def pack_model(model):
+    """(supply params, z, theta, drain params, z, theta) of a :class:`ValveModel`."""
+    return pack_side(model.supply) + pack_side(model.drain)
+
+
+@njit(**_opts)
+def threshold_deg(params, z_table, theta_table, p1_mpa, dp_mpa):
+    """Sealing threshold angle, eq. (3) + (4) inverted [deg] (as ValveSide.threshold_deg)."""
+    z_thr = threshold_displacement(params[SP_Z0],
+                                   fluid_force(p1_mpa, dp_mpa, params[SP_DN], params[SP_DO]),
+                                   params[SP_K])
+    return angle_for_height(z_thr, z_table, theta_table)
+
+
+@njit(**_opts)
+def side_flow(params, z_table, theta_table, theta_deg, p1_mpa, dp_mpa, smooth_mpa):
+    """Flow of one side, eq. (5) with the smoothed dp law and the flow cap [mm^3/s].
+
+    Returns (Q, dQ/d(dp)) -- the slope for the semi-implicit pressure update.
+    """
+    theta_d = threshold_deg(params, z_table, theta_table, p1_mpa, dp_mpa)
+    o = opening(theta_deg, theta_d, params[SP_UP] > 0.5)
+    if o <= 0.0:
+        return 0.0, 0.0
+    n = params[SP_EXPONENT]
+    q = flow(o, signed_power(dp_mpa, n, smooth_mpa), params[SP_C])
+    adp = abs(dp_mpa)
+    if adp < smooth_mpa:
+        slope = smooth_mpa ** (n - 1.0)
+    else:
+        slope = n * adp ** (n - 1.0)
+    dq = params[SP_C] * o * o * slope
+    qmax = params[SP_QMAX]
+    if qmax < np.inf:
+        qs = saturate(q, qmax, params[SP_SHARP])
+        # d(sat)/dq = (1 + r^s)^(-1/s - 1), r = |q|/qmax
+        r = (abs(q) / qmax) ** params[SP_SHARP]
+        dq = dq * (1.0 + r) ** (-1.0 / params[SP_SHARP] - 1.0)
+        q = qs
+    return q, dq
+
+
+@njit(**_opts)
+def model_cam_for_flow(q_mm3_s, p_supply_mpag, p_head_mpag, p_tank_mpag, sup, sup_z, sup_th,
+                       dr, dr_z, dr_th, cam_min_deg, cam_max_deg, min_dp_mpa):
+    """Eq. (6) for the whole valve, clipped (as ValveModel.cam_for_flow) [deg]."""
+    if q_mm3_s >= 0.0:
+        p1 = p_supply_mpag
+        dp = max(p_supply_mpag - p_head_mpag, min_dp_mpa)
+        theta_d = threshold_deg(sup, sup_z, sup_th, p1, dp)
+        theta = cam_for_flow(q_mm3_s, theta_d, dp ** sup[SP_EXPONENT], sup[SP_C], sup[SP_UP] > 0.5)
+    else:
+        p1 = p_head_mpag
+        dp = max(p_head_mpag - p_tank_mpag, min_dp_mpa)
+        theta_d = threshold_deg(dr, dr_z, dr_th, p1, dp)
+        theta = cam_for_flow(q_mm3_s, theta_d, dp ** dr[SP_EXPONENT], dr[SP_C], dr[SP_UP] > 0.5)
+    return min(max(theta, cam_min_deg), cam_max_deg)
