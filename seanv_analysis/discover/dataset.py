@@ -19,4 +19,6 @@ def discover_dataset(path: str | Path, *, model: ValveModel | None = None,
     rig = rig or load_rig()
     ds = summarize_dataset(path, rig=rig)
     model = model or ValveModel.from_rig(rig)
-    return discover_flow_steps(ds.summary, model=model, holdout=holdout, seed=seed), ds
+    leak = float(rig.analysis.get("leakage_flow_mm3_s", 50.0))
+    return discover_flow_steps(ds.summary, model=model, holdout=holdout, seed=seed,
+                               leakage_mm3_s=leak), ds

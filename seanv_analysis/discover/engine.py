@@ -104,10 +104,37 @@ def _variables(model: ValveModel, data: FlowData, summary_fit: pd.DataFrame) -> 
     return v
 
 
+def trend_amplitude(residual: np.ndarray, variable: np.ndarray, *, bins: int = 8) -> float:
+    """Size of a residual trend [mm^3/s]: RMS over quantile bins of the
+    variable of the bin medians of the residual (count-weighted)."""
+    ok = np.isfinite(residual) & np.isfinite(variable)
+    r, v = residual[ok], variable[ok]
+    if r.size < 2 * bins:
+        return 0.0
+    edges = np.unique(np.quantile(v, np.linspace(0, 1, bins + 1)))
+    if edges.size < 2:
+        return 0.0
+    which = np.clip(np.searchsorted(edges, v, side="right") - 1, 0, edges.size - 2)
+    meds, counts = [], []
+    for b in range(edges.size - 1):
+        m = which == b
+        if m.any():
+            meds.append(np.median(r[m]))
+            counts.append(m.sum())
+    meds, counts = np.asarray(meds), np.asarray(counts)
+    centre = np.median(r)
+    return float(np.sqrt(np.sum(counts * (meds - centre) ** 2) / counts.sum()))
+
+
+def practical_floor_mm3_s(data: FlowData, leakage_mm3_s: float = 50.0) -> float:
+    """Smallest residual trend that matters [mm^3/s]: max(leakage, 2 % of median |Q|)."""
+    return max(float(leakage_mm3_s), 0.02 * float(np.median(np.abs(data.q_mm3_s))))
+
+
 def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: str = "chrono",
                         fraction: float = 0.3, alpha: float = 0.01, alpha_perm: float = 0.05,
                         min_improvement: float = 0.10, n_perm: int = 39, max_effects: int = 3,
-                        seed: int = 0) -> Discovery:
+                        leakage_mm3_s: float = 50.0, seed: int = 0) -> Discovery:
     """Find effects missing from eq. (5) in a per-run flow-step summary.
 
     Parameters
@@ -117,6 +144,9 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
     holdout : 'chrono' (last ``fraction`` of runs held out) or 'kfold'
         (held-out numbers pooled over 5 folds by run; selection on the first
         fold's fit set).
+    leakage_mm3_s : the rig's flow resolution (the leakage filter's
+        threshold, rig ``analysis.leakage_flow_mm3_s``): a residual trend
+        smaller than max(this, 2 % of the median |Q|) is not "structured".
     alpha : family-wise level of the F-test screen; ``alpha_perm`` of the
         permutation check; ``min_improvement``: relative error drop required
         on the inner validation split ("materially").
@@ -138,7 +168,8 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
     fit_data = data.subset(fit_m)
     selection = _select(model, fit_data, df[fit_m], alpha=alpha, alpha_perm=alpha_perm,
                         min_improvement=min_improvement, n_perm=n_perm,
-                        max_effects=max_effects, seed=seed)
+                        max_effects=max_effects, seed=seed,
+                        floor_mm3_s=practical_floor_mm3_s(fit_data, leakage_mm3_s))
     base, final, findings, trends, lb = selection
 
     # Held-out error, before and after, with fits on the fit part only.
@@ -158,9 +189,18 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
     if findings:
         verdict, trend_var = "effect_found", None
     else:
+        # Structured = statistically clear (Spearman p, Ljung-Box) AND
+        # material: the trend's size in mm^3/s beats the rig's flow
+        # resolution, so tiny systematic terms (leakage) on very clean data
+        # are not called "unexplained".
+        floor = practical_floor_mm3_s(fit_data, leakage_mm3_s)
+        raw = fit_data.q_mm3_s - predict_static(base.model, fit_data)
+        variables = _variables(base.model, fit_data, df[fit_m])
         alpha_trend = 1e-3 / max(len(trends), 1)
-        structured = [t for t in trends if t.p_value < alpha_trend and abs(t.rho) > 0.2]
-        if structured or lb[1] < 1e-4:
+        structured = [t for t in trends if t.p_value < alpha_trend and abs(t.rho) > 0.2
+                      and trend_amplitude(raw, variables[t.variable]) > floor]
+        drifting = lb[1] < 1e-4 and trend_amplitude(raw, fit_data.run_index) > floor
+        if structured or drifting:
             verdict = "unexplained"
             trend_var = structured[0].variable if structured else "run_index"
         else:
@@ -175,7 +215,7 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
 
 
 def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improvement, n_perm,
-            max_effects, seed):
+            max_effects, seed, floor_mm3_s=0.0):
     base, sigma = _fit_base(model, data)
     trends = trend_tests(base.weighted_residual, _variables(base.model, data, summary_fit))
     order = np.argsort(data.run_index, kind="stable")
@@ -195,6 +235,7 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
         if not specs:
             break
         cur_in = fit_static(current.model, d_in, s_in, effects=selected)
+        q_cur = predict_static(current.model, data, current.effects)
         rmse_cur_w = _rmse((d_val.q_mm3_s - predict_static(cur_in.model, d_val, cur_in.effects)) / s_val)
         scored = []
         for spec in specs:
@@ -203,6 +244,10 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
             new_in, _ = fit_candidate(cur_in, d_in, s_in, spec_c, selected)
             rmse_new_w = _rmse((d_val.q_mm3_s - predict_static(new_in.model, d_val, new_in.effects)) / s_val)
             improvement = 1.0 - rmse_new_w / rmse_cur_w if rmse_cur_w > 0 else 0.0
+            # practical size: how much the effect moves the prediction [mm^3/s]
+            size = _rmse(predict_static(fit.model, data, fit.effects) - q_cur)
+            if size <= floor_mm3_s:
+                improvement = min(improvement, 0.0)
             scored.append((f, p, improvement, spec_c, fit))
         m = len(scored)
         if _DEBUG:

@@ -13,7 +13,7 @@ __all__ = ["EffectFinding", "Discovery"]
 
 _EFFECT_TEXT = {
     "drift": "the flow coefficient C of the {side} side changes with use (step {step:+.1%} every {every} runs)",
-    "threshold_shift": "the {side} sealing threshold creeps with use (z0 changes {rate_mm_per_run:+.4f} mm per run)",
+    "threshold_shift": "the {side} sealing threshold creeps with use (z0 changes {rate_mm_per_run:+.2e} mm per run)",
     "backlash": "the cam has a direction-dependent dead band of {width_deg:.2f} deg (backlash)",
     "pressure_law": "the {side} flow follows dp^{exponent:.2f}, not the orifice law dp^0.5",
     "saturation": "the {side} flow saturates at about {q_max_mm3_s:.0f} mm^3/s at large openings",

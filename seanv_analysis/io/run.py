@@ -55,6 +55,20 @@ class RunMeta:
     rig_overrides: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
 
+    def to_json(self) -> dict[str, Any]:
+        """run.json content (data contract ``seanv-run/1``)."""
+        started = self.started_at
+        text = started.isoformat().replace("+00:00", "Z") if hasattr(started, "isoformat") else str(started)
+        out: dict[str, Any] = {"schema": "seanv-run/1", "run_id": self.run_id, "kind": self.kind,
+                               "started_at": text, "load_mpag": self.load_mpag}
+        if self.kind == "flow_step":
+            out.update(side=self.side, cam_deg=self.cam_deg)
+        if self.controller is not None:
+            out["controller"] = dict(self.controller)
+        out["rig"] = dict(self.rig_overrides)
+        out.update(self.extra)
+        return out
+
 
 @dataclass
 class Run:

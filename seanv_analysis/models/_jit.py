@@ -24,7 +24,7 @@ from . import valve as _valve
 __all__ = ["SP_Z0", "SP_C", "SP_EXPONENT", "SP_DN", "SP_DO", "SP_K", "SP_UP", "SP_QMAX",
            "SP_SHARP", "SP_SIZE", "pack_side", "pack_model",
            "fluid_force", "threshold_displacement", "angle_for_height", "signed_power",
-           "opening", "flow", "cam_for_flow", "saturate", "threshold_deg", "side_flow",
+           "opening", "flow", "cam_for_flow", "saturate", "threshold_deg", "side_flow", "side_flow_at",
            "model_cam_for_flow", "backlash_play"]
 
 # packed side parameters
@@ -80,13 +80,13 @@ def threshold_deg(params, z_table, theta_table, p1_mpa, dp_mpa):
 
 
 @njit(**_opts)
-def side_flow(params, z_table, theta_table, theta_deg, p1_mpa, dp_mpa, smooth_mpa):
-    """Flow of one side, eq. (5) with the smoothed dp law and the flow cap [mm^3/s].
+def side_flow_at(params, theta_d_deg, theta_deg, dp_mpa, smooth_mpa):
+    """Flow of one side for a known threshold angle, eq. (5) with the smoothed
+    dp law and the flow cap [mm^3/s].
 
     Returns (Q, dQ/d(dp)) -- the slope for the semi-implicit pressure update.
     """
-    theta_d = threshold_deg(params, z_table, theta_table, p1_mpa, dp_mpa)
-    o = opening(theta_deg, theta_d, params[SP_UP] > 0.5)
+    o = opening(theta_deg, theta_d_deg, params[SP_UP] > 0.5)
     if o <= 0.0:
         return 0.0, 0.0
     n = params[SP_EXPONENT]
@@ -105,6 +105,14 @@ def side_flow(params, z_table, theta_table, theta_deg, p1_mpa, dp_mpa, smooth_mp
         dq = dq * (1.0 + r) ** (-1.0 / params[SP_SHARP] - 1.0)
         q = qs
     return q, dq
+
+
+@njit(**_opts)
+def side_flow(params, z_table, theta_table, theta_deg, p1_mpa, dp_mpa, smooth_mpa):
+    """Flow of one side, eq. (3)-(5) with the smoothed dp law and the flow cap
+    [mm^3/s]; returns (Q, dQ/d(dp))."""
+    theta_d = threshold_deg(params, z_table, theta_table, p1_mpa, dp_mpa)
+    return side_flow_at(params, theta_d, theta_deg, dp_mpa, smooth_mpa)
 
 
 @njit(**_opts)

@@ -1,0 +1,164 @@
+"""The simulated rig: parameters from the rig config, the plant's valve and
+the injected effects, packed for the compiled kernel (:mod:`.kernel`).
+
+Physics (units: mm, MPa, s, N):
+
+- Tube (20 m, bore d): laminar resistance R = 128 mu L / (pi d^4),
+  fluid inertance I = rho L / A_t, compliance C = V / B_eff with the
+  effective bulk modulus of water in the nylon tube (rig ``tube``),
+  split into ``sim.tube_segments`` lumped segments.
+- Actuator: m dv/dt = p_head A - p_load A_load - F_friction, friction
+  Coulomb + Stribeck + viscous with stiction (Karnopp), end stops at 0 and
+  the stroke.
+- Load: regulated pneumatic pressure, first order towards its set point.
+- Valve: eq. (3)-(5) of :mod:`seanv_analysis.models` per side, the sqrt(dp)
+  law linear below ``valve.plant.dp_smoothing_mpa``, plus a small leakage
+  conductance of each sealed needle (``valve.plant``).
+- Servo: dead time, first-order lag, rate limit, quantisation (rig ``servo``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Iterable
+
+import numpy as np
+
+from ..config import RigConfig
+from ..errors import ConfigError
+from ..models import ValveModel
+from ..models import _jit as J
+from ..models.effects import (Backlash, Delay, Drift, Effect, PressureLaw, Saturation,
+                              SensorGain, ThresholdShift, parse_effects)
+from .kernel import PP, PP_SIZE
+
+__all__ = ["Plant", "tube_constants"]
+
+
+def tube_constants(rig: RigConfig) -> dict[str, float]:
+    """Lumped constants of the whole tube: R [MPa s/mm^3], I [MPa s^2/mm^3],
+    V [mm^3], C [mm^3/MPa], and the hydraulic time constant I/R [s]."""
+    tube, fluid = rig["tube"], rig["fluid"]
+    length = tube["length_m"] * 1000.0
+    d = tube["inner_diameter_mm"]
+    area = math.pi / 4 * d * d
+    mu = fluid["dynamic_viscosity_pa_s"] * 1e-6           # MPa s
+    rho = fluid["density_kg_per_m3"] * 1e-12               # N s^2/mm^4
+    r = 128.0 * mu * length / (math.pi * d ** 4)
+    inert = rho * length / area
+    volume = area * length
+    return {"R": r, "I": inert, "V": volume, "C": volume / tube["effective_bulk_modulus_mpa"],
+            "tau_I_over_R_s": inert / r}
+
+
+@dataclass(frozen=True)
+class Plant:
+    """The rig as the simulator sees it: rig config, the plant's valve model
+    (the "true" valve) and injected effects.
+
+    Parameters
+    ----------
+    rig : rig config (all constants)
+    valve : the true valve (default: the rig's, i.e. the paper's fit)
+    effects : injected effects (names or :class:`~seanv_analysis.models.effects.Effect`)
+    """
+
+    rig: RigConfig
+    valve: ValveModel
+    effects: tuple[Effect, ...] = field(default=())
+
+    @classmethod
+    def from_rig(cls, rig: RigConfig, *, valve: ValveModel | None = None,
+                 effects: Iterable[str | Effect | dict] = ()) -> "Plant":
+        return cls(rig, valve if valve is not None else ValveModel.from_rig(rig),
+                   parse_effects(effects))
+
+    def _effects(self, kind):
+        return [e for e in self.effects if isinstance(e, kind)]
+
+    def valve_at(self, run_index: int) -> tuple:
+        """Packed plant valve (both sides) at run ``run_index`` with the valve
+        effects (drift, threshold_shift, pressure_law, saturation) folded in."""
+        packed = []
+        for name in ("supply", "drain"):
+            side = self.valve.side(name)
+            mult, dz, expo, qmax, sharp = 1.0, 0.0, None, math.inf, 8.0
+            for e in self.effects:
+                if getattr(e, "side", None) != name:
+                    continue
+                if isinstance(e, Drift):
+                    mult *= float(e.c_multiplier(run_index))
+                elif isinstance(e, ThresholdShift):
+                    dz += float(e.z0_offset_mm(run_index))
+                elif isinstance(e, PressureLaw):
+                    expo = e.exponent
+                elif isinstance(e, Saturation):
+                    qmax, sharp = abs(e.q_max_mm3_s), e.sharpness
+            packed += list(J.pack_side(side, c_multiplier=mult, z0_offset_mm=dz, dp_exponent=expo,
+                                       q_max_mm3_s=qmax, sharpness=sharp))
+        return tuple(packed)
+
+    def packed_params(self, *, neutral_deg: float, x_stop_mm: tuple[float, float]) -> np.ndarray:
+        """Packed plant parameter vector for the kernel (:class:`.kernel.PP`)."""
+        rig = self.rig
+        s = rig["sim"]
+        tube = tube_constants(rig)
+        nseg = int(s["tube_segments"])
+        if nseg < 1:
+            raise ConfigError(f"sim.tube_segments: expected >= 1, got {nseg}")
+        dt = float(s["time_step_s"])
+        rate = float(rig["sensors"]["encoder_rate_hz"])
+        substeps = round(1.0 / (rate * dt))
+        if substeps < 1 or abs(substeps * dt * rate - 1.0) > 1e-9:
+            raise ConfigError(f"sim.time_step_s: expected 1/(k x encoder rate), got {dt}")
+        ctrl_every = round(rate / float(rig["controller"]["rate_hz"]))
+        act, servo, sup = rig["actuator"], rig["servo"], rig["supply"]
+        pp = np.zeros(PP_SIZE)
+        pp[PP.DT] = dt
+        pp[PP.SUBSTEPS] = substeps
+        pp[PP.CTRL_EVERY] = ctrl_every
+        pp[PP.P_SUPPLY] = sup["pressure_mpag"]
+        pp[PP.RIPPLE_AMP] = sup["ripple_amplitude_mpa"]
+        pp[PP.RIPPLE_HZ] = sup["ripple_frequency_hz"]
+        pp[PP.P_TANK] = sup["tank_pressure_mpag"]
+        pp[PP.N_SEG] = nseg
+        pp[PP.R_SEG] = tube["R"] / nseg
+        pp[PP.I_SEG] = tube["I"] / nseg
+        pp[PP.V_SEG] = tube["V"] / nseg
+        pp[PP.BULK] = rig["tube"]["effective_bulk_modulus_mpa"]
+        pp[PP.AREA] = rig.piston_area_mm2
+        pp[PP.LOAD_AREA] = rig.load_area_mm2
+        pp[PP.DEAD_VOL] = act["dead_volume_mm3"]
+        pp[PP.STROKE] = act["stroke_mm"]
+        pp[PP.MASS] = act["moving_mass_kg"] * 1e-3
+        pp[PP.F_COULOMB] = act["coulomb_friction_n"]
+        pp[PP.F_STATIC] = max(act["static_friction_n"], act["coulomb_friction_n"])
+        pp[PP.V_STRIBECK] = act["stribeck_velocity_mm_s"]
+        pp[PP.VISCOUS] = act["viscous_friction_n_s_per_mm"]
+        pp[PP.LOAD_TAU] = rig["load"]["regulator_time_constant_s"]
+        plant = rig["valve"]["plant"]
+        pp[PP.LEAK_G] = plant["leakage_conductance_mm3_s_per_mpa"]
+        pp[PP.DP_SMOOTH] = plant["dp_smoothing_mpa"]
+        pp[PP.SERVO_DEAD_TICKS] = round(servo["dead_time_s"] * rig["controller"]["rate_hz"])
+        pp[PP.SERVO_TAU] = servo["time_constant_s"]
+        pp[PP.SERVO_RATE] = servo["max_rate_deg_s"]
+        pp[PP.SERVO_RES] = servo["resolution_deg"]
+        pp[PP.BACKLASH] = sum(e.width_deg for e in self._effects(Backlash))
+        pp[PP.DELAY_STEPS] = round(sum(e.delay_s for e in self._effects(Delay)) / dt)
+        pp[PP.ENC_RES] = rig["sensors"]["encoder_resolution_mm"]
+        gains = {"position_mm": 1.0, "p_supply_mpag": 1.0, "p_head_mpag": 1.0, "p_load_mpag": 1.0}
+        for e in self._effects(SensorGain):
+            gains[e.channel] *= e.gain
+        pp[PP.GAIN_X] = gains["position_mm"]
+        pp[PP.GAIN_PS] = gains["p_supply_mpag"]
+        pp[PP.GAIN_PH] = gains["p_head_mpag"]
+        pp[PP.GAIN_PL] = gains["p_load_mpag"]
+        pp[PP.P_CAV] = s["cavitation_pressure_mpag"]
+        pp[PP.NEUTRAL] = neutral_deg
+        pp[PP.X_STOP_LO], pp[PP.X_STOP_HI] = x_stop_mm
+        return pp
+
+    def truth(self) -> dict[str, Any]:
+        """Everything the plant is made of (for ``_truth.json``)."""
+        return {"valve": self.valve.to_dict(), "effects": [e.to_json() for e in self.effects],
+                "rig": self.rig.to_dict(), "tube": tube_constants(self.rig)}

@@ -1,0 +1,196 @@
+"""Simulate one run of the data contract in memory: a flow step or a
+closed-loop position-control test.
+
+Both return a :class:`seanv_analysis.io.Run` whose tables are exactly what a
+recorded run holds (encoder and pressure at 1 kHz, servo and controller at
+100 Hz, engineering units), so every analysis stage can consume it, and
+:func:`seanv_analysis.io.write_run` can write it.
+"""
+from __future__ import annotations
+
+import math
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..config import RigConfig, load_rig
+from ..control import CamController, FlowModelController
+from ..errors import ConfigError
+from ..io.run import Run, RunMeta
+from ..models import ValveModel
+from ..models.effects import Effect
+from .kernel import MODE_SCHEDULE, OUT_FAST, OUT_SLOW, simulate_kernel
+from .plant import Plant
+
+__all__ = ["simulate_flow_step", "simulate_position_control", "SimTrace"]
+
+_EPOCH = datetime(2026, 3, 2, 9, 0, 0, tzinfo=timezone.utc)
+
+
+class SimTrace(dict):
+    """True plant signals of a simulated run (not part of the data contract):
+    ``x_true_mm``, ``q_true_mm3_s`` at 1 kHz, ``cam_needle_deg`` at 100 Hz,
+    ``t_release_s`` of a flow step."""
+
+
+def _rng(seed: int, run_index: int) -> np.random.Generator:
+    return np.random.default_rng([int(seed), int(run_index), 0x5EA7])
+
+
+def _steps(seq, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """(t, value) step sequence from a number or a pair of sequences."""
+    if np.isscalar(seq):
+        return np.array([0.0]), np.array([float(seq)])
+    t, v = (np.asarray(a, dtype=float) for a in seq)
+    if t.ndim != 1 or t.shape != v.shape or t.size == 0:
+        raise ConfigError(f"{name}: expected (t_s, values) of equal length >= 1")
+    if np.any(np.diff(t) <= 0):
+        raise ConfigError(f"{name}: times must be strictly increasing")
+    if t[0] > 0:
+        t, v = np.r_[0.0, t], np.r_[v[0], v]
+    return t, v
+
+
+def _run(plant: Plant, *, ctrl_kind: int, cp, ctrl_tables, ref, load, cmd, duration_s: float,
+         seed: int, run_index: int, x0_mm: float, cam0_deg: float, neutral_deg: float,
+         x_stop_mm: tuple[float, float]):
+    rig = plant.rig
+    pp = plant.packed_params(neutral_deg=neutral_deg, x_stop_mm=x_stop_mm)
+    rate = float(rig["sensors"]["encoder_rate_hz"])
+    n_fast = int(round(duration_s * rate)) + 1
+    sigma = float(rig["sensors"]["pressure_noise_mpa"])
+    noise = _rng(seed, run_index).standard_normal((n_fast, 3)) * sigma
+    fast, slow, t_release = simulate_kernel(
+        pp, *plant.valve_at(run_index), ctrl_kind, cp, *ctrl_tables,
+        ref[0], ref[1], load[0], load[1], cmd[0], cmd[1], noise, n_fast, float(x0_mm),
+        float(cam0_deg))
+    return (pd.DataFrame(fast, columns=OUT_FAST), pd.DataFrame(slow, columns=OUT_SLOW),
+            float(t_release))
+
+
+def _tables(fast: pd.DataFrame, slow: pd.DataFrame, *, controller: bool) -> dict[str, pd.DataFrame]:
+    tables = {
+        "encoder": fast[["t_s", "position_mm"]].reset_index(drop=True),
+        "pressure": fast[["t_s", "p_supply_mpag", "p_head_mpag", "p_load_mpag"]].reset_index(drop=True),
+        "servo": slow[["t_s", "cam_cmd_deg", "cam_deg"]].reset_index(drop=True),
+    }
+    if controller:
+        tables["controller"] = slow[["t_s", "x_ref_mm", "q_ref_mm3_s"]].reset_index(drop=True)
+    return tables
+
+
+def _meta(run_id: str, kind: str, started_at, **fields: Any) -> RunMeta:
+    started = started_at or _EPOCH
+    return RunMeta(run_id=run_id, kind=kind, started_at=started, path=Path("<sim>") / run_id,
+                   **fields)
+
+
+def simulate_flow_step(rig: RigConfig | None = None, *, side: str, cam_deg: float,
+                       load_mpag: float, seed: int = 0, run_index: int = 0,
+                       valve: ValveModel | None = None,
+                       effects: Iterable[str | Effect | dict] = (), plant: Plant | None = None,
+                       approach: int = +1, overshoot_deg: float = 3.0, overshoot_s: float = 0.4,
+                       pre_s: float = 0.5, hold_max_s: float = 3.0, post_s: float = 0.3,
+                       run_id: str | None = None, started_at: datetime | None = None
+                       ) -> tuple[Run, SimTrace]:
+    """One flow-step run (paper Sec. II-D.2): the cam steps from the neutral
+    angle to ``cam_deg`` and is held while the actuator moves, until it nears
+    the end of its stroke or ``hold_max_s`` has passed, then back to neutral.
+
+    Parameters
+    ----------
+    rig : rig config (default: the shipped one)
+    side : 'supply' (actuator starts retracted, extends) or 'drain' (starts
+        extended, retracts)
+    cam_deg : commanded cam angle [deg]
+    load_mpag : pneumatic load pressure [MPaG]
+    seed, run_index : noise seed; ``run_index`` is also the "use" count of
+        drift-like effects
+    valve, effects, plant : the true valve and injected effects (or a ready
+        :class:`Plant`)
+    approach : +1 the cam reaches ``cam_deg`` from the neutral side; -1 from
+        the far side (it overshoots by ``overshoot_deg`` for ``overshoot_s`` first),
+        which makes a backlash visible
+    pre_s, hold_max_s, post_s : timing of the step [s]
+
+    Returns
+    -------
+    (Run, SimTrace)
+    """
+    rig = rig or load_rig()
+    if side not in ("supply", "drain"):
+        raise ConfigError(f"side: expected 'supply' or 'drain', got {side!r}")
+    plant = plant or Plant.from_rig(rig, valve=valve, effects=effects)
+    neutral = float(rig["servo"]["neutral_deg"])
+    stroke = float(rig["actuator"]["stroke_mm"])
+    x0, stops = (5.0, (-math.inf, stroke - 5.0)) if side == "supply" else \
+        (stroke - 5.0, (5.0, math.inf))
+    toward = math.copysign(1.0, cam_deg - neutral) if cam_deg != neutral else 1.0
+    if approach < 0:
+        over = cam_deg + toward * overshoot_deg
+        cmd = (np.array([0.0, pre_s, pre_s + overshoot_s]), np.array([neutral, over, cam_deg]))
+    else:
+        cmd = (np.array([0.0, pre_s]), np.array([neutral, cam_deg]))
+    dummy = CamController.from_rig(rig).jit_spec()
+    fast, slow, t_rel = _run(plant, ctrl_kind=MODE_SCHEDULE, cp=dummy[1], ctrl_tables=dummy[2],
+                             ref=(np.array([0.0]), np.array([0.0])),
+                             load=(np.array([0.0]), np.array([float(load_mpag)])), cmd=cmd,
+                             duration_s=pre_s + hold_max_s + post_s, seed=seed,
+                             run_index=run_index, x0_mm=x0, cam0_deg=neutral,
+                             neutral_deg=neutral, x_stop_mm=stops)
+    if math.isfinite(t_rel):
+        end = t_rel + post_s
+        fast, slow = fast[fast["t_s"] <= end + 1e-9], slow[slow["t_s"] <= end + 1e-9]
+    rid = run_id or f"{side}-load{load_mpag:g}-cam{cam_deg:g}-i{run_index}"
+    meta = _meta(rid, "flow_step", started_at, load_mpag=float(load_mpag), side=side,
+                 cam_deg=float(cam_deg))
+    trace = SimTrace(x_true_mm=fast["x_true_mm"].to_numpy(), q_true_mm3_s=fast["q_true_mm3_s"].to_numpy(),
+                     cam_needle_deg=slow["cam_needle_deg"].to_numpy(), t_release_s=t_rel)
+    return Run(meta=meta, tables=_tables(fast, slow, controller=False), rig=rig), trace
+
+
+def simulate_position_control(rig: RigConfig | None = None, *,
+                              controller: FlowModelController | CamController,
+                              x_ref, load, duration_s: float, seed: int = 0,
+                              valve: ValveModel | None = None,
+                              effects: Iterable[str | Effect | dict] = (),
+                              plant: Plant | None = None, x0_mm: float = 0.0,
+                              run_index: int = 0, run_id: str = "sim",
+                              started_at: datetime | None = None) -> tuple[Run, SimTrace]:
+    """One closed-loop position-control run (paper Sec. III) on the plant.
+
+    Parameters
+    ----------
+    rig : rig config (default: the shipped one)
+    controller : the paper's controller with its valve model
+        (:class:`~seanv_analysis.control.FlowModelController`) or without
+        (:class:`~seanv_analysis.control.CamController`)
+    x_ref : position reference, a number or (t_s, x_ref_mm) steps
+    load : load pressure set point, a number or (t_s, p_mpag) steps
+    duration_s : length of the run [s]
+    seed : noise seed
+    valve, effects, plant : the true valve and injected effects
+    x0_mm : initial position [mm]
+
+    Returns
+    -------
+    (Run, SimTrace)
+    """
+    rig = rig or load_rig()
+    plant = plant or Plant.from_rig(rig, valve=valve, effects=effects)
+    kind, cp, tables = controller.jit_spec()
+    ref, ld = _steps(x_ref, "x_ref"), _steps(load, "load")
+    neutral = float(rig["servo"]["neutral_deg"])
+    fast, slow, _ = _run(plant, ctrl_kind=kind, cp=cp, ctrl_tables=tables, ref=ref, load=ld,
+                         cmd=(np.array([0.0]), np.array([neutral])), duration_s=duration_s,
+                         seed=seed, run_index=run_index, x0_mm=x0_mm, cam0_deg=neutral,
+                         neutral_deg=neutral, x_stop_mm=(-math.inf, math.inf))
+    load_meta = float(ld[1][0]) if ld[1].size == 1 else None
+    meta = _meta(run_id, "position_control", started_at, load_mpag=load_meta,
+                 controller=controller.run_json())
+    trace = SimTrace(x_true_mm=fast["x_true_mm"].to_numpy(), q_true_mm3_s=fast["q_true_mm3_s"].to_numpy(),
+                     cam_needle_deg=slow["cam_needle_deg"].to_numpy(), t_release_s=math.nan)
+    return Run(meta=meta, tables=_tables(fast, slow, controller=True), rig=rig), trace
