@@ -18,7 +18,7 @@ _EFFECT_TEXT = {
     "pressure_law": "the {side} flow follows dp^{exponent:.2f}, not the orifice law dp^0.5",
     "saturation": "the {side} flow saturates at about {q_max_mm3_s:.0f} mm^3/s at large openings",
     "sensor_gain": "a {sensor} sensor reads {gain:.3f} x the true value",
-    "delay": "the flow lags the cam by an extra {extra_s:.3f} s (transport delay)",
+    "delay": "the flow lags Q_ref by an extra {delay_s:.3f} s beyond the nominal lag (transport delay)",
 }
 
 
@@ -84,6 +84,7 @@ class Discovery:
     final_fit: Any = None
     holdout: str = "chrono"
     validation: dict | None = None   # closed-loop fit % before/after, filled by the CLI/pipeline
+    position_control: dict | None = None  # delay check on position-control runs (dynamic.py)
 
     @property
     def improvement(self) -> float:
@@ -100,6 +101,8 @@ class Discovery:
                            "rmse_before_mm3_s": _num(self.rmse_before_mm3_s),
                            "rmse_after_mm3_s": _num(self.rmse_after_mm3_s)},
                "trend_variable": self.trend_variable}
+        if self.position_control:
+            out["position_control"] = self.position_control
         if self.validation:
             out["validation"] = self.validation
         return out
@@ -129,6 +132,11 @@ class Discovery:
         lines.append(f"Held-out runs ({self.holdout}, n = {self.n_heldout_runs}): flow RMSE "
                      f"{self.rmse_before_mm3_s:.0f} mm^3/s before, {self.rmse_after_mm3_s:.0f} mm^3/s "
                      f"after ({-self.improvement:+.0%} error, residual = measured - model).")
+        if self.position_control:
+            pc = self.position_control
+            lines.append(f"Position control (n = {pc['n_runs']} runs, last 30 % of each held out): "
+                         f"{pc.get('message', '')}; flow RMSE {pc['rmse_before_mm3_s']:.0f} mm^3/s with the "
+                         f"nominal lag, {pc['rmse_after_mm3_s']:.0f} mm^3/s after.")
         if self.validation:
             lines.append("Closed loop (validate): " + json.dumps(self.validation))
         return "\n".join(lines)

@@ -14,7 +14,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..models import ValveModel, side_pressures
-from . import _forms_tmp as fx
+from ..models import effects as fx
 
 __all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static",
            "STATIC_EFFECTS"]

@@ -22,24 +22,24 @@ Effects (``--effect``) act on the plant of every run; the truth goes to
 from __future__ import annotations
 
 import math
-import shutil
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import Callable, Iterable, Iterator
 
 import numpy as np
 
 from ..config import RigConfig, load_rig
 from ..control import CamController, FlowModelController
 from ..errors import ConfigError
-from ..io import write_json_atomic, write_run
+from ..io import Run, write_json_atomic, write_run
 from ..models import ValveModel
 from ..models.effects import Effect
 from .plant import Plant
 from .run import simulate_flow_step, simulate_position_control
 
-__all__ = ["SCENARIOS", "simulate_scenario", "flowstep_grid", "paper_position_profile"]
+__all__ = ["SCENARIOS", "simulate_scenario", "iter_scenario_runs", "scenario_size", "flowstep_grid",
+           "paper_position_profile"]
 
 _START = datetime(2026, 3, 2, 9, 0, 0, tzinfo=timezone.utc)
 
@@ -84,34 +84,24 @@ def paper_position_profile() -> tuple[tuple[np.ndarray, np.ndarray], tuple[np.nd
     return (t_ref, np.array(refs)), (t_load, np.array(loads[:7])), 5.0 + 15.0 * 6
 
 
-def _flowsteps(out: Path, plant: Plant, *, seed: int, small: bool, fmt: str,
-               progress: Callable[[int, int], None] | None) -> list[str]:
-    grid = flowstep_grid(small=small)
+def _flowstep_runs(plant: Plant, *, seed: int, small: bool) -> Iterator[Run]:
     t = _START
-    ids = []
     last_load = None
-    for i, step in enumerate(grid):
+    for i, step in enumerate(flowstep_grid(small=small)):
         if last_load is not None and step.load_mpag != last_load:
             t += timedelta(seconds=60)   # the operator sets a new load
         last_load = step.load_mpag
-        rid = (f"{i:04d}-{step.side}-load{step.load_mpag:.2f}-cam{step.cam_deg:+.1f}")
+        rid = f"{i:04d}-{step.side}-load{step.load_mpag:.2f}-cam{step.cam_deg:+.1f}"
         run, _ = simulate_flow_step(plant.rig, side=step.side, cam_deg=step.cam_deg,
                                     load_mpag=step.load_mpag, seed=seed, run_index=i, plant=plant,
                                     approach=step.approach, run_id=rid, started_at=t)
-        write_run(out / rid, run.meta.to_json(), run.tables, fmt=fmt)
-        ids.append(rid)
+        yield run
         t += timedelta(seconds=float(run.tables["encoder"]["t_s"].iloc[-1]) + 8.0)
-        if progress:
-            progress(i + 1, len(grid))
-    return ids
 
 
-def _position(out: Path, plant: Plant, *, seed: int, which: Iterable[str], fmt: str,
-              progress: Callable[[int, int], None] | None) -> list[str]:
+def _position_runs(plant: Plant, *, seed: int, which: Iterable[str]) -> Iterator[Run]:
     rig = plant.rig
     ref, load, duration = paper_position_profile()
-    which = list(which)
-    ids = []
     t = _START
     for i, name in enumerate(which):
         if name == "model":
@@ -122,12 +112,31 @@ def _position(out: Path, plant: Plant, *, seed: int, which: Iterable[str], fmt: 
         run, _ = simulate_position_control(rig, controller=ctrl, x_ref=ref, load=load,
                                            duration_s=duration, seed=seed, plant=plant,
                                            run_index=i, run_id=rid, started_at=t)
-        write_run(out / rid, run.meta.to_json(), run.tables, fmt=fmt)
-        ids.append(rid)
+        yield run
         t += timedelta(seconds=duration + 120.0)
-        if progress:
-            progress(i + 1, len(which))
-    return ids
+
+
+def scenario_size(name: str) -> int:
+    """Number of runs a scenario writes."""
+    if name.startswith("paper-flowsteps"):
+        return len(flowstep_grid(small=name.endswith("small")))
+    return 1 if name == "paper-position-model" else 2
+
+
+def iter_scenario_runs(name: str, *, seed: int = 0, effects: Iterable[str | Effect | dict] = (),
+                       rig: RigConfig | None = None, valve: ValveModel | None = None,
+                       plant: Plant | None = None) -> Iterator[Run]:
+    """The runs of a scenario in time order, in memory (nothing written).
+
+    Same runs, bit for bit, as :func:`simulate_scenario` writes.
+    """
+    if name not in SCENARIOS:
+        raise ConfigError(f"scenario: unknown {name!r}; expected one of {', '.join(SCENARIOS)}")
+    plant = plant or Plant.from_rig(rig or load_rig(), valve=valve, effects=effects)
+    if name.startswith("paper-flowsteps"):
+        return _flowstep_runs(plant, seed=seed, small=name.endswith("small"))
+    which = ("model",) if name == "paper-position-model" else ("model", "cam")
+    return _position_runs(plant, seed=seed, which=which)
 
 
 SCENARIOS: dict[str, str] = {
@@ -172,12 +181,13 @@ def simulate_scenario(name: str, out_dir: str | Path, *, seed: int = 0,
     if out.exists() and any(out.rglob("run.json")):
         raise ConfigError(f"out: {out} already holds runs; choose an empty folder")
     out.mkdir(parents=True, exist_ok=True)
-    if name.startswith("paper-flowsteps"):
-        ids = _flowsteps(out, plant, seed=seed, small=name.endswith("small"), fmt=fmt,
-                         progress=progress)
-    else:
-        which = ("model",) if name == "paper-position-model" else ("model", "cam")
-        ids = _position(out, plant, seed=seed, which=which, fmt=fmt, progress=progress)
+    ids = []
+    total = scenario_size(name)
+    for run in iter_scenario_runs(name, seed=seed, plant=plant):
+        write_run(out / run.run_id, run.meta.to_json(), run.tables, fmt=fmt)
+        ids.append(run.run_id)
+        if progress:
+            progress(len(ids), total)
     if write_truth:
         write_json_atomic(out / "_truth.json", {
             "scenario": name, "seed": seed, "runs": ids, **plant.truth()})

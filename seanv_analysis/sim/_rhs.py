@@ -1,0 +1,233 @@
+"""Continuous-time right-hand side f(t, y) of the plant (numba), for
+benchmarking the fixed-step kernel against a general ODE solver.
+
+Private helper of ``benchmarks/bench_sim.py`` and ``tests/test_sim_rhs.py``;
+the simulator itself runs :func:`.kernel.simulate_kernel`.
+
+Same physics as the kernel, from the same packed parameter vector
+(:class:`.kernel.PP`) and the same compiled valve functions
+(:mod:`seanv_analysis.models._jit`): supply with pump ripple, valve eq. (3)-(5)
+per side with the smoothed dp law and the leakage conductance, the tube as
+``n_seg`` lumped R-I segments with C at the nodes (last node grows with the
+chamber), first-order load regulator, piston with Coulomb + Stribeck +
+viscous friction, servo first-order lag with rate limit.
+
+Differences from the kernel, all needed to make the plant an ODE a
+general-purpose solver can integrate (each is a switch or absent):
+
+- friction: the kernel's Karnopp stiction (a velocity reset, not a force)
+  is replaced by the regularised law
+  ``F = (Fc + (Fs - Fc) exp(-(v/vs)^2)) tanh(v / eps_v) + b v``;
+  it equals the kernel's sliding friction for |v| >> eps_v and holds the
+  piston (creep ~ eps_v) while |F_drive| < Fs;
+- servo position quantisation is optional (``quantise``: a discontinuous
+  staircase in theta, off for the solver comparison);
+- the sealing thresholds are evaluated at every call (the kernel refreshes
+  them at 1 kHz);
+- the servo target is one step (dead time already applied): ``theta0``
+  before ``t_on``, ``theta1`` after (an open-loop flow step; no controller);
+- no cavitation floor, no end stops, no backlash / delay effects
+  (:func:`check_supported` refuses plants that need them).
+
+State ``y`` (length ``2 n_seg + 5``): node pressures p_0..p_nseg [MPaG],
+segment flows q_0..q_{nseg-1} [mm^3/s], piston x [mm], v [mm/s], servo
+angle theta [deg], load pressure [MPaG]. Layout helpers: :func:`layout`.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..models import _jit as J
+from .kernel import PP
+
+__all__ = ["AUX_SIZE", "make_aux", "layout", "initial_state", "derivs", "rhs",
+           "fixed_step", "check_supported"]
+
+# auxiliary parameter vector (open-loop case and regularisation)
+_A_T_ON, _A_TH0, _A_TH1, _A_PLOAD, _A_EPS, _A_QUANT = range(6)
+AUX_SIZE = 6
+
+_DT = PP.DT
+_P_SUPPLY = PP.P_SUPPLY
+_RIPPLE_AMP = PP.RIPPLE_AMP
+_RIPPLE_HZ = PP.RIPPLE_HZ
+_P_TANK = PP.P_TANK
+_N_SEG = PP.N_SEG
+_R_SEG = PP.R_SEG
+_I_SEG = PP.I_SEG
+_V_SEG = PP.V_SEG
+_BULK = PP.BULK
+_AREA = PP.AREA
+_LOAD_AREA = PP.LOAD_AREA
+_DEAD_VOL = PP.DEAD_VOL
+_MASS = PP.MASS
+_F_COULOMB = PP.F_COULOMB
+_F_STATIC = PP.F_STATIC
+_V_STRIBECK = PP.V_STRIBECK
+_VISCOUS = PP.VISCOUS
+_LOAD_TAU = PP.LOAD_TAU
+_LEAK_G = PP.LEAK_G
+_DP_SMOOTH = PP.DP_SMOOTH
+_SERVO_TAU = PP.SERVO_TAU
+_SERVO_RATE = PP.SERVO_RATE
+_SERVO_RES = PP.SERVO_RES
+
+
+def make_aux(*, t_on_s: float, theta0_deg: float, theta1_deg: float, p_load_mpag: float,
+             eps_v_mm_s: float = 1e-3, quantise: bool = False) -> np.ndarray:
+    """Auxiliary vector: servo-target step (``theta0`` -> ``theta1`` at
+    ``t_on``), load set point, friction regularisation velocity, quantisation."""
+    aux = np.empty(AUX_SIZE)
+    aux[_A_T_ON] = t_on_s
+    aux[_A_TH0] = theta0_deg
+    aux[_A_TH1] = theta1_deg
+    aux[_A_PLOAD] = p_load_mpag
+    aux[_A_EPS] = eps_v_mm_s
+    aux[_A_QUANT] = 1.0 if quantise else 0.0
+    return aux
+
+
+def layout(pp: np.ndarray) -> dict[str, slice | int]:
+    """Indices of the state vector: 'p', 'q' (slices), 'x', 'v', 'theta', 'p_load'."""
+    nseg = int(pp[_N_SEG])
+    return {"p": slice(0, nseg + 1), "q": slice(nseg + 1, 2 * nseg + 1), "x": 2 * nseg + 1,
+            "v": 2 * nseg + 2, "theta": 2 * nseg + 3, "p_load": 2 * nseg + 4,
+            "n": 2 * nseg + 5}
+
+
+def initial_state(pp: np.ndarray, aux: np.ndarray, x0_mm: float) -> np.ndarray:
+    """At rest as the kernel starts: head pressure balancing the load,
+    no flow, servo at ``theta0``."""
+    lay = layout(pp)
+    y = np.zeros(lay["n"])
+    y[lay["p"]] = aux[_A_PLOAD] * pp[_LOAD_AREA] / pp[_AREA]
+    y[lay["x"]] = x0_mm
+    y[lay["theta"]] = aux[_A_TH0]
+    y[lay["p_load"]] = aux[_A_PLOAD]
+    return y
+
+
+def check_supported(pp: np.ndarray) -> None:
+    """Refuse parameter vectors using kernel features the RHS leaves out."""
+    if pp[PP.BACKLASH] != 0.0 or pp[PP.DELAY_STEPS] != 0.0:
+        raise ValueError("the continuous RHS does not model backlash / extra delay effects")
+
+
+@njit(cache=True, nogil=True)
+def derivs(t, y, dydt, diag, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+    """f(t, y) into ``dydt``, and the stiff diagonal d f_i / d y_i into
+    ``diag`` (valve conductance at node 0, resistance of the segments,
+    friction slope; 0 elsewhere) for a diagonally implicit step."""
+    nseg = int(pp[_N_SEG])
+    iq = nseg + 1
+    ix = 2 * nseg + 1
+    iv = ix + 1
+    ith = ix + 2
+    ipl = ix + 3
+    area = pp[_AREA]
+    bulk = pp[_BULK]
+    vseg = pp[_V_SEG]
+    rseg = pp[_R_SEG]
+    iseg = pp[_I_SEG]
+    gl = pp[_LEAK_G]
+    ptank = pp[_P_TANK]
+    smooth = pp[_DP_SMOOTH]
+    x = y[ix]
+    v = y[iv]
+    theta = y[ith]
+    p_load = y[ipl]
+    for k in range(dydt.size):
+        diag[k] = 0.0
+    # servo: first-order lag towards the (dead-time shifted) target, rate limit
+    target = aux[_A_TH1] if t >= aux[_A_T_ON] else aux[_A_TH0]
+    rate = (target - theta) / pp[_SERVO_TAU]
+    rmax = pp[_SERVO_RATE]
+    if rate > rmax:
+        rate = rmax
+    elif rate < -rmax:
+        rate = -rmax
+    dydt[ith] = rate
+    theta_n = theta
+    if aux[_A_QUANT] > 0.5:
+        res = pp[_SERVO_RES]
+        theta_n = round(theta / res) * res
+    # valve into node 0 (eq. 3-5, thresholds at the current pressures)
+    ps = pp[_P_SUPPLY] + pp[_RIPPLE_AMP] * math.sin(2.0 * math.pi * pp[_RIPPLE_HZ] * t)
+    p0 = y[0]
+    dps = ps - p0
+    dpd = p0 - ptank
+    th_s = J.threshold_deg(sup, sup_z, sup_th, ps, dps)
+    th_d = J.threshold_deg(dr, dr_z, dr_th, p0, dpd)
+    qs, gs = J.side_flow_at(sup, th_s, theta_n, dps, smooth)
+    qd, gd = J.side_flow_at(dr, th_d, theta_n, dpd, smooth)
+    qv = qs + qd + gl * dps - gl * dpd
+    g = gs - gd + 2.0 * gl
+    # node pressures (C = V / B; half segments at the ends, chamber at the last)
+    c_end = 0.5 * vseg / bulk
+    c_mid = vseg / bulk
+    dydt[0] = (qv - y[iq]) / c_end
+    diag[0] = -g / c_end
+    for k in range(1, nseg):
+        dydt[k] = (y[iq + k - 1] - y[iq + k]) / c_mid
+    c_last = c_end + (pp[_DEAD_VOL] + area * x) / bulk
+    dydt[nseg] = (y[iq + nseg - 1] - area * v) / c_last
+    # segment flows: I dq/dt = p_k - p_{k+1} - R q
+    for k in range(nseg):
+        dydt[iq + k] = (y[k] - y[k + 1] - rseg * y[iq + k]) / iseg
+        diag[iq + k] = -rseg / iseg
+    # load regulator
+    dydt[ipl] = (aux[_A_PLOAD] - p_load) / pp[_LOAD_TAU]
+    # piston: regularised Coulomb + Stribeck + viscous friction
+    m = pp[_MASS]
+    fc = pp[_F_COULOMB]
+    vs = pp[_V_STRIBECK]
+    eps = aux[_A_EPS]
+    e = math.exp(-(v / vs) ** 2)
+    fmag = fc + (pp[_F_STATIC] - fc) * e
+    th = math.tanh(v / eps)
+    ff = fmag * th + pp[_VISCOUS] * v
+    dff = (fmag * (1.0 - th * th) / eps + (pp[_F_STATIC] - fc) * e * (-2.0 * v / (vs * vs)) * th
+           + pp[_VISCOUS])
+    f_drive = y[nseg] * area - p_load * pp[_LOAD_AREA]
+    dydt[iv] = (f_drive - ff) / m
+    diag[iv] = -dff / m
+    dydt[ix] = v
+
+
+@njit(cache=True, nogil=True)
+def rhs(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+    """f(t, y) as a new array (the form ``scipy.integrate.solve_ivp`` calls)."""
+    dydt = np.empty(y.size)
+    diag = np.empty(y.size)
+    derivs(t, y, dydt, diag, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
+    return dydt
+
+
+@njit(cache=True, nogil=True)
+def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+    """Diagonally semi-implicit Euler over :func:`derivs` with the kernel's
+    step ``pp[DT]``: y += dt f / (1 - dt d), d the stiff diagonal (implicit
+    in the valve conductance, the tube resistance and the friction slope,
+    explicit elsewhere). Returns the states at every ``every``-th step,
+    ``(n_out, len(y))`` (row 0 = y0)."""
+    dt = pp[_DT]
+    n = y0.size
+    y = y0.copy()
+    out = np.empty((n_out, n))
+    dydt = np.empty(n)
+    diag = np.empty(n)
+    step = 0
+    for i in range(n_out):
+        for k in range(n):
+            out[i, k] = y[k]
+        if i == n_out - 1:
+            break
+        for _ in range(every):
+            derivs(step * dt, y, dydt, diag, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
+            for k in range(n):
+                y[k] += dt * dydt[k] / (1.0 - dt * diag[k])
+            step += 1
+    return out
