@@ -1,0 +1,502 @@
+"""Closed-loop validation: re-run each measured position-control test on the
+simulated plant and compare (issue 6, paper Sec. III-C).
+
+For every position_control run the same controller is rebuilt from run.json
+(``controller.kp``, ``controller.flow_model``: :class:`~seanv_analysis.control.FlowModelController`
+with the identified valve model, or :class:`~seanv_analysis.control.CamController`),
+driven by the run's own reference sequence (controller.csv ``x_ref_mm``,
+as steps) and load sequence (pressure.csv ``p_load_mpag`` reduced to
+steps), and simulated with :func:`seanv_analysis.sim.simulate_position_control`
+on the plant with the identified valve. Simulated and measured position
+[mm], flow [mm^3/s] (same derivative, :func:`seanv_analysis.derive.derive_samples`)
+and cam angle [deg] are compared on the measured time base:
+
+- fit % = 100 (1 - ||y - y_sim|| / ||y - mean(y)||) (100: perfect; 0: no
+  better than the mean; negative: worse);
+- RMSE of y - y_sim (measured - simulated);
+- per reference step (measured and simulated): convergence within the
+  rig's band (+-0.5 mm), overshoot past the reference [mm], settling time
+  [s] (from the step until |e| stays inside the band to the step's end).
+
+Runs whose position fit % is below ``threshold_pct`` (default 80) are
+flagged: the plant disagrees with the data (what discovery looks at).
+"""
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..derive import derive_samples
+from ..errors import ConfigError, DataError
+from ..io.run import Run
+from .tracking import load_levels_mpag
+
+__all__ = ["DEFAULT_THRESHOLD_PCT", "fit_percent", "reference_steps", "load_steps",
+           "step_metrics", "build_controller", "RunValidation", "Validation", "validate_runs",
+           "validate_dataset"]
+
+#: Position fit % below which a run is flagged.
+DEFAULT_THRESHOLD_PCT = 80.0
+
+
+def fit_percent(y, y_sim) -> float:
+    """Normalised fit [%]: 100 (1 - ||y - y_sim||_2 / ||y - mean(y)||_2).
+
+    NaN pairs are ignored; NaN when y is constant or no pair is valid.
+
+    Examples
+    --------
+    >>> fit_percent([0.0, 1.0, 2.0], [0.0, 1.0, 2.0])
+    100.0
+    """
+    y = np.asarray(y, dtype=float)
+    s = np.asarray(y_sim, dtype=float)
+    ok = np.isfinite(y) & np.isfinite(s)
+    if ok.sum() < 2:
+        return math.nan
+    y, s = y[ok], s[ok]
+    den = float(np.linalg.norm(y - y.mean()))
+    if den == 0:
+        return math.nan
+    return float(100.0 * (1.0 - np.linalg.norm(y - s) / den))
+
+
+def _rmse(y, s) -> float:
+    ok = np.isfinite(y) & np.isfinite(s)
+    return float(np.sqrt(np.mean((y[ok] - s[ok]) ** 2))) if ok.any() else math.nan
+
+
+def _steps(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    ok = np.isfinite(v)
+    t, v = t[ok], v[ok]
+    if t.size == 0:
+        return t, v
+    idx = np.concatenate(([0], np.flatnonzero(np.diff(v) != 0) + 1))
+    ts = t[idx].copy()
+    ts[0] = min(ts[0], 0.0)
+    return ts, v[idx]
+
+
+def reference_steps(run: Run) -> tuple[np.ndarray, np.ndarray]:
+    """(t [s], x_ref [mm]) step sequence of controller.csv ``x_ref_mm``
+    (first step starts at t = 0 or earlier)."""
+    ctrl = run.tables.get("controller")
+    if ctrl is None or "x_ref_mm" not in ctrl or not len(ctrl):
+        raise DataError("no controller table with x_ref_mm; expected a position_control run",
+                        path=run.meta.path, column="x_ref_mm")
+    return _steps(ctrl["t_s"].to_numpy(float), ctrl["x_ref_mm"].to_numpy(float))
+
+
+def load_steps(run: Run, *, step_mpa: float = 0.05, min_hold_s: float = 0.3
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """(t [s], load [MPaG]) step sequence of pressure.csv ``p_load_mpag``.
+
+    Levels from :func:`seanv_analysis.analysis.tracking.load_levels_mpag`
+    (running median, ``step_mpa`` grid, holds shorter than ``min_hold_s``
+    merged into the previous level); each level's value is the median of the
+    raw load pressure over its hold; a level starts where the smoothed
+    pressure enters it (about mid-way through a load change). run.json ``load_mpag`` (when not
+    null) gives a single step.
+    """
+    if run.meta.load_mpag is not None:
+        return np.array([0.0]), np.array([float(run.meta.load_mpag)])
+    p = run.tables["pressure"]
+    t = p["t_s"].to_numpy(float)
+    raw = p["p_load_mpag"].to_numpy(float)
+    lv = load_levels_mpag(t, raw, step_mpa=step_mpa, min_hold_s=min_hold_s)
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(lv) != 0) + 1))
+    ends = np.concatenate((starts[1:], [t.size]))
+    ts = t[starts].copy()
+    ts[0] = min(ts[0], 0.0)
+    vals = np.array([float(np.nanmedian(raw[a:b])) for a, b in zip(starts, ends)])
+    return ts, vals
+
+
+def step_metrics(t_s, x_mm, ref_t_s, ref_mm, *, x0_mm: float | None = None,
+                 band_mm: float = 0.5) -> pd.DataFrame:
+    """Per reference step: converged, overshoot [mm], settling time [s].
+
+    Parameters
+    ----------
+    t_s, x_mm : position record [s], [mm]
+    ref_t_s, ref_mm : reference steps (value holds from each t until the next)
+    x0_mm : position before the first step (default the first sample)
+    band_mm : convergence band half-width [mm]
+
+    Returns
+    -------
+    DataFrame with t_start_s, t_end_s, x_ref_mm, step_mm, converged (|e| <=
+    band at some instant of the step), convergence_time_s (first instant
+    inside the band, from the step; NaN if never), overshoot_mm (largest
+    excursion past the reference in the step's direction, >= 0),
+    settling_time_s (from the step until |e| stays inside the band to the
+    step's end; NaN if it is outside at the step's end).
+    """
+    t = np.asarray(t_s, float)
+    x = np.asarray(x_mm, float)
+    rt = np.asarray(ref_t_s, float)
+    rv = np.asarray(ref_mm, float)
+    prev = float(x[0] if x0_mm is None else x0_mm)
+    rows = []
+    for k in range(rt.size):
+        a = rt[k]
+        b = rt[k + 1] if k + 1 < rt.size else t[-1] + 1e-12
+        m = (t >= a) & (t < b)
+        step = rv[k] - prev
+        prev_ref = rv[k]
+        prev = prev_ref
+        if m.sum() < 2:
+            continue
+        e = rv[k] - x[m]
+        inside = np.abs(e) <= band_mm
+        sign = 1.0 if step >= 0 else -1.0
+        over = float(max(0.0, np.max(-sign * e))) if step != 0 else float(np.max(np.abs(e)))
+        if inside[-1]:
+            out = np.flatnonzero(~inside)
+            j = 0 if out.size == 0 else int(out[-1]) + 1
+            settle = float(t[m][j] - a) if j > 0 else 0.0
+        else:
+            settle = math.nan
+        first_in = np.flatnonzero(inside)
+        t_conv = float(t[m][first_in[0]] - a) if first_in.size else math.nan
+        rows.append({"t_start_s": float(a), "t_end_s": float(min(b, t[-1])), "x_ref_mm": float(rv[k]),
+                     "step_mm": float(step), "converged": bool(inside.any()),
+                     "convergence_time_s": t_conv,
+                     "overshoot_mm": over, "settling_time_s": settle})
+    return pd.DataFrame(rows, columns=["t_start_s", "t_end_s", "x_ref_mm", "step_mm",
+                                       "converged", "convergence_time_s", "overshoot_mm",
+                                       "settling_time_s"])
+
+
+def build_controller(run: Run, model, rig=None):
+    """The run's controller (run.json ``controller``) rebuilt with ``model``.
+
+    flow_model true (default): ``FlowModelController.from_rig(rig, model,
+    kp_mm3_s_per_mm=kp)``; false: ``CamController.from_rig(rig, kp_deg_per_mm=kp)``.
+    Missing ``kp`` takes the rig's value; ``rate_hz`` is kept.
+    """
+    from ..control import CamController, FlowModelController
+
+    rig = run.rig if rig is None else rig
+    c = dict(run.meta.controller or {})
+    extra = {"rate_hz": float(c["rate_hz"])} if c.get("rate_hz") else {}
+    if c.get("flow_model", True):
+        if c.get("kp") is not None:
+            extra["kp_mm3_s_per_mm"] = float(c["kp"])
+        return FlowModelController.from_rig(rig, model, **extra)
+    if c.get("kp") is not None:
+        extra["kp_deg_per_mm"] = float(c["kp"])
+    return CamController.from_rig(rig, **extra)
+
+
+def _cam_column(d: pd.DataFrame) -> str:
+    if "cam_deg" in d and np.isfinite(d["cam_deg"].to_numpy(float)).mean() > 0.5:
+        return "cam_deg"
+    return "cam_cmd_deg"
+
+
+@dataclass
+class RunValidation:
+    """One run re-simulated: metrics row, step metrics and the overlay data.
+
+    ``overlay``: t_s, position_mm / _sim, q_mm3_s / _sim, cam_deg / _sim,
+    x_ref_mm (the measured time base).
+    """
+
+    run_id: str
+    row: dict[str, Any]
+    steps_measured: pd.DataFrame = field(repr=False)
+    steps_simulated: pd.DataFrame = field(repr=False)
+    overlay: pd.DataFrame = field(repr=False)
+    simulated: Run | None = field(default=None, repr=False)
+
+
+@dataclass
+class Validation:
+    """Closed-loop validation of a data set (issue 6).
+
+    Attributes
+    ----------
+    table : one row per run: run_id, controller ('flow_model' | 'cam'), kp,
+        fit_position_pct, rmse_position_mm, fit_flow_pct, rmse_flow_mm3_s,
+        fit_cam_pct, rmse_cam_deg, steps, converged_measured /
+        converged_simulated (fraction of steps), convergence_time_measured_s /
+        convergence_time_simulated_s (mean time to first enter the band),
+        overshoot_measured_mm /
+        overshoot_simulated_mm (largest), settling_measured_s /
+        settling_simulated_s (mean over settled steps), flagged
+    flagged : run ids with position fit % < ``threshold_pct``
+    threshold_pct : the flag threshold [%]
+    runs : per-run :class:`RunValidation` (overlay data for the figure)
+    skipped : {run_id: reason}
+    warnings : messages worth reading
+    controller_model : which valve model the flow-model controller used
+        ('rig', 'plant' or 'given')
+    """
+
+    table: pd.DataFrame
+    flagged: list[str]
+    threshold_pct: float
+    runs: list[RunValidation] = field(default_factory=list, repr=False)
+    skipped: dict[str, str] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    controller_model: str = "rig"
+
+    @property
+    def success(self) -> bool:
+        return len(self.table) > 0
+
+    def by_controller(self) -> pd.DataFrame:
+        """Mean of the numeric metrics per controller ('flow_model' | 'cam')."""
+        if self.table.empty:
+            return pd.DataFrame()
+        num = self.table.drop(columns=["run_id", "flagged"]).groupby("controller")
+        return num.mean(numeric_only=True)
+
+    def steps(self) -> pd.DataFrame:
+        """Per reference step of every run, measured and simulated
+        (:func:`step_metrics` columns plus run_id and source)."""
+        parts = []
+        for r in self.runs:
+            for source, df in (("measured", r.steps_measured), ("simulated", r.steps_simulated)):
+                if not df.empty:
+                    parts.append(df.assign(run_id=r.run_id, source=source))
+        return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
+
+    def to_json(self) -> dict[str, Any]:
+        """JSON document: threshold, flagged runs, per-run table, per-controller means."""
+        def clean(v):
+            if isinstance(v, (bool, np.bool_)):
+                return bool(v)
+            if isinstance(v, (int, np.integer)):
+                return int(v)
+            if isinstance(v, (float, np.floating)):
+                return float(v) if math.isfinite(v) else None
+            return v
+
+        by = self.by_controller()
+        return {"threshold_pct": self.threshold_pct, "flagged": list(self.flagged),
+                "controller_model": self.controller_model,
+                "metric": "fit % = 100 (1 - ||y - y_sim|| / ||y - mean(y)||); RMSE of "
+                          "measured - simulated",
+                "runs": [{k: clean(v) for k, v in rec.items()}
+                         for rec in self.table.to_dict(orient="records")],
+                "by_controller": {str(c): {k: clean(v) for k, v in row.items()}
+                                  for c, row in by.iterrows()},
+                "skipped": dict(self.skipped), "warnings": list(self.warnings)}
+
+    def report(self) -> str:
+        """Plain-text table."""
+        lines = ["Closed-loop validation: measured vs simulated position control "
+                 f"(flag: position fit < {self.threshold_pct:g} %)"]
+        head = (f"  {'run':<28} {'ctrl':<10} {'fit x %':>8} {'RMSE x':>7} {'fit Q %':>8} "
+                f"{'fit cam %':>9} {'conv m/s':>9} {'t_conv m/s s':>13} {'OS m/s mm':>11} {'settle m/s s':>13}")
+        lines.append(head)
+        lines.append("  (m/s = measured/simulated; conv = fraction of steps reaching +-band; OS = "
+                 "largest overshoot; settle = mean time to stay in band)")
+        for r in self.table.to_dict(orient="records"):
+            lines.append(
+                f"  {r['run_id']:<28} {r['controller']:<10} {r['fit_position_pct']:>8.1f} "
+                f"{r['rmse_position_mm']:>7.3f} {r['fit_flow_pct']:>8.1f} {r['fit_cam_pct']:>9.1f} "
+                f"{r['converged_measured']:>4.2f}/{r['converged_simulated']:<4.2f} "
+                f"{r['convergence_time_measured_s']:>6.2f}/{r['convergence_time_simulated_s']:<6.2f} "
+                f"{r['overshoot_measured_mm']:>5.2f}/{r['overshoot_simulated_mm']:<5.2f} "
+                f"{r['settling_measured_s']:>6.2f}/{r['settling_simulated_s']:<6.2f}"
+                + ("  FLAGGED" if r["flagged"] else ""))
+        by = self.by_controller()
+        for c, row in by.iterrows():
+            lines.append(f"  mean {c}: position fit {row['fit_position_pct']:.1f} %, flow fit "
+                         f"{row['fit_flow_pct']:.1f} %, cam fit {row['fit_cam_pct']:.1f} %")
+        lines.append(f"  flagged: {', '.join(self.flagged) if self.flagged else 'none'}")
+        for rid, why in self.skipped.items():
+            lines.append(f"  skipped {rid}: {why}")
+        for w in self.warnings:
+            lines.append(f"  warning: {w}")
+        return "\n".join(lines)
+
+    def write(self, out_dir: str | Path) -> list[Path]:
+        """validate.json, validate.txt, validate_table.parquet, validate_steps.parquet and
+        ``validate_<run_id>.parquet`` (overlay data), atomically."""
+        from ..io import write_json_atomic, write_table_parquet, write_text_atomic
+        from ..plots._style import safe_name
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        paths = [write_json_atomic(out / "validate.json", self.to_json()),
+                 write_text_atomic(out / "validate.txt", self.report() + "\n")]
+        if not self.table.empty:
+            paths.append(write_table_parquet(self.table, out / "validate_table.parquet"))
+        steps = self.steps()
+        if not steps.empty:
+            paths.append(write_table_parquet(steps, out / "validate_steps.parquet"))
+        for r in self.runs:
+            paths.append(write_table_parquet(r.overlay, out / f"validate_{safe_name(r.run_id)}.parquet"))
+        return paths
+
+
+def _default_simulate():
+    from ..sim import simulate_position_control
+    return simulate_position_control
+
+
+def _controller_model(spec, model, rig):
+    from ..models import ValveModel
+
+    if isinstance(spec, ValveModel):
+        return spec
+    if spec == "rig":
+        return ValveModel.from_rig(rig)
+    if spec == "plant":
+        return model
+    raise ConfigError(f"controller_model: expected 'rig', 'plant' or a ValveModel, got {spec!r}")
+
+
+def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[str] = (),
+                 threshold_pct: float = DEFAULT_THRESHOLD_PCT, controller_model="rig",
+                 simulate: Callable | None = None) -> RunValidation:
+    """Re-simulate one position_control run and compare (see module docstring)."""
+    if run.meta.kind != "position_control":
+        raise DataError(f"kind {run.meta.kind!r}; expected position_control", path=run.meta.path)
+    sim_fn = simulate or _default_simulate()
+    plant_rig = run.rig if rig is None else rig.with_overrides(run.meta.rig_overrides or None)
+    ctrl = build_controller(run, _controller_model(controller_model, model, plant_rig), plant_rig)
+    ref_t, ref_v = reference_steps(run)
+    load_t, load_v = load_steps(run)
+    enc = run.tables["encoder"]
+    t_enc = enc["t_s"].to_numpy(float)
+    x0 = float(enc["position_mm"].iloc[0])
+    sim = sim_fn(plant_rig, controller=ctrl, x_ref=(ref_t, ref_v), load=(load_t, load_v),
+                 duration_s=float(t_enc[-1]), seed=seed, valve=model, effects=tuple(effects),
+                 x0_mm=x0, run_id=f"{run.run_id}-sim", started_at=run.meta.started_at)
+    if isinstance(sim, tuple):  # (Run, SimTrace)
+        sim = sim[0]
+    dm = derive_samples(run)
+    ds = derive_samples(sim)
+    t = dm["t_s"].to_numpy(float)
+    ts = ds["t_s"].to_numpy(float)
+
+    def on_t(col):
+        out = np.interp(t, ts, ds[col].to_numpy(float))
+        out[(t < ts[0]) | (t > ts[-1])] = np.nan
+        return out
+
+    cam_m, cam_s = _cam_column(dm), _cam_column(ds)
+    ov = pd.DataFrame({"t_s": t, "x_ref_mm": dm["x_ref_mm"].to_numpy(float),
+                       "position_mm": dm["position_mm"].to_numpy(float),
+                       "position_sim_mm": on_t("position_mm"),
+                       "q_mm3_s": dm["q_mm3_s"].to_numpy(float), "q_sim_mm3_s": on_t("q_mm3_s"),
+                       "cam_deg": dm[cam_m].to_numpy(float), "cam_sim_deg": on_t(cam_s),
+                       "p_load_mpag": dm["p_load_mpag"].to_numpy(float)})
+    band = float(plant_rig["controller"]["convergence_band_mm"])
+    sm = step_metrics(t, ov.position_mm.to_numpy(), ref_t, ref_v, x0_mm=x0, band_mm=band)
+    ss = step_metrics(ts, ds["position_mm"].to_numpy(float), ref_t, ref_v, x0_mm=x0, band_mm=band)
+    c = run.meta.controller or {}
+
+    def agg(df, col, how):
+        df = df[df.step_mm.abs() > band] if not df.empty else df  # real steps only
+        if df.empty:
+            return math.nan
+        v = df[col].to_numpy(float)
+        v = v[np.isfinite(v)]
+        return float(how(v)) if v.size else math.nan
+
+    fit_x = fit_percent(ov.position_mm, ov.position_sim_mm)
+    row = {"run_id": run.run_id,
+           "controller": "flow_model" if c.get("flow_model", True) else "cam",
+           "kp": float(c["kp"]) if c.get("kp") is not None else math.nan,
+           "fit_position_pct": fit_x,
+           "rmse_position_mm": _rmse(ov.position_mm.to_numpy(), ov.position_sim_mm.to_numpy()),
+           "fit_flow_pct": fit_percent(ov.q_mm3_s, ov.q_sim_mm3_s),
+           "rmse_flow_mm3_s": _rmse(ov.q_mm3_s.to_numpy(), ov.q_sim_mm3_s.to_numpy()),
+           "fit_cam_pct": fit_percent(ov.cam_deg, ov.cam_sim_deg),
+           "rmse_cam_deg": _rmse(ov.cam_deg.to_numpy(), ov.cam_sim_deg.to_numpy()),
+           "steps": int((sm.step_mm.abs() > band).sum()) if not sm.empty else 0,
+           "converged_measured": agg(sm, "converged", np.mean),
+           "converged_simulated": agg(ss, "converged", np.mean),
+           "convergence_time_measured_s": agg(sm, "convergence_time_s", np.mean),
+           "convergence_time_simulated_s": agg(ss, "convergence_time_s", np.mean),
+           "overshoot_measured_mm": agg(sm, "overshoot_mm", np.max),
+           "overshoot_simulated_mm": agg(ss, "overshoot_mm", np.max),
+           "settling_measured_s": agg(sm, "settling_time_s", np.mean),
+           "settling_simulated_s": agg(ss, "settling_time_s", np.mean),
+           "flagged": bool(not (fit_x >= threshold_pct))}
+    return RunValidation(run.run_id, row, sm, ss, ov, sim)
+
+
+def validate_runs(runs: Iterable[Run], model=None, *, rig=None,
+                  threshold_pct: float = DEFAULT_THRESHOLD_PCT, seed: int = 0,
+                  effects: Sequence[str] = (), controller_model="rig",
+                  simulate: Callable | None = None) -> Validation:
+    """Validate every position_control run against the simulated plant.
+
+    Parameters
+    ----------
+    runs : runs (only position_control runs are used)
+    model : identified :class:`~seanv_analysis.models.ValveModel` (plant
+        valve and flow-model controller's model); default the rig's valve
+    rig : rig config of the plant (default each run's ``run.rig``)
+    threshold_pct : flag runs whose position fit % is below this [%]
+    seed : simulator noise seed
+    effects : extra plant effects for the simulator (``models.effects`` specs)
+    controller_model : valve model inside the flow-model controller (eq. 6):
+        'rig' (default: the rig config's valve, i.e. what the rig's controller
+        ran, since run.json does not record it), 'plant' (``model``), or a
+        :class:`~seanv_analysis.models.ValveModel`
+    simulate : replacement for :func:`seanv_analysis.sim.simulate_position_control`
+        (same signature; for tests)
+
+    Returns
+    -------
+    Validation
+
+    Raises
+    ------
+    ConfigError
+        ``threshold_pct`` not finite.
+    DataError
+        no position_control run could be validated.
+    """
+    if not math.isfinite(float(threshold_pct)):
+        raise ConfigError(f"threshold_pct: expected a finite percentage, got {threshold_pct!r}")
+    results, skipped, notes = [], {}, []
+    for run in runs:
+        if run.meta.kind != "position_control":
+            continue
+        mdl = model
+        if mdl is None:
+            from ..models import ValveModel
+            mdl = ValveModel.from_rig(run.rig if rig is None else rig)
+        try:
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                results.append(validate_run(run, mdl, rig=rig, seed=seed, effects=effects,
+                                            threshold_pct=threshold_pct,
+                                            controller_model=controller_model,
+                                            simulate=simulate))
+            notes.extend(f"{run.run_id}: {w.message}" for w in caught)
+        except DataError as exc:
+            skipped[run.run_id] = str(exc)
+    if not results:
+        raise DataError("no position_control run could be validated"
+                        + (f" ({len(skipped)} skipped)" if skipped else ""))
+    table = pd.DataFrame([r.row for r in results])
+    flagged = [r.run_id for r in results if r.row["flagged"]]
+    return Validation(table, flagged, float(threshold_pct), results, skipped, notes,
+                      controller_model if isinstance(controller_model, str) else "given")
+
+
+def validate_dataset(path: str | Path, model=None, *, rig=None,
+                     threshold_pct: float = DEFAULT_THRESHOLD_PCT, seed: int = 0,
+                     controller_model="rig"):
+    """:func:`validate_runs` on a data set folder; returns (Validation, reader errors)."""
+    from ..io import read_dataset
+
+    ds = read_dataset(path, rig=rig)
+    return validate_runs(ds.runs, model, rig=rig, threshold_pct=threshold_pct, seed=seed,
+                         controller_model=controller_model), ds.errors

@@ -1,0 +1,118 @@
+"""Fig. 6 of the paper: position control under load variation.
+
+Stacked panels sharing the time axis: target and actual position [mm];
+measured pressures (supply, head, load) [MPaG]; cam angle (command and
+feedback, dashed black: servo neutral) [deg]; position error x_ref - x [mm]
+(with the +-0.5 mm convergence band). Periods at the higher load level
+(0.45 MPaG in the paper) are shaded.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from ._style import (thin, ACTUAL_COLOUR, TARGET_COLOUR, high_load_spans, paper_style, safe_name,
+                     save_figure, shade_high_load)
+
+__all__ = ["plot_fig6", "plot_fig6_dataset", "draw_fig6_column"]
+
+_PANELS = 4
+
+
+def _controller_label(run) -> str:
+    c = run.meta.controller or {}
+    if c.get("flow_model", True):
+        return f"with flow model (Kp = {c.get('kp', '?')} mm$^3$/s/mm)"
+    return f"without flow model (Kp = {c.get('kp', '?')} deg/mm)"
+
+
+def draw_fig6_column(axes: Sequence, run, *, legend: bool = True) -> None:
+    """Draw the four Fig. 6 panels of ``run`` on ``axes`` (4 axes, top to bottom)."""
+    from ..analysis.tracking import load_levels_mpag
+
+    a = run.aligned()
+    a = a.iloc[thin(len(a))]
+    t = a["t_s"].to_numpy(float)
+    x = a["position_mm"].to_numpy(float)
+    x_ref = a["x_ref_mm"].to_numpy(float) if "x_ref_mm" in a else np.full(t.size, np.nan)
+    spans = high_load_spans(t, load_levels_mpag(t, a["p_load_mpag"].to_numpy(float))) \
+        if "p_load_mpag" in a else []
+    hi = None
+    if spans:
+        lv = load_levels_mpag(t, a["p_load_mpag"].to_numpy(float))
+        hi = float(np.nanmax(lv))
+    ax_x, ax_p, ax_c, ax_e = axes
+    shade_high_load(axes, spans, label=f"load {hi:g} MPaG" if hi is not None else None)
+    ax_x.plot(t, x_ref, color=TARGET_COLOUR, ls="--", label="target $x_{ref}$", drawstyle="steps-post")
+    ax_x.plot(t, x, color=ACTUAL_COLOUR, label="actual $x$")
+    ax_x.set_ylabel("Position [mm]")
+    for col, colour, label in (("p_supply_mpag", "tab:green", "supply $p_s$"),
+                               ("p_head_mpag", "tab:purple", "head $p_h$"),
+                               ("p_load_mpag", "tab:brown", "load $p_l$")):
+        if col in a:
+            ax_p.plot(t, a[col].to_numpy(float), color=colour, lw=0.7, label=label)
+    ax_p.set_ylabel("Pressure [MPaG]")
+    if "cam_cmd_deg" in a:
+        ax_c.plot(t, a["cam_cmd_deg"].to_numpy(float), color=TARGET_COLOUR, lw=0.8,
+                  label=r"command $\theta_{cmd}$", drawstyle="steps-post")
+    if "cam_deg" in a and np.isfinite(a["cam_deg"].to_numpy(float)).any():
+        ax_c.plot(t, a["cam_deg"].to_numpy(float), color=ACTUAL_COLOUR, lw=0.8,
+                  label=r"measured $\theta$")
+    neutral = float(run.rig["servo"]["neutral_deg"])
+    ax_c.axhline(neutral, color="k", ls="--", lw=0.9, label=f"neutral ({neutral:g} deg)")
+    ax_c.set_ylabel("Cam angle [deg]")
+    band = float(run.rig["controller"]["convergence_band_mm"])
+    ax_e.plot(t, x_ref - x, color="k", lw=0.8, label="error $e = x_{ref} - x$")
+    ax_e.axhspan(-band, band, color="tab:green", alpha=0.15, lw=0, label=f"$\\pm${band:g} mm")
+    ax_e.set_ylabel("Error [mm]")
+    ax_e.set_xlabel("Time [s]")
+    ax_e.set_xlim(t[0], t[-1])
+    if legend:
+        for ax in axes:
+            ax.legend(loc="upper right", ncol=2)
+
+
+def plot_fig6(run, out_dir: str | Path, *, stem: str | None = None) -> list[Path]:
+    """Fig. 6 style figure of one position_control run. PNG + SVG.
+
+    Parameters
+    ----------
+    run : a position_control :class:`~seanv_analysis.io.Run`
+    out_dir : output folder
+    stem : file name without extension (default ``fig6_<run_id>``)
+
+    Returns
+    -------
+    list of the written paths
+    """
+    import matplotlib.pyplot as plt
+
+    with paper_style():
+        fig, axes = plt.subplots(_PANELS, 1, figsize=(6.4, 7.2), sharex=True)
+        draw_fig6_column(axes, run)
+        axes[0].set_title(f"{run.run_id}: position control {_controller_label(run)}")
+        fig.align_ylabels(axes)
+        fig.tight_layout(h_pad=0.4)
+        return save_figure(fig, out_dir, stem or f"fig6_{safe_name(run.run_id)}")
+
+
+def plot_fig6_dataset(runs: Sequence, out_dir: str | Path, *, stem: str = "fig6",
+                      max_runs: int = 4) -> list[Path]:
+    """Fig. 6 style figure of several runs side by side (one column per run,
+    e.g. (a) without and (b) with the flow model). PNG + SVG."""
+    import matplotlib.pyplot as plt
+
+    runs = [r for r in runs if r.meta.kind == "position_control"][:max_runs]
+    if not runs:
+        return []
+    with paper_style():
+        fig, axes = plt.subplots(_PANELS, len(runs), figsize=(4.6 * len(runs), 7.2),
+                                 sharex="col", squeeze=False)
+        for j, run in enumerate(runs):
+            draw_fig6_column(axes[:, j], run, legend=(j == len(runs) - 1))
+            axes[0, j].set_title(f"({chr(97 + j)}) {run.run_id}\n{_controller_label(run)}")
+        fig.align_ylabels(axes[:, 0])
+        fig.tight_layout(h_pad=0.4)
+        return save_figure(fig, out_dir, stem)

@@ -1,0 +1,140 @@
+"""Fig. 7 of the paper: flow control performance during position control.
+
+(a) target Q_ref and actual Q flow against time [mm^3/s] (higher-load
+periods shaded); (b) actual flow shifted earlier by the delay against the
+target, with the identity line (solid inside the fitting range, dashed
+outside), the range bounds and the RMSE in the title.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ._style import (thin, ACTUAL_COLOUR, TARGET_COLOUR, high_load_spans, paper_style, safe_name,
+                     save_figure, shade_high_load)
+
+__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter"]
+
+_K = 1e-3  # axes in 10^3 mm^3/s, as the paper
+
+
+def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = True) -> None:
+    """Panel (a): target and actual flow [10^3 mm^3/s] against time [s]."""
+    d = run_tracking.data
+    d = d.iloc[thin(len(d))]
+    t = d["t_s"].to_numpy(float)
+    spans = high_load_spans(t, d["load_level_mpag"].to_numpy(float))
+    hi = float(np.nanmax(d["load_level_mpag"])) if spans else None
+    shade_high_load(ax, spans, label=f"load {hi:g} MPaG" if hi is not None else None)
+    ax.plot(t, d["q_ref_mm3_s"] * _K, color=TARGET_COLOUR, lw=0.9, drawstyle="steps-post",
+            label="target $Q_{ref}$")
+    ax.plot(t, d["q_mm3_s"] * _K, color=ACTUAL_COLOUR, lw=0.8, label="actual $Q$")
+    if shifted:
+        ax.plot(t, d["q_shifted_mm3_s"] * _K, color="tab:cyan", lw=0.7,
+                label=f"actual shifted by -{run_tracking.lag_applied_s:.3g} s")
+    ax.set_xlabel("Time [s]")
+    ax.set_ylabel("Flow rate [$10^3$ mm$^3$/s]")
+    ax.set_xlim(t[0], t[-1])
+    if legend:
+        ax.legend(loc="upper right", ncol=2)
+
+
+def draw_flow_scatter(ax, datas, *, q_range, lag_s: float, rmse_mm3_s: float) -> None:
+    """Panel (b): shifted actual against target [10^3 mm^3/s] for the data
+    frames ``datas`` (RunTracking.data), coloured by side and range."""
+    lo, hi = q_range
+    q = np.concatenate([d["q_ref_mm3_s"].to_numpy(float) for d in datas]) * _K
+    a = np.concatenate([d["q_shifted_mm3_s"].to_numpy(float) for d in datas]) * _K
+    ok = np.isfinite(q) & np.isfinite(a)
+    q, a = q[ok], a[ok]
+    inside = (q >= lo * _K) & (q <= hi * _K)
+    step = max(1, q.size // 20000)  # keep the SVG light
+    ax.scatter(q[~inside][::step], a[~inside][::step], s=2, color="0.65", lw=0, alpha=0.5,
+               label="outside range", rasterized=True)
+    sup = inside & (q >= 0)
+    ax.scatter(q[sup][::step], a[sup][::step], s=2, color="tab:red", lw=0, alpha=0.35,
+               label="supply ($Q_{ref} \\geq 0$)", rasterized=True)
+    dr = inside & (q < 0)
+    ax.scatter(q[dr][::step], a[dr][::step], s=2, color="tab:blue", lw=0, alpha=0.35,
+               label="drain ($Q_{ref} < 0$)", rasterized=True)
+    if all("after_change" in d for d in datas):
+        ac = np.concatenate([d["after_change"].to_numpy(bool) for d in datas])[ok]
+        ax.scatter(q[ac][::step], a[ac][::step], s=3, color="tab:orange", lw=0, alpha=0.6,
+                   label=f"$\\leq${lag_s:.3g} s after a reference/load change",
+                   rasterized=True)
+    span = [min(np.min(q, initial=lo * _K), lo * _K), max(np.max(q, initial=hi * _K), hi * _K)]
+    ax.plot(span, span, color="k", lw=0.8, ls="--")
+    ax.plot([lo * _K, hi * _K], [lo * _K, hi * _K], color="k", lw=1.4,
+            label="$Q = Q_{ref}$ (fitting range)")
+    for b in (lo, hi):
+        ax.axvline(b * _K, color="k", lw=0.6, ls=":")
+    ax.set_xlabel("Target flow rate $Q_{ref}$ [$10^3$ mm$^3$/s]")
+    ax.set_ylabel(f"Actual flow rate $Q(t + {lag_s:.3g}$ s) [$10^3$ mm$^3$/s]")
+    ax.set_title(f"RMSE {rmse_mm3_s * _K:.3f} $\\times 10^3$ mm$^3$/s in "
+                 f"[{lo * _K:g}, {hi * _K:g}] $\\times 10^3$")
+    ax.legend(loc="upper left", markerscale=4)
+
+
+def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *,
+                  stem: str | None = None) -> list[Path]:
+    """Fig. 7 of one run: (a) flows against time, (b) shifted actual vs target."""
+    import matplotlib.pyplot as plt
+
+    with paper_style():
+        fig, (ax_a, ax_b) = plt.subplots(1, 2, figsize=(10.0, 3.8),
+                                         gridspec_kw={"width_ratios": [1.6, 1]})
+        draw_flow_time(ax_a, run_tracking)
+        ax_a.set_title(f"(a) {run_tracking.run_id}: target and actual flow rate")
+        draw_flow_scatter(ax_b, [run_tracking.data], q_range=tracking.range_mm3_s,
+                          lag_s=run_tracking.lag_applied_s, rmse_mm3_s=run_tracking.rmse_mm3_s)
+        ax_b.set_title(f"(b) shifted {run_tracking.lag_applied_s:.3g} s; " + ax_b.get_title())
+        fig.tight_layout()
+        return save_figure(fig, out_dir, stem or f"fig7_{safe_name(run_tracking.run_id)}")
+
+
+def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: bool = True,
+              max_runs: int = 4) -> list[Path]:
+    """Fig. 7 for a data set (PNG + SVG), and per run when ``per_run``.
+
+    The data-set figure has (a) one time panel per run (up to ``max_runs``)
+    and (b) the pooled scatter with the pooled RMSE.
+
+    Parameters
+    ----------
+    tracking : :class:`~seanv_analysis.analysis.tracking.Tracking`
+    out_dir : output folder
+    stem : data-set figure's file name without extension
+    per_run : also write ``fig7_<run_id>.png/.svg`` per run
+    max_runs : time panels in the data-set figure
+
+    Returns
+    -------
+    list of the written paths
+    """
+    import matplotlib.pyplot as plt
+
+    paths: list[Path] = []
+    if not tracking.runs:
+        return paths
+    shown = tracking.runs[:max_runs]
+    with paper_style():
+        fig = plt.figure(figsize=(11.0, max(3.8, 2.2 * len(shown))))
+        gs = fig.add_gridspec(len(shown), 2, width_ratios=[1.6, 1])
+        for i, r in enumerate(shown):
+            ax = fig.add_subplot(gs[i, 0])
+            draw_flow_time(ax, r, legend=(i == 0))
+            ax.set_title(f"(a) {r.run_id}", loc="left")
+            if i < len(shown) - 1:
+                ax.set_xlabel("")
+        ax_b = fig.add_subplot(gs[:, 1])
+        draw_flow_scatter(ax_b, [r.data for r in tracking.runs], q_range=tracking.range_mm3_s,
+                          lag_s=tracking.lag_s, rmse_mm3_s=tracking.rmse_mm3_s)
+        ax_b.set_title(f"(b) all runs, shift {tracking.lag_s:.3g} s ({tracking.lag_source})\n"
+                       + ax_b.get_title())
+        fig.tight_layout()
+        paths += save_figure(fig, out_dir, stem)
+    if per_run:
+        for r in tracking.runs:
+            paths += plot_fig7_run(tracking, r, out_dir)
+    return paths
