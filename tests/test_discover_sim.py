@@ -52,14 +52,19 @@ def test_clean_data_says_none():
 
 def test_paper_drain_drift_every_three_runs():
     """Paper Sec. II-D.2: drain flow decreasing every three measurements."""
-    res = discover_sim(["paper-flowsteps"], ["drift:side=drain,step=0.01,every=3"], seed=2)
+    from seanv_analysis.models.effects import parse_effect
+    from seanv_analysis.sim.scenarios import PAPER_DRAIN_DRIFT
+
+    truth = parse_effect(PAPER_DRAIN_DRIFT)
+    res = discover_sim(["paper-flowsteps"], [PAPER_DRAIN_DRIFT], seed=2)
     drift = res.effects[0]
     assert (drift.name, drift.side) == ("drift", "drain")
-    assert drift.params["every"] == 3
-    # C falls by 1 % per step: step = +0.01 in C (1 - step)^k, within +-20 %
-    assert drift.params["step"] == pytest.approx(0.01, rel=0.2)
+    assert drift.params["every"] == truth.every == 3
+    # C falls by 0.5 % per step: step in C (1 - step)^k, within +-20 %
+    assert drift.params["step"] == pytest.approx(truth.step, rel=0.2)
     lo, hi = drift.params_ci95["step"]
-    assert lo <= 0.01 <= hi
+    assert lo <= truth.step <= hi
+    assert "drain side falls by" in res.report()
 
 
 def test_delay_on_position_control():

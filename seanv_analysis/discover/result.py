@@ -12,7 +12,8 @@ from ..models import ValveModel
 __all__ = ["EffectFinding", "Discovery"]
 
 _EFFECT_TEXT = {
-    "drift": "the flow coefficient C of the {side} side changes with use (step {step:+.1%} every {every} runs)",
+    "drift": "the flow coefficient C of the {side} side {direction} by {abs_step:.2%} every {every} runs "
+             "(C (1 - step)^floor((i + offset)/every), step = {step:+.4f})",
     "threshold_shift": "the {side} sealing threshold creeps with use (z0 changes {rate_mm_per_run:+.2e} mm per run)",
     "backlash": "the cam has a direction-dependent dead band of {width_deg:.2f} deg (backlash)",
     "pressure_law": "the {side} flow follows dp^{exponent:.2f}, not the orifice law dp^0.5",
@@ -42,7 +43,11 @@ class EffectFinding:
 
     def sentence(self) -> str:
         try:
-            return _EFFECT_TEXT[self.name].format(side=self.side, **self.params)
+            extra = {}
+            if self.name == "drift":
+                step = float(self.params["step"])
+                extra = {"direction": "falls" if step > 0 else "rises", "abs_step": abs(step)}
+            return _EFFECT_TEXT[self.name].format(side=self.side, **self.params, **extra)
         except (KeyError, ValueError):
             return f"{self.name} ({self.side}): {self.params}"
 

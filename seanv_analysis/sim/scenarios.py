@@ -38,10 +38,17 @@ from ..models.effects import Effect
 from .plant import Plant
 from .run import simulate_flow_step, simulate_position_control
 
-__all__ = ["SCENARIOS", "simulate_scenario", "iter_scenario_runs", "scenario_size", "flowstep_grid",
+__all__ = ["PAPER_DRAIN_DRIFT", "SCENARIOS", "simulate_scenario", "iter_scenario_runs", "scenario_size", "flowstep_grid",
            "paper_position_profile"]
 
 _START = datetime(2026, 3, 2, 9, 0, 0, tzinfo=timezone.utc)
+
+#: The drift the paper saw on the drain side (Sec. II-D.2, Fig. 4(a): "the
+#: drain-side flow rate decreased slightly every three measurements"): C
+#: falls 0.5 % every three runs, to 56 % of its first value over the 345
+#: runs of ``paper-flowsteps``. (The effect's default 5 % step would leave
+#: the drain side without flow after ~100 runs.)
+PAPER_DRAIN_DRIFT = "drift:side=drain,step=0.005,every=3"
 
 
 @dataclass(frozen=True)
