@@ -1,0 +1,672 @@
+"""Flow-model identification of the SEANV (paper Sec. II-C/D, eq. 3-5, Fig. 4).
+
+For each side, from the filtered flow-step runs of a per-run summary:
+
+(a) per load level, Q = alpha (theta - theta_d)^2 on the open side
+    (theta_d [deg], alpha [mm^3/(s deg^2)] per load: :attr:`FlowFit.per_load`);
+(b) two-step (the paper's procedure): z0 [mm] so that the eq. (3)+(4)
+    thresholds theta_d(p1, dp; z0) match the per-load theta_d, then C from
+    alpha = C dp^0.5;
+(c) joint (**default**): z0 and C fitted together on every run of the side
+    with eq. (5), Q = C (theta - theta_d(p1, dp; z0))^2 sqrt(dp), residuals
+    scaled by a fitted noise model sigma = a + b |Q| and a ``soft_l1`` robust
+    loss (scipy.optimize.least_squares, ``f_scale`` = 1.4826 MAD of the
+    scaled residuals).
+
+Why joint is the default: it uses every run with its own p1 and dp (the
+two-step fit uses one median dp per load and needs enough runs per load for
+a quadratic), it weights runs by their noise, it does not throw away the
+correlation between theta_d and alpha of each per-load fit, and the robust
+loss bounds the pull of a bad run. When dp changes with the opening within a
+load (it does on the rig and in the simulator: the head pressure follows
+the flow), each run has its own threshold theta_d(p1, dp) and no single
+per-load theta_d exists; on the simulator's ``paper-flowsteps`` the
+two-step C is then 4-8 % off while the joint fit is within 0.4 %. Both
+results are reported (:attr:`SideFit.joint`, :attr:`SideFit.two_step`).
+
+Theta is the measured cam angle (servo feedback), the command where it is
+missing. Per-load fits use each run's flow scaled to the load's median dp
+(Q dp_med^n / dp^n), since dp drops as the valve opens.
+
+Uncertainty: 95 % intervals = percentile bootstrap over conditions (seeded,
+``n_boot`` resamples; a condition is a load level x commanded cam angle, its
+repeats resampled together because they share systematic errors such as
+the servo's quantised position), with calibration (Type B) uncertainties
+added in quadrature: flow scale (``flow_scale_u95``, 0.5 %: C scales with
+the piston area and the velocity estimate) and cam zero (``cam_u95_deg``,
+0.05 deg: shifts every theta_d). The statistical part alone is kept
+(``z0_ci95_stat``, ``c_ci95_stat``). When the fit's covariance is singular
+(e.g. the runs do not pin down the threshold) the intervals are NaN
+(``null`` in JSON) and the message says so.
+Residual sign everywhere: measured - model.
+"""
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import pandas as pd
+
+from ..errors import ConfigError, DataError, FitError
+from ..models import SIDES, ValveModel, signed_power
+from ..models.valve import MIN_DP_MPA
+from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
+from ._perload import fit_load, fit_noise_model, group_loads, two_step
+
+__all__ = ["SideFit", "FlowFit", "fit_flow", "flowfit_dataset", "PROCEDURES", "UNITS",
+           "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
+
+#: Fit procedures: 'joint' (default, eq. 5 on all runs) and the paper's 'two_step'.
+PROCEDURES = ("joint", "two_step")
+
+#: Units of the JSON contract.
+UNITS = {"C": "mm^3/(s deg^2 MPa^0.5)", "z0_mm": "mm"}
+
+#: Default calibration (Type B) uncertainties, 95 % half-widths, added in
+#: quadrature to the bootstrap intervals: flow scale (relative; piston area
+#: +-0.02 mm on 16 mm is 0.25 %, plus derivative / steady-window bias) and
+#: cam zero [deg] (half the servo resolution, 0.088 deg).
+DEFAULT_FLOW_SCALE_U95 = 0.005
+DEFAULT_CAM_U95_DEG = 0.05
+
+#: Cam angle used as theta: the servo feedback, or the command.
+CAM_SOURCES = ("measured", "commanded")
+
+_PER_RUN_COLUMNS = ("run_id", "side", "run_index", "load_mpag", "load_level_mpag", "cam_deg",
+                    "theta_deg",
+                    "q_mm3_s", "p1_mpa", "dp_mpa", "excluded", "excluded_detail", "used",
+                    "theta_d_model_deg", "theta_d_implied_deg", "q_model_mm3_s",
+                    "residual_mm3_s", "sigma_mm3_s",
+                    "z_score")
+
+
+def _nan_ci() -> tuple[float, float]:
+    return (math.nan, math.nan)
+
+
+def _json_num(x: float) -> float | None:
+    return float(x) if x is not None and math.isfinite(float(x)) else None
+
+
+@dataclass
+class SideFit:
+    """Identified flow model of one side.
+
+    Attributes
+    ----------
+    side : 'supply' or 'drain'
+    z0_mm : initial disc-spring deflection z0 [mm] (of the chosen procedure)
+    c_flow : C [mm^3/(s deg^2 MPa^0.5)], negative on the drain side
+    z0_ci95, c_ci95 : 95 % intervals: bootstrap over conditions (percentile) with the
+        calibration uncertainties added in quadrature; NaN when unavailable
+    z0_ci95_stat, c_ci95_stat : the bootstrap (statistical) part alone
+    rmse_mm3_s : RMSE of measured - model over the runs used [mm^3/s]
+    n_runs : runs used (flow steps of this side that passed the filters)
+    procedure : 'joint' or 'two_step'
+    joint, two_step : both procedures' estimates (dicts with z0_mm, c_flow, standard errors)
+    ci_method : how the intervals were made
+    noise : noise model {floor_mm3_s, rel}: sigma = floor + rel |Q|
+    success, message : whether the fit worked; why not, or notes
+    """
+
+    side: str
+    z0_mm: float = math.nan
+    c_flow: float = math.nan
+    z0_ci95: tuple[float, float] = field(default_factory=_nan_ci)
+    c_ci95: tuple[float, float] = field(default_factory=_nan_ci)
+    z0_ci95_stat: tuple[float, float] = field(default_factory=_nan_ci)
+    c_ci95_stat: tuple[float, float] = field(default_factory=_nan_ci)
+    rmse_mm3_s: float = math.nan
+    n_runs: int = 0
+    procedure: str = "joint"
+    joint: dict = field(default_factory=dict)
+    two_step: dict = field(default_factory=dict)
+    ci_method: str = ""
+    n_boot_ok: int = 0
+    noise: dict = field(default_factory=dict)
+    success: bool = False
+    message: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        """The issue-5 contract for one side (NaN -> null)."""
+        return {"z0_mm": _json_num(self.z0_mm), "C": _json_num(self.c_flow),
+                "z0_ci95": [_json_num(v) for v in self.z0_ci95],
+                "C_ci95": [_json_num(v) for v in self.c_ci95],
+                "rmse_mm3_s": _json_num(self.rmse_mm3_s), "n_runs": int(self.n_runs)}
+
+    def to_dict(self) -> dict[str, Any]:
+        """Everything (JSON-ready)."""
+        d = self.to_json()
+        d.update(z0_ci95_stat=[_json_num(v) for v in self.z0_ci95_stat],
+                 C_ci95_stat=[_json_num(v) for v in self.c_ci95_stat])
+        d.update(side=self.side, procedure=self.procedure, success=self.success,
+                 message=self.message, ci_method=self.ci_method, n_boot_ok=self.n_boot_ok,
+                 noise=self.noise, joint=_clean(self.joint), two_step=_clean(self.two_step))
+        return d
+
+
+def _clean(d: dict) -> dict:
+    return {k: (_json_num(v) if isinstance(v, float) else v) for k, v in d.items()}
+
+
+@dataclass
+class FlowFit:
+    """Result of :func:`fit_flow`: per-side parameters with 95 % intervals,
+    the fitted :class:`~seanv_analysis.models.ValveModel`, per-run and
+    per-load tables.
+
+    Attributes
+    ----------
+    sides : {'supply': SideFit, 'drain': SideFit} (the sides asked for)
+    model : the rig's valve with the fitted z0 and C (sides not fitted keep the rig's)
+    per_run : one row per flow-step run of the sides asked for (excluded ones too):
+        cam_deg (commanded) and theta_deg (used) [deg], q_mm3_s, q_model_mm3_s,
+        residual_mm3_s (measured - model) [mm^3/s], theta_d_model_deg (eq. 3+4 at the
+        run's pressures) and theta_d_implied_deg (theta minus the opening that gives the
+        measured flow with the fitted C, eq. 6) [deg], sigma_mm3_s (noise scale),
+        z_score, used
+    per_load : one row per side and load level: theta_d_deg +- theta_d_se_deg [deg],
+        alpha +- alpha_se [mm^3/(s deg^2)], p1_mpa, dp_mpa (medians of the runs used),
+        p1/dp_threshold_mpa (interpolated at theta_d over the level's runs), n_runs,
+        theta_d_model_deg and alpha_model (the fitted model at those pressures)
+    excluded : runs excluded per reason {'leakage', 'friction', 'cam_range', 'invalid'}
+    success, message : True when every side asked for was fitted
+    warnings : recoverable oddities met on the way
+    settings : options used
+    """
+
+    sides: dict[str, SideFit]
+    model: ValveModel
+    per_run: pd.DataFrame
+    per_load: pd.DataFrame
+    excluded: dict[str, int]
+    success: bool
+    message: str = ""
+    warnings: list[str] = field(default_factory=list)
+    settings: dict[str, Any] = field(default_factory=dict)
+
+    def to_json(self) -> dict[str, Any]:
+        """The stable JSON contract of issue 5 (``--json``)."""
+        out: dict[str, Any] = {s: f.to_json() for s, f in self.sides.items()}
+        out["excluded"] = {k: int(v) for k, v in self.excluded.items()}
+        out["units"] = dict(UNITS)
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """Full result (sides with both procedures, settings, warnings)."""
+        return {"sides": {s: f.to_dict() for s, f in self.sides.items()},
+                "excluded": self.to_json()["excluded"], "units": dict(UNITS),
+                "success": self.success, "message": self.message, "warnings": self.warnings,
+                "settings": self.settings,
+                "per_load": json.loads(self.per_load.to_json(orient="records"))}
+
+    def report(self) -> str:
+        """Human-readable summary."""
+        lines = ["Flow-model fit (paper eq. 3-5), residual = measured - model"]
+        for s, f in self.sides.items():
+            lines.append(f"{s}: {'ok' if f.success else 'FAILED'}"
+                         + (f" ({f.message})" if f.message else ""))
+            if not math.isfinite(f.z0_mm):
+                continue
+            lines.append(f"  z0 = {f.z0_mm:.4f} mm  95% [{f.z0_ci95[0]:.4f}, {f.z0_ci95[1]:.4f}]")
+            lines.append(f"  C  = {f.c_flow:.3f} mm^3/(s deg^2 MPa^0.5)  95% "
+                         f"[{f.c_ci95[0]:.3f}, {f.c_ci95[1]:.3f}]")
+            lines.append(f"  RMSE {f.rmse_mm3_s:.1f} mm^3/s over {f.n_runs} runs; "
+                         f"procedure {f.procedure}")
+            if f.ci_method:
+                lines.append(f"  intervals: {f.ci_method}")
+            t = f.two_step
+            other = "two-step" if f.procedure == "joint" else "joint"
+            o = t if f.procedure == "joint" else f.joint
+            if o and o.get("z0_mm") is not None and math.isfinite(o.get("z0_mm", math.nan)):
+                lines.append(f"  {other}: z0 = {o['z0_mm']:.4f} mm, C = {o['c_flow']:.3f}")
+            if f.noise:
+                lines.append(f"  noise model: sigma = {f.noise['floor_mm3_s']:.1f} + "
+                             f"{f.noise['rel']:.3f} |Q| mm^3/s")
+        ex = ", ".join(f"{k} {v}" for k, v in self.excluded.items())
+        lines.append(f"excluded runs: {ex}")
+        for w in self.warnings:
+            lines.append(f"warning: {w}")
+        return "\n".join(lines)
+
+    def write(self, out_dir: str | Path) -> dict[str, Path]:
+        """Write the outputs (each atomically) and return their paths.
+
+        ``flowfit.json`` (the contract), ``flowfit_details.json`` (:meth:`to_dict`),
+        ``model.json`` and ``model.toml`` (:meth:`ValveModel.to_dict`, loadable with
+        :meth:`ValveModel.load`), ``per_run.parquet``, ``per_load.parquet``.
+        """
+        from ..io import write_json_atomic, write_table_parquet, write_text_atomic
+        from ._toml import dumps_toml
+
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        model_dict = self.model.to_dict()
+        paths = {
+            "flowfit": write_json_atomic(out / "flowfit.json", self.to_json()),
+            "details": write_json_atomic(out / "flowfit_details.json", self.to_dict()),
+            "model_json": write_json_atomic(out / "model.json", model_dict),
+            "model_toml": write_text_atomic(out / "model.toml", dumps_toml(
+                model_dict, header="SEANV valve model fitted by seanv-analyze flowfit "
+                                   "(paper eq. 3-5). Units: mm, deg, MPa, mm^3/s.")),
+            "per_run": write_table_parquet(self.per_run, out / "per_run.parquet",
+                                           units={"residual_mm3_s": "mm^3/s", "z_score": ""}),
+            "per_load": write_table_parquet(self.per_load, out / "per_load.parquet",
+                                            units={"alpha": "mm^3/(s deg^2)",
+                                                   "alpha_se": "mm^3/(s deg^2)",
+                                                   "alpha_model": "mm^3/(s deg^2)"}),
+        }
+        return paths
+
+    def plot(self, out_dir: str | Path) -> list[Path]:
+        """Fig. 4 (a, b) as PNG and SVG in ``out_dir``
+        (:func:`seanv_analysis.plots.fig4.plot_fig4`)."""
+        from ..plots.fig4 import plot_fig4
+        return plot_fig4(self, out_dir)
+
+
+# ---------------------------------------------------------------------------
+
+def _check_summary(summary: pd.DataFrame) -> None:
+    need = ("kind", "side", "load_mpag", "cam_deg", "q_mm3_s", "dp_mpa", "p1_mpa", "excluded")
+    missing = [c for c in need if c not in summary.columns]
+    if missing:
+        raise DataError(f"summary has no column(s) {', '.join(missing)}; expected the per-run "
+                        "summary (summary.summarize_dataset) with filters applied",
+                        column=missing[0])
+
+
+def _cam_angle(rows: pd.DataFrame, cam: str) -> np.ndarray:
+    """theta [deg] per run: ``cam_measured_deg`` where finite (cam='measured'),
+    else the commanded ``cam_deg``."""
+    theta = rows["cam_deg"].to_numpy(float)
+    if cam == "measured" and "cam_measured_deg" in rows:
+        measured = rows["cam_measured_deg"].to_numpy(float)
+        theta = np.where(np.isfinite(measured), measured, theta)
+    return theta
+
+
+def _pressures_at(theta_d: float, context: tuple[np.ndarray, ...]) -> tuple[float, float]:
+    """(p1, dp) [MPa] at cam angle ``theta_d`` [deg], interpolated in theta over a
+    load level's runs (all with finite pressures, sealed ones too): dp falls
+    as the valve opens, so the threshold's pressures are those of the nearly
+    closed valve, not the load's median. NaN when fewer than 2 angles."""
+    theta_c, p1_c, dp_c = context
+    if not math.isfinite(theta_d) or np.unique(theta_c).size < 2:
+        return math.nan, math.nan
+    frame = pd.DataFrame({"t": np.round(theta_c, 3), "p1": p1_c, "dp": dp_c})
+    med = frame.groupby("t", sort=True).median()
+    t = med.index.to_numpy(float)
+    return (float(np.interp(theta_d, t, med["p1"].to_numpy())),
+            float(np.interp(theta_d, t, med["dp"].to_numpy())))
+
+
+def _context(theta, p1, dp, level, lv) -> tuple[np.ndarray, ...]:
+    m = level == lv
+    return theta[m], p1[m], dp[m]
+
+
+def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure: str,
+              n_boot: int, seed: int, load_tol_mpag: float, cam: str,
+              flow_scale_u95: float, cam_u95_deg: float, context_rows: pd.DataFrame
+              ) -> tuple[SideFit, pd.DataFrame, np.ndarray, list[str]]:
+    """Fit one side. Returns (SideFit, per-load table, sigma per used row, warnings)."""
+    side = base.side(side_name)
+    up = side.opens_upward
+    warns: list[str] = []
+    result = SideFit(side_name, procedure=procedure, n_runs=len(rows))
+    theta = _cam_angle(rows, cam)
+    q = rows["q_mm3_s"].to_numpy(float)
+    p1 = rows["p1_mpa"].to_numpy(float)
+    dp = rows["dp_mpa"].to_numpy(float)
+    level = group_loads(rows["load_mpag"].to_numpy(float), tol_mpag=load_tol_mpag)
+    sigma = np.full(q.shape, np.nan)
+    ctx_theta = _cam_angle(context_rows, cam)
+    ctx = (ctx_theta, context_rows["p1_mpa"].to_numpy(float),
+           context_rows["dp_mpa"].to_numpy(float),
+           group_loads(context_rows["load_mpag"].to_numpy(float), tol_mpag=load_tol_mpag))
+    if len(rows) < 3 or np.unique(theta).size < 2:
+        result.message = (f"{len(rows)} usable run(s) at {np.unique(theta).size} cam angle(s); "
+                          "need >= 3 runs at >= 2 angles")
+        return result, pd.DataFrame(), sigma, [f"{side_name}: {result.message}"]
+
+    # (a) per load, pass 1 unweighted -> noise model -> pass 2 weighted
+    levels = np.unique(level[np.isfinite(level)])
+    groups = [np.flatnonzero(level == lv) for lv in levels]
+    # each run's flow brought to its load's median dp (eq. 5: Q ~ dp^n), so the
+    # per-load quadratic is not bent by dp changing with the opening
+    dp_pow = signed_power(dp, side.dp_exponent)
+    q_load = q.copy()
+    for g in groups:
+        q_load[g] = q[g] * signed_power(np.median(dp[g]), side.dp_exponent) / dp_pow[g]
+    q_hat = np.abs(q).copy()
+    resid1 = np.full(q.shape, np.nan)
+    for g in groups:
+        lf = fit_load(theta[g], q_load[g], opens_upward=up)
+        if lf.success and math.isfinite(lf.theta_d_deg):
+            pred = lf.predict(theta[g], opens_upward=up)
+            q_hat[g], resid1[g] = np.abs(pred), q_load[g] - pred
+    noise = fit_noise_model(resid1, q_hat)
+    sigma = noise.sigma(q_hat)
+    result.noise = {"floor_mm3_s": noise.floor_mm3_s, "rel": noise.rel}
+    load_rows = []
+    for lv, g in zip(levels, groups):
+        lf = fit_load(theta[g], q_load[g], opens_upward=up, sigma_mm3_s=sigma[g])
+        p1_thr, dp_thr = _pressures_at(lf.theta_d_deg, _context(*ctx[:3], ctx[3], lv))
+        load_rows.append({"side": side_name, "load_level_mpag": float(lv), "n_runs": int(g.size),
+                          "p1_mpa": float(np.median(p1[g])), "dp_mpa": float(np.median(dp[g])),
+                          "p1_threshold_mpa": p1_thr, "dp_threshold_mpa": dp_thr,
+                          "theta_d_deg": lf.theta_d_deg, "theta_d_se_deg": lf.theta_d_se_deg,
+                          "alpha": lf.alpha, "alpha_se": lf.alpha_se,
+                          "rmse_mm3_s": lf.rmse_mm3_s, "success": lf.success,
+                          "message": lf.message})
+    per_load = pd.DataFrame(load_rows)
+    ok = per_load["success"].to_numpy(bool) if len(per_load) else np.zeros(0, bool)
+    if len(per_load) and not ok.all():
+        warns.append(f"{side_name}: quadratic fit failed at load(s) "
+                     f"{per_load.loc[~ok, 'load_level_mpag'].tolist()} MPaG")
+
+    # (b)+(c) two-step
+    pl = per_load[ok] if len(per_load) else per_load
+    ts = two_step(side, pl["theta_d_deg"], pl["theta_d_se_deg"], pl["alpha"], pl["alpha_se"],
+                  pl["p1_mpa"], pl["dp_mpa"]) if len(pl) else {
+        "z0_mm": math.nan, "c_flow": math.nan, "success": False, "message": "no per-load fit"}
+    result.two_step = ts
+
+    # joint fit, eq. (5) on every run
+    z_start = ts["z0_mm"] if math.isfinite(ts.get("z0_mm", math.nan)) else side.z0_mm
+    jf = fit_joint(side, theta, p1, dp, q, sigma, z0_start_mm=z_start)
+    if math.isfinite(jf.z0_mm):  # noise model again, from the joint residuals
+        noise = fit_noise_model(jf.residual_mm3_s, jf.q_model_mm3_s)
+        sigma = noise.sigma(jf.q_model_mm3_s)
+        result.noise = {"floor_mm3_s": noise.floor_mm3_s, "rel": noise.rel}
+        jf = fit_joint(side, theta, p1, dp, q, sigma, z0_start_mm=jf.z0_mm)
+    result.joint = {"z0_mm": jf.z0_mm, "c_flow": jf.c_flow, "z0_se_mm": jf.z0_se_mm,
+                    "c_se": jf.c_se, "f_scale": jf.f_scale, "nfev": jf.nfev,
+                    "success": jf.success, "message": jf.message}
+    if procedure == "joint":
+        result.z0_mm, result.c_flow, result.success = jf.z0_mm, jf.c_flow, jf.success
+        result.message = jf.message
+    else:
+        result.z0_mm, result.c_flow = ts["z0_mm"], ts["c_flow"]
+        result.success = bool(ts["success"]) and math.isfinite(ts["c_flow"])
+        result.message = ts.get("message", "")
+    if not (math.isfinite(result.z0_mm) and math.isfinite(result.c_flow)):
+        result.success = False
+        result.message = result.message or "fit gave no finite parameters"
+        return result, per_load, sigma, warns + [f"{side_name}: {result.message}"]
+
+    q_model = base.with_side(side_name, z0_mm=result.z0_mm, c_flow=result.c_flow) \
+        .side(side_name).flow(theta, p1, dp)
+    result.rmse_mm3_s = float(np.sqrt(np.mean((q - q_model) ** 2)))
+
+    # uncertainty: bootstrap over runs, unless the covariance is singular
+    singular = not (math.isfinite(jf.z0_se_mm) and math.isfinite(jf.c_se))
+    if procedure == "joint" and singular:
+        result.message = "covariance singular: no confidence intervals"
+        warns.append(f"{side_name}: {result.message}")
+    elif n_boot > 0:
+        cmd = rows["cam_deg"].to_numpy(float)
+        clusters = [f"{lv:.4g}|{c:.3f}" for lv, c in zip(level, cmd)]
+        boot = _bootstrap(side, theta, p1, dp, q_load, q, sigma, level, procedure=procedure,
+                          x_hat=(result.z0_mm, result.c_flow), f_scale=jf.f_scale,
+                          n_boot=n_boot, seed=seed, load_tol_mpag=load_tol_mpag,
+                          clusters=clusters, ctx=ctx)
+        result.n_boot_ok = len(boot)
+        result.ci_method = (f"bootstrap over conditions (load level x commanded cam; repeats "
+                            f"resampled together), percentile, {len(boot)}/{n_boot} "
+                            f"resamples, seed {seed}")
+        if len(boot) >= max(20, 0.8 * n_boot):
+            lo, hi = np.percentile(boot, [2.5, 97.5], axis=0)
+            result.z0_ci95_stat = (float(lo[0]), float(hi[0]))
+            result.c_ci95_stat = (float(lo[1]), float(hi[1]))
+            # calibration (Type B) half-widths: cam zero -> z0, flow scale -> C
+            dz0 = cam_u95_deg / _threshold_slope(side, result.z0_mm, p1, dp)
+            dc = flow_scale_u95 * abs(result.c_flow)
+            result.z0_ci95 = _widen(result.z0_mm, result.z0_ci95_stat, dz0)
+            result.c_ci95 = _widen(result.c_flow, result.c_ci95_stat, dc)
+            if cam_u95_deg or flow_scale_u95:
+                result.ci_method += (f" (+) calibration: cam zero {cam_u95_deg:g} deg, flow "
+                                     f"scale {flow_scale_u95:.2%} (95 %, in quadrature)")
+        else:
+            msg = f"only {len(boot)}/{n_boot} bootstrap fits converged: no intervals"
+            result.message = (result.message + "; " if result.message else "") + msg
+            warns.append(f"{side_name}: {msg}")
+    else:
+        result.ci_method = "none (n_boot = 0)"
+    return result, per_load, sigma, warns
+
+
+def _threshold_slope(side, z0_mm: float, p1, dp) -> float:
+    """|d theta_d / d z0| [deg/mm] at the side's median pressures (eq. 3+4)."""
+    p1m, dpm, h = float(np.median(p1)), float(np.median(dp)), 1e-3
+    d = side.threshold_deg(p1m, dpm, z0_mm=z0_mm + h) - side.threshold_deg(p1m, dpm,
+                                                                          z0_mm=z0_mm - h)
+    return max(abs(float(d)) / (2 * h), 1e-9)
+
+
+def _widen(x: float, ci: tuple[float, float], half: float) -> tuple[float, float]:
+    """Interval ``ci`` around ``x`` with a half-width ``half`` added in quadrature."""
+    return (x - math.hypot(x - ci[0], half), x + math.hypot(ci[1] - x, half))
+
+
+def _bootstrap(side, theta, p1, dp, q_load, q, sigma, level, *, procedure, x_hat, f_scale, n_boot,
+               seed, load_tol_mpag, clusters, ctx) -> np.ndarray:
+    if procedure == "joint":
+        return bootstrap_joint(side, theta, p1, dp, q, sigma, x_hat=x_hat, f_scale=f_scale,
+                               n_boot=n_boot, seed=seed, clusters=clusters)
+    rng = np.random.default_rng(seed)
+    members = _cluster_members(q.size, clusters)
+    out = []
+    up = side.opens_upward
+    for _ in range(n_boot):
+        idx = resample_indices(rng, members)
+        rows = []
+        for lv in np.unique(level[idx]):
+            g = idx[level[idx] == lv]
+            lf = fit_load(theta[g], q_load[g], opens_upward=up, sigma_mm3_s=sigma[g])
+            if lf.success:
+                rows.append((lf.theta_d_deg, lf.theta_d_se_deg, lf.alpha, lf.alpha_se,
+                             np.median(p1[g]), np.median(dp[g])))
+        if not rows:
+            continue
+        a = np.array(rows, dtype=float)
+        ts = two_step(side, *a.T)
+        if ts["success"] and math.isfinite(ts["c_flow"]):
+            out.append((ts["z0_mm"], ts["c_flow"]))
+    return np.asarray(out, dtype=float).reshape(-1, 2)
+
+
+def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
+             procedure: str = "joint", n_boot: int = 200, seed: int = 0,
+             load_tol_mpag: float = 0.02, cam: str = "measured",
+             flow_scale_u95: float = DEFAULT_FLOW_SCALE_U95,
+             cam_u95_deg: float = DEFAULT_CAM_U95_DEG,
+             model: ValveModel | None = None) -> FlowFit:
+    """Identify z0 and C of each side from a per-run summary (paper Sec. II-D.2).
+
+    Q = C (theta - theta_d(p1, dp; z0))^2 dp^0.5, eq. (5), with theta_d from
+    eq. (3)+(4) inverted by interpolation (:meth:`ValveSide.threshold_deg`).
+
+    Parameters
+    ----------
+    summary : per-run summary with filters applied (``summary.summarize_dataset(...).summary``);
+        only ``kind == 'flow_step'`` rows with ``excluded == ''`` are fitted.
+        Columns used: side, load_mpag [MPaG], cam_deg [deg], q_mm3_s [mm^3/s],
+        p1_mpa and dp_mpa [MPa] (supply: p1 = p_supply, dp = p_supply - p_head;
+        drain: p1 = p_head, dp = p_head - p_tank).
+    rig : rig config (needle geometry, cam range); :class:`~seanv_analysis.config.RigConfig`
+    sides : sides to fit ('supply', 'drain')
+    procedure : 'joint' (default; z0 and C together on all runs, robust) or
+        'two_step' (the paper's: per-load quadratics, then z0, then C)
+    n_boot : bootstrap resamples for the 95 % intervals (0: no intervals)
+    seed : bootstrap seed
+    load_tol_mpag : runs whose loads differ by less than this [MPa] share a load level
+    cam : theta of each run: 'measured' (default; the servo feedback
+        ``cam_measured_deg``, the commanded angle where it is NaN) or 'commanded'
+        (``cam_deg``). The valve sees the actual angle; the servo's resolution
+        (0.088 deg) and backlash make the command differ from it by a
+        repeatable amount that no averaging removes.
+    flow_scale_u95 : calibration uncertainty (95 % half-width, relative) of the
+        flow scale Q = v A (piston area, encoder scale, derivative bias); it
+        scales C and is added in quadrature to the bootstrap interval of C
+    cam_u95_deg : calibration uncertainty (95 % half-width) of the cam zero [deg];
+        it shifts every theta_d, so it is added in quadrature to z0's interval
+        as cam_u95_deg / |d theta_d / d z0|
+    model : valve whose geometry is used (default ``ValveModel.from_rig(rig)``)
+
+    Returns
+    -------
+    FlowFit
+
+    Raises
+    ------
+    ConfigError
+        ``sides`` or ``procedure`` not known.
+    DataError
+        ``summary`` lacks a needed column.
+    FitError
+        no side asked for could be fitted (too few usable runs).
+
+    Examples
+    --------
+    >>> from seanv_analysis.config import load_rig
+    >>> from seanv_analysis.fit.synthetic import synthetic_flow_summary
+    >>> rig = load_rig(); truth = ValveModel.from_rig(rig)
+    >>> fit = fit_flow(synthetic_flow_summary(truth, rig, seed=1), rig, n_boot=0)
+    >>> round(fit.sides["supply"].c_flow, 0), round(fit.sides["drain"].z0_mm, 2)
+    (17.0, -0.03)
+    """
+    sides = tuple(sides)
+    bad = [s for s in sides if s not in SIDES]
+    if bad or not sides:
+        raise ConfigError(f"sides: expected a non-empty subset of {SIDES}, got {sides!r}")
+    if cam not in CAM_SOURCES:
+        raise ConfigError(f"cam: expected one of {CAM_SOURCES}, got {cam!r}")
+    if procedure not in PROCEDURES:
+        raise ConfigError(f"procedure: expected one of {PROCEDURES}, got {procedure!r}")
+    _check_summary(summary)
+    from ..filters import exclusion_counts
+
+    base = model or ValveModel.from_rig(rig)
+    steps = summary[summary["kind"] == "flow_step"]
+    asked = steps if set(sides) == set(SIDES) else steps[steps["side"].isin(sides)]
+    excluded = exclusion_counts(asked)
+    fitted = base
+    results: dict[str, SideFit] = {}
+    per_runs, per_loads, warns = [], [], []
+    for s in sides:
+        rows_all = asked[asked["side"] == s]
+        use = (rows_all["excluded"].fillna("").astype(str) == "").to_numpy()
+        rows = rows_all[use]
+        res, pl, sigma, w = _fit_side(s, rows, base, procedure=procedure, n_boot=n_boot,
+                                      seed=seed, load_tol_mpag=load_tol_mpag, cam=cam,
+                                      flow_scale_u95=flow_scale_u95, cam_u95_deg=cam_u95_deg,
+                                      context_rows=rows_all[_finite_pressures(rows_all)])
+        results[s], warns = res, warns + w
+        if math.isfinite(res.z0_mm) and math.isfinite(res.c_flow):
+            fitted = fitted.with_side(s, z0_mm=res.z0_mm, c_flow=res.c_flow)
+        side_model = fitted.side(s) if res.success else None
+        per_runs.append(_per_run(rows_all, use, sigma, side_model, load_tol_mpag, cam))
+        if len(pl):
+            if side_model is not None:
+                pl["theta_d_model_deg"] = side_model.threshold_deg(pl["p1_mpa"].to_numpy(),
+                                                                   pl["dp_mpa"].to_numpy())
+                pl["alpha_model"] = side_model.c_flow * signed_power(pl["dp_mpa"].to_numpy(),
+                                                                     side_model.dp_exponent)
+            per_loads.append(pl)
+    if not any(r.success for r in results.values()):
+        raise FitError("no side could be fitted: " + "; ".join(
+            f"{s}: {r.message}" for s, r in results.items()))
+    for w in warns:
+        warnings.warn(w, stacklevel=2)
+    ok = all(r.success for r in results.values())
+    fitted = type(fitted)(fitted.supply, fitted.drain, fitted.cam_min_deg, fitted.cam_max_deg,
+                          {**fitted.extras, "flowfit": {
+                              "procedure": procedure, "sides": list(sides),
+                              "ci95": {s: {"z0_mm": [_json_num(v) for v in r.z0_ci95],
+                                           "c_flow": [_json_num(v) for v in r.c_ci95]}
+                                       for s, r in results.items()}}})
+    per_run = (pd.concat(per_runs, ignore_index=True) if per_runs
+               else pd.DataFrame(columns=list(_PER_RUN_COLUMNS)))
+    per_load = pd.concat(per_loads, ignore_index=True) if per_loads else pd.DataFrame()
+    return FlowFit(results, fitted, per_run, per_load, excluded, ok,
+                   "" if ok else "; ".join(f"{s}: {r.message}" for s, r in results.items()
+                                           if not r.success),
+                   warns, {"procedure": procedure, "n_boot": n_boot, "seed": seed,
+                           "sides": list(sides), "load_tol_mpag": load_tol_mpag, "cam": cam,
+                           "flow_scale_u95": flow_scale_u95, "cam_u95_deg": cam_u95_deg,
+                           "loss": "soft_l1", "ci": "bootstrap percentile 95 %"})
+
+
+def _finite_pressures(rows: pd.DataFrame) -> np.ndarray:
+    cols = ("cam_deg", "p1_mpa", "dp_mpa", "load_mpag")
+    return np.logical_and.reduce([np.isfinite(rows[c].to_numpy(float)) for c in cols]) \
+        & (rows["excluded"].fillna("").astype(str) != "cam_range").to_numpy()
+
+
+def _per_run(rows_all: pd.DataFrame, use: np.ndarray, sigma_used: np.ndarray, side_model,
+             load_tol_mpag: float, cam: str) -> pd.DataFrame:
+    cols = [c for c in ("run_id", "side", "run_index", "load_mpag", "cam_deg", "q_mm3_s",
+                        "p1_mpa", "dp_mpa", "excluded", "excluded_detail") if c in rows_all]
+    df = rows_all[cols].reset_index(drop=True).copy()
+    if "excluded_detail" not in df:
+        df["excluded_detail"] = ""
+    df["excluded"] = df["excluded"].fillna("").astype(str)
+    df["excluded_detail"] = df["excluded_detail"].fillna("").astype(str)
+    df.insert(4, "load_level_mpag", group_loads(df["load_mpag"].to_numpy(float),
+                                                tol_mpag=load_tol_mpag))
+    df["used"] = use
+    df.insert(6, "theta_deg", _cam_angle(rows_all, cam))
+    theta, p1, dp = (df[c].to_numpy(float) for c in ("theta_deg", "p1_mpa", "dp_mpa"))
+    if side_model is not None:
+        with np.errstate(invalid="ignore"):
+            df["theta_d_model_deg"] = side_model.threshold_deg(p1, dp)
+            df["q_model_mm3_s"] = side_model.flow(theta, p1, dp)
+            # threshold implied by each run's flow with the fitted C (eq. 6 inverted):
+            # theta_i - opening_i, opening from the model's cam_for_flow
+            opening = side_model.cam_for_flow(df["q_mm3_s"].to_numpy(float), p1, dp) \
+                - side_model.threshold_deg(p1, np.maximum(dp, MIN_DP_MPA))
+            df["theta_d_implied_deg"] = theta - opening
+    else:
+        df["theta_d_model_deg"] = np.nan
+        df["q_model_mm3_s"] = np.nan
+        df["theta_d_implied_deg"] = np.nan
+    df["residual_mm3_s"] = df["q_mm3_s"] - df["q_model_mm3_s"]
+    sig = np.full(len(df), np.nan)
+    sig[use] = sigma_used
+    df["sigma_mm3_s"] = sig
+    df["z_score"] = df["residual_mm3_s"] / df["sigma_mm3_s"]
+    return df[[c for c in _PER_RUN_COLUMNS if c in df]]
+
+
+def flowfit_dataset(path: str | Path, *, rig: Any = None, method: str = "steady",
+                    sides: Sequence[str] = SIDES, **options: Any):
+    """Read, summarise and filter a data set, then :func:`fit_flow` it.
+
+    Parameters
+    ----------
+    path : data set folder (runs with run.json)
+    rig : rig config (default: the shipped one)
+    method : per-run flow estimate, 'steady' (default) or the paper's 'peak'
+    sides : sides to fit
+    **options : passed to :func:`fit_flow` (procedure, n_boot, seed, ...)
+
+    Returns
+    -------
+    (FlowFit, DatasetSummary)
+    """
+    from ..config import load_rig
+    from ..summary import summarize_dataset
+
+    rig = rig or load_rig()
+    ds = summarize_dataset(path, rig=rig, method=method)
+    if "kind" not in ds.summary or not (ds.summary["kind"] == "flow_step").any():
+        raise DataError("no flow_step runs in the data set; expected flow-step runs "
+                        "(run.json kind = 'flow_step')", path=path)
+    return fit_flow(ds.summary, rig, sides=sides, **options), ds
