@@ -52,7 +52,8 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
 
     rig = load_rig(rig_file)
     if data is None:
-        data = sim_default_dataset("paper-flowsteps", effects=("drift:side=drain",))
+        from ..sim.scenarios import PAPER_DRAIN_DRIFT
+        data = sim_default_dataset("paper-flowsteps", effects=(PAPER_DRAIN_DRIFT,))
         click.echo(f"no DATA given: using the built-in simulated paper flow-step data set ({data})",
                    err=True)
     model = ValveModel.load(model_file, rig=rig) if model_file else ValveModel.from_rig(rig)

@@ -1,0 +1,76 @@
+"""Render a report.html in headless Chromium and save a screenshot.
+
+Usage::
+
+    python scripts/check_report_browser.py [REPORT_HTML] [--out outputs/report_screenshot.png]
+                                           [--height 6000]
+
+Without REPORT_HTML the demo's report (``outputs/demo/run-paper/report.html``)
+is used. Needs Debian's Chromium (``apt-get install chromium``); the browser
+runs with networking off (``--disable-background-networking`` ...), so an
+image that shows in the screenshot is really embedded in the file. Exit
+code 0 when a non-empty screenshot was written, 2 when Chromium is missing.
+Look at the screenshot afterwards: this checks that the page renders, not
+that it reads well.
+"""
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+         "--disable-background-networking", "--disable-component-update", "--disable-sync",
+         "--hide-scrollbars", "--blink-settings=imagesEnabled=true"]
+
+
+def find_chromium() -> str | None:
+    for name in ("chromium", "chromium-browser", "google-chrome", "chrome"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None
+
+
+def screenshot(report: Path, out: Path, *, width: int = 1280, height: int = 6000,
+               timeout_s: float = 120.0) -> Path:
+    """Render ``report`` with headless Chromium into the PNG ``out``."""
+    exe = find_chromium()
+    if exe is None:
+        raise FileNotFoundError("chromium not found; install it with `apt-get install chromium`")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(prefix="chromium-") as profile:
+        cmd = [exe, *FLAGS, f"--user-data-dir={profile}", f"--window-size={width},{height}",
+               f"--screenshot={out.resolve()}", report.resolve().as_uri()]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    if not out.is_file() or out.stat().st_size == 0:
+        raise RuntimeError(f"chromium wrote no screenshot (exit {proc.returncode}): "
+                           f"{proc.stderr.strip()[-500:]}")
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("report", nargs="?", type=Path,
+                   default=Path("outputs/demo/run-paper/report.html"))
+    p.add_argument("--out", type=Path, default=Path("outputs/report_screenshot.png"))
+    p.add_argument("--width", type=int, default=1280)
+    p.add_argument("--height", type=int, default=6000)
+    args = p.parse_args(argv)
+    if not args.report.is_file():
+        print(f"error: {args.report}: no such report; run `make demo` first", file=sys.stderr)
+        return 2
+    try:
+        path = screenshot(args.report, args.out, width=args.width, height=args.height)
+    except FileNotFoundError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(f"screenshot: {path} ({path.stat().st_size // 1024} kB)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,191 @@
+"""Per-run result cache of the batch runner, under ``<out>/.cache/``.
+
+Each per-run result is stored in its own file, named by a key: the SHA-256
+of the run's input file hashes (by file name), the stage and its
+parameters, the rig config and the package version. Change any of these
+(a byte of a log, an option, a rig constant, the version) and the key
+changes, so stale results are never reused; a removed parameter changes the
+key too, because the whole option dict is hashed.
+
+Input files are hashed once: the reader hashes the bytes it parses, the
+worker returns the digests, and ``index.json`` remembers them together with
+each file's size and modification time. A later run re-uses a digest while
+the file's size and mtime (and the folder's file list) are unchanged, so a
+re-run with nothing changed reads no log at all.
+
+Every write is atomic (temp file + rename) and the index is saved every few
+seconds while a stage runs, so killing a run (SIGINT, SIGKILL) leaves either
+whole entries or none; temp files left by a killed run are removed when the
+cache is opened again, and an unreadable entry counts as missing.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import pickle
+import threading
+import time
+from pathlib import Path
+from typing import Any, Mapping
+
+from .. import __version__
+from ..io.atomic import atomic_path, write_json_atomic
+
+__all__ = ["RunCache", "run_key", "folder_listing", "CACHE_DIRNAME"]
+
+CACHE_DIRNAME = ".cache"
+_INDEX_SCHEMA = "seanv-batch-index/1"
+
+
+def _canonical(obj: Any) -> str:
+    return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
+
+
+def run_key(file_hashes: Mapping[str, str], *, stage: str, params: Mapping[str, Any],
+            rig: Mapping[str, Any], version: str = __version__) -> str:
+    """Cache key of one run's result of one stage (hex SHA-256).
+
+    Parameters
+    ----------
+    file_hashes : {file name inside the run folder: SHA-256} of the inputs read
+    stage : stage name ('ingest', 'fig6', ...)
+    params : every parameter the stage uses (hashed whole)
+    rig : the rig config dict
+    version : package version (default: the installed one)
+    """
+    doc = {"files": dict(sorted(file_hashes.items())), "stage": stage, "params": params,
+           "rig": rig, "version": version}
+    return hashlib.sha256(_canonical(doc).encode()).hexdigest()
+
+
+def folder_listing(run_dir: str | Path) -> dict[str, tuple[int, int]]:
+    """{file name: (size, mtime_ns)} of the non-hidden files of a run folder."""
+    out: dict[str, tuple[int, int]] = {}
+    try:
+        with os.scandir(run_dir) as it:
+            for entry in it:
+                if entry.name.startswith(".") or not entry.is_file():
+                    continue
+                st = entry.stat()
+                out[entry.name] = (st.st_size, st.st_mtime_ns)
+    except OSError:
+        return {}
+    return out
+
+
+class RunCache:
+    """The cache folder of one output folder (``<out>/.cache``).
+
+    Parameters
+    ----------
+    root : the cache folder (created when missing)
+    enabled : False makes every look-up a miss (``--force``); results are
+        still written, so the next run can use them
+    """
+
+    def __init__(self, root: str | Path, *, enabled: bool = True):
+        self.root = Path(root)
+        self.enabled = enabled
+        self.entries = self.root / "runs"
+        self.entries.mkdir(parents=True, exist_ok=True)
+        self.removed_partial = self.clean_partial()
+        self._lock = threading.Lock()
+        self._index: dict[str, Any] = self._load_index()
+        self._dirty = False
+        self._last_save = time.monotonic()
+
+    # housekeeping --------------------------------------------------------
+    def clean_partial(self) -> int:
+        """Remove temp files a killed run left behind; return how many."""
+        n = 0
+        for folder in (self.root, self.entries):
+            for tmp in folder.glob(".*.tmp"):
+                try:
+                    tmp.unlink()
+                    n += 1
+                except OSError:
+                    pass
+        return n
+
+    def _load_index(self) -> dict[str, Any]:
+        path = self.root / "index.json"
+        try:
+            doc = json.loads(path.read_text())
+            if doc.get("schema") == _INDEX_SCHEMA and isinstance(doc.get("runs"), dict):
+                return doc["runs"]
+        except (OSError, ValueError, AttributeError):
+            pass
+        return {}
+
+    def save_index(self, *, force: bool = False, every_s: float = 2.0) -> None:
+        """Write ``index.json`` atomically (at most every ``every_s`` unless ``force``)."""
+        with self._lock:
+            if not self._dirty or (not force and time.monotonic() - self._last_save < every_s):
+                return
+            doc = {"schema": _INDEX_SCHEMA, "version": __version__, "runs": self._index}
+            write_json_atomic(self.root / "index.json", doc, indent=0)
+            self._dirty = False
+            self._last_save = time.monotonic()
+
+    # input hashes --------------------------------------------------------
+    def known_hashes(self, run_dir: str | Path) -> dict[str, str] | None:
+        """The recorded input hashes of a run folder, when none of its files
+        changed (same file list, sizes and modification times); else None."""
+        rec = self._index.get(str(Path(run_dir).resolve()))
+        if not rec:
+            return None
+        listing = folder_listing(run_dir)
+        if sorted(listing) != rec.get("listing"):
+            return None
+        for name, (size, mtime_ns, _sha) in rec["files"].items():
+            if tuple(listing.get(name, ())) != (size, mtime_ns):
+                return None
+        return {name: v[2] for name, v in rec["files"].items()}
+
+    def remember(self, run_dir: str | Path, hashes: Mapping[str, str],
+                 stats: Mapping[str, tuple[int, int]]) -> None:
+        """Record a run folder's input hashes with the stat they were taken at."""
+        listing = folder_listing(run_dir)
+        files = {name: [int(stats[name][0]), int(stats[name][1]), sha]
+                 for name, sha in hashes.items() if name in stats}
+        with self._lock:
+            self._index[str(Path(run_dir).resolve())] = {"listing": sorted(listing), "files": files}
+            self._dirty = True
+
+    # entries -------------------------------------------------------------
+    def _entry(self, key: str) -> Path:
+        return self.entries / f"{key}.pkl"
+
+    def get(self, key: str) -> Any | None:
+        """The stored result for ``key``, or None (missing, unreadable or disabled)."""
+        if not self.enabled:
+            return None
+        return read_entry(self.entries, key)
+
+    def put(self, key: str, value: Any) -> None:
+        write_entry(self.entries, key, value)
+
+
+def read_entry(entries: str | Path, key: str) -> Any | None:
+    """Load one entry (None when missing or damaged; a damaged one is removed)."""
+    path = Path(entries) / f"{key}.pkl"
+    try:
+        with open(path, "rb") as fh:
+            return pickle.load(fh)
+    except FileNotFoundError:
+        return None
+    except Exception:  # truncated or foreign file: treat as missing
+        try:
+            path.unlink()
+        except OSError:
+            pass
+        return None
+
+
+def write_entry(entries: str | Path, key: str, value: Any) -> None:
+    """Store one entry atomically (temp file in the same folder + rename)."""
+    path = Path(entries) / f"{key}.pkl"
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            pickle.dump(value, fh, protocol=pickle.HIGHEST_PROTOCOL)

@@ -1,0 +1,236 @@
+"""Declarative pipelines: a TOML file naming the stages to run and their options.
+
+A pipeline file looks like::
+
+    [pipeline]
+    name = "paper"
+    description = "ingest -> flowfit -> tracking -> validate -> discover -> figures -> report"
+
+    [[stages]]
+    name = "ingest"
+    method = "steady"          # per-run flow estimate: 'steady' | 'peak'
+
+    [[stages]]
+    name = "flowfit"
+    sides = ["supply", "drain"]
+
+Each ``[[stages]]`` table has a ``name`` (one of :data:`STAGE_NAMES`) and
+that stage's options (:data:`STAGE_OPTIONS` lists the known ones, with their
+defaults). Unknown stages or options are a :class:`~seanv_analysis.errors.ConfigError`
+naming the file, the stage and the option, so a typo never runs silently with
+a default. Shipped pipelines (``paper``, ``flowfit``, ``tracking``) live in
+the ``pipelines/`` folder of the source tree and can be given by name.
+"""
+from __future__ import annotations
+
+import copy
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from ..errors import ConfigError
+
+__all__ = ["STAGE_NAMES", "STAGE_OPTIONS", "Stage", "Pipeline", "load_pipeline",
+           "parse_pipeline", "shipped_pipelines", "pipelines_dir"]
+
+#: Stage names in the order they run (a pipeline lists a subset, in this order).
+STAGE_NAMES = ("ingest", "flowfit", "tracking", "validate", "discover", "figures", "report")
+
+#: Known options of each stage and their defaults.
+STAGE_OPTIONS: dict[str, dict[str, Any]] = {
+    # per-run flow estimate of the summary ('steady' or the paper's 'peak')
+    "ingest": {"method": "steady"},
+    # valve sides to fit (eq. 5 per side)
+    "flowfit": {"sides": ["supply", "drain"]},
+    # flow delay shift [s] (None: estimated) and the flow band [mm^3/s] of Fig. 7(b)
+    "tracking": {"shift_s": None, "q_range": [-2.5e3, 8e3]},
+    # closed-loop free-run validation of the identified model on position-control runs
+    "validate": {},
+    # held-out split ('chrono' | 'kfold') and the seed of the permutation check
+    "discover": {"holdout": "chrono", "seed": 0},
+    # which paper figures to draw (4: flow fit, 6: position runs, 7: tracking)
+    "figures": {"figs": [4, 6, 7], "formats": ["png", "svg"]},
+    # name of the HTML report file
+    "report": {"filename": "report.html"},
+}
+
+
+def pipelines_dir() -> Path:
+    """Folder of the shipped pipelines (``pipelines/`` next to the package)."""
+    return Path(__file__).resolve().parents[2] / "pipelines"
+
+
+def shipped_pipelines() -> dict[str, Path]:
+    """{name: path} of the shipped pipeline files."""
+    folder = pipelines_dir()
+    if not folder.is_dir():
+        return {}
+    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
+
+
+@dataclass(frozen=True)
+class Stage:
+    """One stage of a pipeline: its name and its options (defaults filled in)."""
+
+    name: str
+    options: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"name": self.name, **copy.deepcopy(self.options)}
+
+
+@dataclass(frozen=True)
+class Pipeline:
+    """A validated pipeline: name, description, stages in run order and the
+    file it came from (None when built from a dict)."""
+
+    name: str
+    description: str
+    stages: tuple[Stage, ...]
+    source: Path | None = None
+
+    def stage(self, name: str) -> Stage | None:
+        """The stage called ``name``, or None when the pipeline lacks it."""
+        for s in self.stages:
+            if s.name == name:
+                return s
+        return None
+
+    def has(self, name: str) -> bool:
+        return self.stage(name) is not None
+
+    @property
+    def stage_names(self) -> list[str]:
+        return [s.name for s in self.stages]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The pipeline as a TOML-like dict (with defaults filled in)."""
+        return {"pipeline": {"name": self.name, "description": self.description},
+                "stages": [s.to_dict() for s in self.stages]}
+
+
+def _check_option(where: str, stage: str, key: str, value: Any) -> Any:
+    """Type checks of the options whose type matters downstream."""
+    def bad(expected: str) -> ConfigError:
+        return ConfigError(f"{where}: stage '{stage}' option '{key}' = {value!r}; expected {expected}")
+
+    if stage == "ingest" and key == "method" and value not in ("steady", "peak"):
+        raise bad("'steady' or 'peak'")
+    if stage == "flowfit" and key == "sides":
+        if not isinstance(value, list) or not value or any(v not in ("supply", "drain") for v in value):
+            raise bad("a non-empty list of 'supply', 'drain'")
+    if stage == "tracking" and key == "shift_s" and value is not None:
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < 5:
+            raise bad("a delay in s between 0 and 5 (or leave it out to estimate it)")
+        value = float(value)
+    if stage == "tracking" and key == "q_range":
+        if (not isinstance(value, list) or len(value) != 2
+                or not all(isinstance(v, (int, float)) for v in value) or value[0] >= value[1]):
+            raise bad("[min, max] flow in mm^3/s with min < max")
+        value = [float(v) for v in value]
+    if stage == "discover" and key == "holdout" and value not in ("chrono", "kfold"):
+        raise bad("'chrono' or 'kfold'")
+    if stage == "figures" and key == "figs":
+        if not isinstance(value, list) or any(v not in (4, 6, 7) for v in value):
+            raise bad("a list of figure numbers among 4, 6, 7")
+    if stage == "figures" and key == "formats":
+        if not isinstance(value, list) or any(v not in ("png", "svg") for v in value):
+            raise bad("a list among 'png', 'svg'")
+    return value
+
+
+def parse_pipeline(doc: Mapping[str, Any], *, source: str | Path | None = None) -> Pipeline:
+    """Validate a pipeline document (the parsed TOML) and fill in defaults.
+
+    Parameters
+    ----------
+    doc : dict with a ``pipeline`` table (``name``, ``description``) and a
+        ``stages`` array of tables (``name`` + options)
+    source : file it came from, used in error messages
+
+    Returns
+    -------
+    Pipeline
+
+    Raises
+    ------
+    ConfigError
+        no stages, an unknown stage or option, a stage listed twice, stages
+        out of order, a badly typed option.
+
+    Examples
+    --------
+    >>> p = parse_pipeline({"pipeline": {"name": "x"}, "stages": [{"name": "ingest"}]})
+    >>> p.stage("ingest").options
+    {'method': 'steady'}
+    """
+    where = str(source) if source is not None else "pipeline"
+    unknown_top = sorted(set(doc) - {"pipeline", "stages"})
+    if unknown_top:
+        raise ConfigError(f"{where}: unknown table(s) {unknown_top}; expected [pipeline] and [[stages]]")
+    head = doc.get("pipeline", {})
+    if not isinstance(head, Mapping):
+        raise ConfigError(f"{where}: [pipeline] must be a table with name and description")
+    name = str(head.get("name") or (Path(source).stem if source else "pipeline"))
+    description = str(head.get("description", ""))
+    raw = doc.get("stages")
+    if not isinstance(raw, list) or not raw:
+        raise ConfigError(f"{where}: no [[stages]]; expected at least one of {', '.join(STAGE_NAMES)}")
+    stages: list[Stage] = []
+    for i, item in enumerate(raw):
+        if not isinstance(item, Mapping) or "name" not in item:
+            raise ConfigError(f"{where}: stage #{i + 1} has no name; expected name = one of "
+                              f"{', '.join(STAGE_NAMES)}")
+        sname = item["name"]
+        if sname not in STAGE_OPTIONS:
+            raise ConfigError(f"{where}: unknown stage '{sname}'; expected one of {', '.join(STAGE_NAMES)}")
+        if any(s.name == sname for s in stages):
+            raise ConfigError(f"{where}: stage '{sname}' is listed twice")
+        known = STAGE_OPTIONS[sname]
+        options = copy.deepcopy(known)
+        for key, value in item.items():
+            if key == "name":
+                continue
+            if key not in known:
+                raise ConfigError(f"{where}: stage '{sname}' has unknown option '{key}'; known: "
+                                  f"{', '.join(known) or '(none)'}")
+            options[key] = _check_option(where, sname, key, value)
+        stages.append(Stage(sname, options))
+    order = [STAGE_NAMES.index(s.name) for s in stages]
+    if order != sorted(order):
+        raise ConfigError(f"{where}: stages out of order ({', '.join(s.name for s in stages)}); "
+                          f"expected the order {' -> '.join(STAGE_NAMES)}")
+    return Pipeline(name, description, tuple(stages), Path(source) if source else None)
+
+
+def load_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any]) -> Pipeline:
+    """Load a pipeline from a TOML file, a shipped name (``paper``) or a dict.
+
+    Raises
+    ------
+    ConfigError
+        the file does not exist (and is not a shipped name), is not valid
+        TOML, or fails :func:`parse_pipeline`.
+    """
+    if isinstance(pipeline, Pipeline):
+        return pipeline
+    if isinstance(pipeline, Mapping):
+        return parse_pipeline(pipeline)
+    path = Path(pipeline)
+    if not path.is_file():
+        shipped = shipped_pipelines()
+        if str(pipeline) in shipped:
+            path = shipped[str(pipeline)]
+        else:
+            names = ", ".join(shipped) or "(none found)"
+            raise ConfigError(f"pipeline: {pipeline} is neither a file nor a shipped pipeline; "
+                              f"shipped: {names}")
+    try:
+        with open(path, "rb") as fh:
+            doc = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
+    return parse_pipeline(doc, source=path)

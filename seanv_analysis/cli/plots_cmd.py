@@ -1,0 +1,78 @@
+"""``seanv-analyze plots``: the paper-style figures for a whole data set."""
+from __future__ import annotations
+
+import os
+import sys
+from pathlib import Path
+
+import click
+
+from . import cli
+from ._common import default_out_dir
+
+__all__ = ["plots_cmd", "plots_pipeline"]
+
+
+def plots_pipeline(figs: list[int]) -> dict:
+    """The pipeline document behind ``plots``: ingest, the stages the figures
+    need (flowfit for Fig. 4, tracking for Fig. 7) and figures."""
+    stages: list[dict] = [{"name": "ingest"}]
+    if 4 in figs:
+        stages.append({"name": "flowfit"})
+    if 7 in figs:
+        stages.append({"name": "tracking"})
+    stages.append({"name": "figures", "figs": sorted(figs)})
+    return {"pipeline": {"name": "plots", "description": f"figures {', '.join(map(str, figs))}"},
+            "stages": stages}
+
+
+@cli.command("plots")
+@click.argument("data", type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--fig", "fig", type=click.Choice(["4", "6", "7", "all"]), multiple=True,
+              default=("all",), show_default=True,
+              help="Figure(s): 4 flow characterisation of the data set (fit + threshold), "
+                   "6 one per position-control run, 7 flow tracking (data set + one per run). "
+                   "Repeat for several.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+              help="Output folder. Default: outputs/<dataset-name>/plots/.")
+@click.option("--workers", type=click.IntRange(min=1), default=None,
+              help="Worker processes for the per-run work (1: serial). Default: the CPU count.")
+@click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Rig config TOML with only the keys you change.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress output on stderr.")
+def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: int | None,
+              rig_file: Path | None, quiet: bool) -> int:
+    """Draw the paper's figures for every run / the whole data set in DATA (PNG + SVG).
+
+    \b
+    Writes under --out/figures/:
+      fig4.png/.svg            flow rate vs cam angle per load, threshold vs dp (Fig. 4)
+      fig6/fig6_<run>.png/.svg position, pressures, cam, error of each
+                               position-control run (Fig. 6)
+      fig7*.png/.svg           target vs actual flow, delay-shifted (Fig. 7)
+    Figures whose runs are missing (e.g. Fig. 6 without position-control
+    runs) are skipped with a note. Per-run work is cached in --out/.cache.
+
+    \b
+    Example:
+      seanv-analyze plots data/ --fig 4 --fig 7
+    """
+    from ..batch import run_pipeline
+
+    figs = [4, 6, 7] if "all" in fig else sorted({int(f) for f in fig})
+    out = Path(out_dir) if out_dir else default_out_dir(data, "plots")
+    interactive = sys.stderr.isatty() and not os.environ.get("CI")
+    log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
+    result = run_pipeline(plots_pipeline(figs), data, out_dir=out, workers=workers, quiet=quiet,
+                          rig=rig_file, log=log, command=sys.argv)
+    n = 0
+    for name, paths in result.figures.items():
+        for p in paths:
+            click.echo(str(p))
+            n += 1
+    click.echo(f"{n} figure file(s) under {out / 'figures'}", err=True)
+    for stage, msg in {**result.stage_notes, **result.stage_errors}.items():
+        click.echo(f"note: {stage}: {msg}", err=True)
+    for f in result.failed:
+        click.echo(f"  failed [{f.stage}] {f.message}", err=True)
+    return 0 if result.success else 1

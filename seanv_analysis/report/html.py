@@ -1,0 +1,434 @@
+"""One self-contained ``report.html`` of a pipeline run.
+
+Everything is inside the file: CSS inline, figures embedded as base64 PNG
+(or inline SVG when only an SVG exists), no script, no external link, so
+the file can be mailed or archived as is. Sections:
+
+1. overview: runs read / failed / excluded, the key numbers;
+2. identified flow model (eq. 5): z0 and C per side with 95 % intervals
+   (method named), next to the paper's values; Fig. 4;
+3. flow tracking during position control (Fig. 7): delay with its 95 %
+   interval, RMSE (residual = shifted actual - target); Fig. 6 per run;
+4. closed-loop validation table (free-run simulation of each run), with the
+   identified and, when discovery found an effect, the augmented model;
+5. discovery: verdict, effects, held-out error before/after, residuals;
+6. runs excluded by the paper's filters and why; runs that failed;
+7. provenance: version, git SHA, command line, pipeline, rig config, input
+   file hashes, executor, timings.
+
+The report only formats results (``.to_json()``, tables); it computes nothing.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import json
+import math
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Iterable
+
+import pandas as pd
+
+from .. import __version__
+from ..io.atomic import write_text_atomic
+
+__all__ = ["render_report", "write_report"]
+
+_CSS = """
+body{font-family:-apple-system,'Segoe UI',Helvetica,Arial,sans-serif;margin:0;color:#1d232a;background:#f5f6f8}
+main{max-width:1100px;margin:0 auto;padding:1.2em 2em 3em;background:#fff}
+h1{font-size:1.6em;margin:.3em 0 .1em} h2{font-size:1.25em;border-bottom:2px solid #d7dbe0;padding-bottom:.2em;margin-top:1.8em}
+h3{font-size:1.05em;margin:1.2em 0 .4em}
+.sub{color:#5b6570;margin:0 0 1em}
+table{border-collapse:collapse;margin:.5em 0 1em;font-size:.88em}
+th,td{border:1px solid #d7dbe0;padding:.25em .55em;text-align:right;vertical-align:top}
+th{background:#eef1f4;text-align:center} td.l,th.l{text-align:left}
+.cards{display:flex;flex-wrap:wrap;gap:.8em;margin:1em 0}
+.card{border:1px solid #d7dbe0;border-radius:6px;padding:.6em .9em;min-width:150px;background:#fafbfc}
+.card b{display:block;font-size:1.35em} .card span{color:#5b6570;font-size:.85em}
+.ok{color:#1a7f37} .warn{color:#b35900} .bad{color:#c62828}
+figure{margin:.8em 0;text-align:center} figure img,figure svg{max-width:100%;height:auto;border:1px solid #e3e6ea}
+figcaption{color:#5b6570;font-size:.85em}
+pre{background:#f3f4f6;padding:.6em;overflow-x:auto;font-size:.8em;white-space:pre-wrap}
+details{margin:.5em 0} summary{cursor:pointer;color:#24527a}
+.note{background:#fff8e5;border-left:4px solid #e0a800;padding:.4em .8em;margin:.6em 0}
+.err{background:#fdecea;border-left:4px solid #c62828;padding:.4em .8em;margin:.6em 0}
+.scroll{overflow-x:auto;max-width:100%}
+.grid{display:grid;grid-template-columns:1fr 1fr;gap:.6em}
+nav a{margin-right:1em;color:#24527a;text-decoration:none;font-size:.9em}
+"""
+
+
+def _e(x: Any) -> str:
+    return html.escape(str(x), quote=True)
+
+
+def _fmt(v: Any, digits: int = 4) -> str:
+    if v is None:
+        return "&ndash;"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, (int,)) and not isinstance(v, bool):
+        return str(v)
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        return _e(v)
+    if not math.isfinite(f):
+        return "&ndash;"
+    if f != 0 and (abs(f) >= 1e5 or abs(f) < 1e-3):
+        return f"{f:.{digits - 1}e}"
+    return f"{f:.{digits}g}" if abs(f) >= 1 else f"{f:.{digits}f}".rstrip("0").rstrip(".")
+
+
+def _ci(ci: Any, digits: int = 4) -> str:
+    try:
+        lo, hi = (float(c) for c in ci)
+    except (TypeError, ValueError):
+        return "<span class='warn'>no interval</span>"
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return "<span class='warn'>no interval (singular covariance / too few runs)</span>"
+    return f"[{_fmt(lo, digits)}, {_fmt(hi, digits)}]"
+
+
+def _table(df: pd.DataFrame, *, left: Iterable[str] = (), max_rows: int = 400) -> str:
+    if df is None or len(df) == 0:
+        return "<p><i>none</i></p>"
+    left = set(left)
+    head = "".join(f"<th>{_e(c)}</th>" for c in df.columns)
+    rows = []
+    for rec in df.head(max_rows).to_dict(orient="records"):
+        cells = []
+        for c in df.columns:
+            v = rec[c]
+            cls = " class='l'" if c in left or isinstance(v, str) else ""
+            cells.append(f"<td{cls}>{_e(v) if isinstance(v, str) else _fmt(v)}</td>")
+        rows.append("<tr>" + "".join(cells) + "</tr>")
+    more = f"<p><i>{len(df) - max_rows} more rows not shown</i></p>" if len(df) > max_rows else ""
+    return (f"<div class='scroll'><table><tr>{head}</tr>{''.join(rows)}</table></div>{more}")
+
+
+def _figure(path: Path, caption: str = "") -> str:
+    """A figure embedded in the page: PNG as base64, SVG inline."""
+    path = Path(path)
+    png = path.with_suffix(".png")
+    cap = f"<figcaption>{_e(caption or path.stem)}</figcaption>"
+    if png.is_file():
+        data = base64.b64encode(png.read_bytes()).decode("ascii")
+        return (f"<figure><img alt='{_e(path.stem)}' src='data:image/png;base64,{data}'>"
+                f"{cap}</figure>")
+    svg = path.with_suffix(".svg")
+    if svg.is_file():
+        text = svg.read_text(encoding="utf-8", errors="replace")
+        start = text.find("<svg")
+        return f"<figure>{text[start:] if start >= 0 else text}{cap}</figure>"
+    return ""
+
+
+def _figures(paths: Iterable[Path], caption: str = "") -> str:
+    seen, out = set(), []
+    for p in paths:
+        stem = Path(p).with_suffix("")
+        if stem in seen or Path(p).suffix not in (".png", ".svg"):
+            continue
+        seen.add(stem)
+        out.append(_figure(Path(p), caption or Path(p).stem))
+    return "".join(out)
+
+
+# sections ---------------------------------------------------------------------
+
+def _overview(r) -> str:
+    s = r.summary
+    n_flow = int((s["kind"] == "flow_step").sum()) if not s.empty else 0
+    n_pos = int((s["kind"] == "position_control").sum()) if not s.empty else 0
+    n_ex = int((s["excluded"].fillna("") != "").sum()) if not s.empty else 0
+    cards = [(f"{r.runs_read} / {r.runs_found}", "runs read / found"),
+             (f"{n_flow} + {n_pos}", "flow-step + position-control runs"),
+             (str(n_ex), "flow-step runs excluded by the filters"),
+             (f"<span class='{'bad' if r.failed else 'ok'}'>{len(r.failed)}</span>", "runs failed")]
+    if r.tracking is not None:
+        cards.append((f"{_fmt(r.tracking.rmse_mm3_s, 3)}", "flow tracking RMSE [mm^3/s]"))
+        cards.append((f"{_fmt(r.tracking.lag_s, 3)}", "flow delay [s]"))
+    if r.discovery is not None:
+        cls = "warn" if r.discovery.verdict != "none" else "ok"
+        cards.append((f"<span class='{cls}'>{_e(r.discovery.verdict)}</span>", "discovery verdict"))
+    body = "".join(f"<div class='card'><b>{v}</b><span>{_e(t)}</span></div>" for v, t in cards)
+    parts = [f"<div class='cards'>{body}</div>"]
+    for name, msg in r.stage_errors.items():
+        parts.append(f"<div class='err'><b>stage {_e(name)} failed:</b> {_e(msg)}</div>")
+    for name, msg in r.stage_notes.items():
+        parts.append(f"<div class='note'><b>{_e(name)}:</b> {_e(msg)}</div>")
+    return "".join(parts)
+
+
+def _flowfit(r) -> str:
+    fit = r.flowfit
+    if fit is None:
+        why = r.stage_errors.get("flowfit", "stage not in this pipeline")
+        return f"<p>No flow fit ({_e(why)}).</p>"
+    from ..models import ValveModel
+
+    paper = ValveModel.from_rig(r.rig) if r.rig is not None else None
+    rows = []
+    for side, f in fit.sides.items():
+        ref = paper.side(side) if paper is not None else None
+        status = "<span class='ok'>ok</span>" if f.success else f"<span class='bad'>failed</span>"
+        rows.append(
+            f"<tr><td class='l'>{_e(side)}</td><td>{_fmt(f.z0_mm, 5)}</td><td>{_ci(f.z0_ci95, 5)}</td>"
+            f"<td>{_fmt(ref.z0_mm if ref else None, 5)}</td>"
+            f"<td>{_fmt(f.c_flow, 4)}</td><td>{_ci(f.c_ci95)}</td>"
+            f"<td>{_fmt(ref.c_flow if ref else None, 4)}</td>"
+            f"<td>{_fmt(f.rmse_mm3_s, 4)}</td><td>{f.n_runs}</td><td class='l'>{status} "
+            f"{_e(f.message)}</td></tr>")
+    methods = sorted({f.ci_method for f in fit.sides.values() if f.ci_method})
+    table = ("<table><tr><th class='l'>side</th><th>z0 [mm]</th><th>z0 95 % interval</th>"
+             "<th>z0 paper/rig [mm]</th><th>C [mm^3/(s deg^2 MPa^0.5)]</th><th>C 95 % interval</th>"
+             "<th>C paper/rig</th><th>RMSE [mm^3/s]</th><th>runs used</th><th class='l'>status</th>"
+             "</tr>" + "".join(rows) + "</table>")
+    notes = [f"Residual = measured &minus; model. Intervals: {_e('; '.join(methods) or 'n/a')}."]
+    notes += [f"<span class='warn'>warning:</span> {_e(w)}" for w in getattr(fit, "warnings", [])]
+    per_load = getattr(fit, "per_load", None)
+    pl = ""
+    if per_load is not None and len(per_load):
+        pl = "<details><summary>per load level (threshold angle and quadratic coefficient)</summary>" \
+             + _table(per_load, left=("side",)) + "</details>"
+    figs = _figures(r.figures.get("fig4", []), "Fig. 4: flow characterisation")
+    return table + "".join(f"<p>{n}</p>" for n in notes) + pl + figs
+
+
+def _tracking(r) -> str:
+    tr = r.tracking
+    out = []
+    if tr is None:
+        why = r.stage_errors.get("tracking") or r.stage_notes.get("tracking") or "stage not in this pipeline"
+        out.append(f"<p>No tracking result ({_e(why)}).</p>")
+    else:
+        ci = tr.lag_ci95_s
+        lag = f"{_fmt(tr.lag_s, 3)} s ({_e(tr.lag_source)}" + (f", 95 % interval {_ci(ci, 3)} s, block bootstrap"
+                                                              if ci else "") + ")"
+        lo, hi = tr.range_mm3_s
+        out.append("<table>"
+                   f"<tr><td class='l'>flow delay (actual behind target)</td><td>{lag}</td></tr>"
+                   f"<tr><td class='l'>RMSE of shifted actual &minus; target, targets in "
+                   f"[{_fmt(lo)}, {_fmt(hi)}] mm^3/s</td><td>{_fmt(tr.rmse_mm3_s, 4)} mm^3/s "
+                   f"(paper: 516 mm^3/s)</td></tr>"
+                   f"<tr><td class='l'>bias (actual &minus; target)</td><td>{_fmt(tr.bias_mm3_s, 4)} mm^3/s</td></tr>"
+                   f"<tr><td class='l'>RMSE supply / drain targets</td><td>{_fmt(tr.rmse_supply_mm3_s, 4)} / "
+                   f"{_fmt(tr.rmse_drain_mm3_s, 4)} mm^3/s</td></tr>"
+                   f"<tr><td class='l'>samples in range</td><td>{tr.n_samples}</td></tr></table>")
+        out.append("<h3>Per run</h3>" + _table(tr.per_run, left=("run_id", "target_source")))
+        for rid, why in tr.skipped.items():
+            out.append(f"<div class='note'>skipped {_e(rid)}: {_e(why)}</div>")
+    fig7 = [Path(p) for p in r.figures.get("fig7", [])]
+    main_fig = [p for p in fig7 if p.stem == "fig7"]
+    out.append(_figures(main_fig or fig7, "Fig. 7: flow tracking, all runs"))
+    per_run = [p for p in fig7 if p not in main_fig] if main_fig else []
+    if per_run:
+        out.append("<details><summary>Fig. 7 per run</summary>"
+                   + _figures(per_run, "Fig. 7: one run") + "</details>")
+    if r.figures.get("fig6"):
+        out.append("<h3>Position control runs (Fig. 6)</h3>")
+        out.append(f"<div class='grid'>{_figures(r.figures['fig6'])}</div>")
+    return "".join(out)
+
+
+def _validation_table(val) -> str:
+    cols = ["run_id", "controller", "fit_position_pct", "rmse_position_mm", "fit_flow_pct",
+            "rmse_flow_mm3_s", "fit_cam_pct", "overshoot_measured_mm", "overshoot_simulated_mm",
+            "flagged"]
+    df = val.table[[c for c in cols if c in val.table.columns]]
+    out = _table(df, left=("run_id", "controller"))
+    by = val.by_controller()
+    if len(by):
+        out += "<p>Mean per controller:</p>" + _table(by.reset_index()[[
+            c for c in ["controller", "fit_position_pct", "rmse_position_mm", "fit_flow_pct",
+                        "rmse_flow_mm3_s"] if c in by.reset_index().columns]], left=("controller",))
+    if val.flagged:
+        out += f"<div class='note'>flagged (position fit &lt; {_fmt(val.threshold_pct)} %): " \
+               f"{_e(', '.join(val.flagged))}</div>"
+    return out
+
+
+def _validation(r) -> str:
+    if r.validation is None:
+        why = r.stage_errors.get("validate") or r.stage_notes.get("validate") or "stage not in this pipeline"
+        return f"<p>No validation ({_e(why)}).</p>"
+    out = ["<p>Each position-control run's controller is re-run on the simulated plant with the "
+           "identified valve model (free-run simulation, not one-step prediction); fit % = "
+           "100 (1 &minus; ||y &minus; y_sim|| / ||y &minus; mean(y)||).</p>",
+           "<h3>Identified model</h3>", _validation_table(r.validation)]
+    if r.validation_augmented is not None:
+        out += ["<h3>Augmented model (identified model + effects found by discovery)</h3>",
+                _validation_table(r.validation_augmented)]
+    return "".join(out)
+
+
+def _discovery(r) -> str:
+    d = r.discovery
+    if d is None:
+        why = r.stage_errors.get("discover", "stage not in this pipeline")
+        return f"<p>No discovery ({_e(why)}).</p>"
+    cls = {"effect_found": "warn", "none": "ok", "unexplained": "bad"}.get(d.verdict, "")
+    before, after = d.rmse_before_mm3_s, d.rmse_after_mm3_s
+    out = [f"<p>Verdict: <b class='{cls}'>{_e(d.verdict)}</b>"
+           + (f" (residual trends with {_e(d.trend_variable)})" if d.trend_variable else "") + "</p>",
+           "<table><tr><th class='l'>held-out runs</th><th>flow RMSE before [mm^3/s]</th>"
+           "<th>after [mm^3/s]</th><th>change</th></tr>"
+           f"<tr><td class='l'>{_e(d.holdout)}, n = {d.n_heldout_runs}</td><td>{_fmt(before)}</td>"
+           f"<td>{_fmt(after)}</td><td>{_fmt(-100 * d.improvement, 3)} %</td></tr></table>"]
+    if d.effects:
+        rows = "".join(
+            f"<tr><td class='l'>{_e(e.name)}</td><td class='l'>{_e(e.side)}</td>"
+            f"<td class='l'>{_e(e.sentence())}</td><td class='l'>"
+            + ", ".join(f"{_e(k)} = {_fmt(v)} {_ci(e.params_ci95.get(k))}" for k, v in e.params.items())
+            + f"</td><td>{_fmt(e.p_value, 3)}</td><td>{_fmt(e.f_p_value, 3)}</td></tr>"
+            for e in d.effects)
+        out.append("<table><tr><th class='l'>effect</th><th class='l'>side</th><th class='l'>meaning</th>"
+                   "<th class='l'>parameters (95 % Wald interval)</th><th>permutation p</th>"
+                   "<th>F-test p</th></tr>" + rows + "</table>")
+    if getattr(d, "validation", None):
+        out.append(_closed_loop_before_after(d.validation))
+    text = "\n".join(line for line in d.report().splitlines()
+                     if not line.startswith("Closed loop (validate)"))
+    out.append(f"<pre>{_e(text)}</pre>")
+    out.append(_figures(r.figures.get("discover", []), "Flow residual (measured - model) before/after"))
+    return "".join(out)
+
+
+def _closed_loop_before_after(validation: dict) -> str:
+    """Mean closed-loop fit per controller, identified vs augmented model."""
+    before, after = validation.get("before") or {}, validation.get("after") or {}
+    if not isinstance(before, dict) or not isinstance(after, dict):
+        return ""
+    rows = []
+    for ctrl in sorted(set(before) | set(after)):
+        b, a = before.get(ctrl) or {}, after.get(ctrl) or {}
+        rows.append(f"<tr><td class='l'>{_e(ctrl)}</td><td>{_fmt(b.get('fit_position_pct'))}</td>"
+                    f"<td>{_fmt(a.get('fit_position_pct'))}</td><td>{_fmt(b.get('rmse_position_mm'))}"
+                    f"</td><td>{_fmt(a.get('rmse_position_mm'))}</td><td>{_fmt(b.get('fit_flow_pct'))}"
+                    f"</td><td>{_fmt(a.get('fit_flow_pct'))}</td></tr>")
+    return ("<p>Closed loop (free-run simulation of the position-control runs), identified "
+            "model before, augmented model after:</p><div class='scroll'><table><tr>"
+            "<th class='l'>controller</th><th>position fit % before</th><th>after</th>"
+            "<th>position RMSE [mm] before</th><th>after</th><th>flow fit % before</th>"
+            "<th>after</th></tr>" + "".join(rows) + "</table></div>")
+
+
+def _runs(r) -> str:
+    s = r.summary
+    out = []
+    counts = ", ".join(f"{k}: {v}" for k, v in r.excluded.items()) or "none"
+    out.append(f"<p>Excluded from the flow fit by the paper's filters (Sec. II-D.2): {_e(counts)}.</p>")
+    if not s.empty:
+        ex = s[s["excluded"].fillna("") != ""]
+        if len(ex):
+            by = ex.groupby(["excluded", "side"]).size().unstack(fill_value=0)
+            out.append("<p>Excluded runs by reason and side:</p>"
+                       + _table(by.reset_index().rename(columns={"excluded": "reason"}),
+                                left=("reason",)))
+            cols = [c for c in ("run_index", "run_id", "side", "load_mpag", "cam_deg", "q_mm3_s",
+                                "excluded", "excluded_detail") if c in ex.columns]
+            ex = ex[cols].copy()
+            if "q_mm3_s" in ex:
+                ex["q_mm3_s"] = ex["q_mm3_s"].round(1) + 0.0  # no -0.0, no 1e-11 noise
+            out.append(f"<details{' open' if len(ex) <= 20 else ''}><summary>the {len(ex)} "
+                       "excluded runs and why</summary>"
+                       + _table(ex, left=("run_id", "side", "excluded", "excluded_detail"),
+                                max_rows=5000) + "</details>")
+    if r.failed:
+        out.append(f"<h3 class='bad'>Failed runs ({len(r.failed)})</h3>")
+        df = pd.DataFrame([f.to_json() for f in r.failed])
+        out.append(_table(df, left=("path", "stage", "message")))
+    else:
+        out.append("<p class='ok'>No run failed.</p>")
+    if not s.empty:
+        cols = [c for c in ("run_index", "run_id", "kind", "side", "started_at", "load_mpag",
+                            "cam_deg", "q_mm3_s", "dp_mpa", "excluded") if c in s.columns]
+        df = s[cols].copy()
+        if "started_at" in df:
+            df["started_at"] = df["started_at"].astype(str)
+        out.append("<details><summary>all runs read (per-run summary)</summary>"
+                   + _table(df, left=("run_id", "kind", "side", "started_at", "excluded"), max_rows=2000)
+                   + "</details>")
+    return "".join(out)
+
+
+def _provenance(r) -> str:
+    from ..manifest import git_sha
+
+    manifest = {}
+    if r.manifest_path and Path(r.manifest_path).is_file():
+        try:
+            manifest = json.loads(Path(r.manifest_path).read_text())
+        except ValueError:
+            manifest = {}
+    cmd = manifest.get("command_line") or " ".join(r.command)
+    rows = [("package version", f"seanv-analysis {__version__}"),
+            ("git commit", manifest.get("git_sha") or git_sha() or "not a git checkout"),
+            ("command line", cmd),
+            ("pipeline", f"{r.pipeline.name} ({r.pipeline.source or 'built in'})"),
+            ("data", ", ".join(str(d) for d in r.data)),
+            ("executor", r.executor),
+            ("rig config", getattr(r.rig, "source", "")),
+            ("inputs", f"{len(r.input_hashes)} files, combined SHA-256 "
+                       f"{manifest.get('inputs_sha256', '')}"),
+            ("created (UTC)", manifest.get("created_utc")
+             or datetime.now(timezone.utc).isoformat(timespec="seconds"))]
+    out = ["<table>" + "".join(f"<tr><td class='l'><b>{_e(k)}</b></td><td class='l'><code>{_e(v)}"
+                                f"</code></td></tr>" for k, v in rows) + "</table>"]
+    times = ", ".join(f"{k} {v:.1f} s" for k, v in r.timings_s.items())
+    comp = ", ".join(f"{k}: {v} computed / {r.cached.get(k, 0)} cached" for k, v in r.computed.items())
+    out.append(f"<p>Timings: {_e(times)}.<br>Per-run tasks: {_e(comp or 'none')}.</p>")
+    out.append("<details><summary>pipeline (with defaults)</summary><pre>"
+               + _e(json.dumps(r.pipeline.to_dict(), indent=2)) + "</pre></details>")
+    if r.rig is not None:
+        out.append("<details><summary>rig config</summary><pre>"
+                   + _e(json.dumps(r.rig.to_dict(), indent=2, default=str)) + "</pre></details>")
+    hashes = pd.DataFrame([{"file": k, "sha256": v} for k, v in sorted(r.input_hashes.items())])
+    out.append("<details><summary>input files and SHA-256</summary>"
+               + _table(hashes, left=("file", "sha256"), max_rows=5000) + "</details>")
+    if r.warnings:
+        out.append("<details><summary>warnings</summary><pre>" + _e("\n".join(r.warnings))
+                   + "</pre></details>")
+    return "".join(out)
+
+
+def render_report(result: Any) -> str:
+    """The report of a :class:`~seanv_analysis.batch.PipelineResult` as one HTML string."""
+    r = result
+    sections = [("overview", "Overview", _overview(r)),
+                ("flowfit", "Identified flow model (eq. 5)", _flowfit(r)),
+                ("tracking", "Flow tracking during position control (Sec. III-C)", _tracking(r)),
+                ("validation", "Closed-loop validation", _validation(r)),
+                ("discovery", "Discovery: what the model misses", _discovery(r)),
+                ("runs", "Runs: excluded and failed", _runs(r)),
+                ("provenance", "Provenance", _provenance(r))]
+    nav = "".join(f"<a href='#{sid}'>{_e(title.split(':')[0].split('(')[0].strip())}</a>"
+                  for sid, title, _ in sections)
+    body = "".join(f"<section id='{sid}'><h2>{_e(title)}</h2>{content}</section>"
+                   for sid, title, content in sections)
+    title = f"seanv-analysis report: {r.pipeline.name}"
+    sub = (f"{_e(r.pipeline.description)}<br>data: {_e(', '.join(str(d) for d in r.data))}; "
+           f"seanv-analysis {_e(__version__)}. Units: mm, MPa gauge, deg, s, mm^3/s.")
+    return ("<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
+            f"<meta name='viewport' content='width=device-width, initial-scale=1'><title>{_e(title)}</title>"
+            f"<style>{_CSS}</style></head><body><main><h1>{_e(title)}</h1><p class='sub'>{sub}</p>"
+            f"<nav>{nav}</nav>{body}</main></body></html>\n")
+
+
+def write_report(result: Any, path: str | Path) -> Path:
+    """Write ``report.html`` (atomically) and return its path.
+
+    Parameters
+    ----------
+    result : :class:`~seanv_analysis.batch.PipelineResult` (stages that did not
+        run are shown as such)
+    path : output file
+
+    Examples
+    --------
+    >>> write_report(result, "outputs/flow/run-paper/report.html")  # doctest: +SKIP
+    """
+    return write_text_atomic(Path(path), render_report(result))

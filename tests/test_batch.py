@@ -1,0 +1,372 @@
+"""Batch runner: pipelines, executors (serial / process pool / dask), cache, resume."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from pandas.testing import assert_frame_equal
+
+from seanv_analysis.batch import (STAGE_NAMES, load_pipeline, parse_pipeline, run_pipeline,
+                                  shipped_pipelines)
+from seanv_analysis.batch import runner as runner_mod
+from seanv_analysis.batch.cache import RunCache, run_key
+from seanv_analysis.batch.executor import make_executor, progress_enabled
+from seanv_analysis.errors import ConfigError, DataError
+
+INGEST_ONLY = {"pipeline": {"name": "ingest-only"}, "stages": [{"name": "ingest"}]}
+FIT = {"pipeline": {"name": "fit"}, "stages": [{"name": "ingest"}, {"name": "flowfit"}]}
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    """14 flow-step runs (supply/drain) and one bad run (no encoder file)."""
+    from conftest import write_synthetic_dataset, write_synthetic_run
+
+    root = tmp_path_factory.mktemp("batch") / "data"
+    write_synthetic_dataset(root, n_flow=14)
+    write_synthetic_run(root, "flow_step", run_id="broken", tables={"encoder": None},
+                        started_at="2026-03-02T11:00:00Z", duration_s=0.5)
+    return root
+
+
+@pytest.fixture(scope="module")
+def dask_cluster():
+    """One LocalCluster for the module (2 worker processes, 1 thread each)."""
+    distributed = pytest.importorskip("dask.distributed")
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                       dashboard_address=None)
+    yield cluster
+    cluster.close()
+
+
+def _summary(res) -> pd.DataFrame:
+    return res.summary.drop(columns=["flow_model"]).reset_index(drop=True)
+
+
+# pipelines -----------------------------------------------------------------
+
+def test_shipped_pipelines_load():
+    shipped = shipped_pipelines()
+    assert {"paper", "flowfit", "tracking"} <= set(shipped)
+    paper = load_pipeline("paper")
+    assert paper.stage_names == list(STAGE_NAMES)
+    assert paper.stage("discover").options["holdout"] == "chrono"
+    assert load_pipeline(shipped["flowfit"]).stage("figures").options["figs"] == [4]
+
+
+@pytest.mark.parametrize("doc, match", [
+    ({"stages": [{"name": "ingest"}, {"name": "fitflow"}]}, r"unknown stage 'fitflow'"),
+    ({"stages": [{"name": "ingest", "methd": "peak"}]}, r"stage 'ingest' has unknown option 'methd'"),
+    ({"stages": [{"name": "ingest", "method": "mean"}]}, r"option 'method' = 'mean'"),
+    ({"stages": [{"name": "flowfit"}, {"name": "ingest"}]}, r"stages out of order"),
+    ({"stages": [{"name": "ingest"}, {"name": "ingest"}]}, r"listed twice"),
+    ({"stages": []}, r"no \[\[stages\]\]"),
+    ({"stages": [{"name": "tracking", "q_range": [5, 1]}]}, r"option 'q_range'"),
+    ({"stages": [{"name": "figures", "figs": [5]}]}, r"option 'figs'"),
+])
+def test_bad_pipeline_is_config_error(doc, match):
+    with pytest.raises(ConfigError, match=match):
+        parse_pipeline(doc)
+
+
+def test_pipeline_file_errors(tmp_path):
+    with pytest.raises(ConfigError, match=r"neither a file nor a shipped pipeline"):
+        load_pipeline("no-such-pipeline")
+    bad = tmp_path / "bad.toml"
+    bad.write_text("[pipeline\nname=")
+    with pytest.raises(ConfigError, match=r"not valid TOML"):
+        load_pipeline(bad)
+
+
+def test_missing_stage_module_is_config_error(dataset, tmp_path, monkeypatch):
+    real = runner_mod._optional
+    monkeypatch.setattr(runner_mod, "_optional",
+                        lambda module, name: None if module == "fit" else real(module, name))
+    with pytest.raises(ConfigError, match=r"stage 'flowfit' needs seanv_analysis\.fit\.fit_flow"):
+        run_pipeline(FIT, dataset, out_dir=tmp_path / "out", workers=1, quiet=True)
+    assert not (tmp_path / "out").exists()  # nothing done before the check
+
+
+def test_out_dir_inside_data_refused(dataset):
+    with pytest.raises(DataError, match=r"inside the data folder"):
+        run_pipeline(INGEST_ONLY, dataset, out_dir=dataset / "out", workers=1, quiet=True)
+
+
+# executors -------------------------------------------------------------------
+
+def test_serial_process_dask_identical(dataset, tmp_path, dask_cluster):
+    from dask.distributed import Client
+
+    serial = run_pipeline(FIT, dataset, out_dir=tmp_path / "serial", workers=1, quiet=True)
+    pool = run_pipeline(FIT, dataset, out_dir=tmp_path / "pool", workers=2, quiet=True)
+    with Client(dask_cluster) as client:
+        dask = run_pipeline(FIT, dataset, out_dir=tmp_path / "dask", client=client, quiet=True)
+        assert client.status == "running"  # not closed by the runner
+    assert serial.executor.startswith("serial")
+    assert pool.executor.startswith("process pool (2")
+    assert dask.executor.startswith("dask")
+    for other in (pool, dask):
+        assert_frame_equal(_summary(serial), _summary(other))
+        assert [f.message for f in other.failed] == [f.message for f in serial.failed]
+        assert other.stage_errors == serial.stage_errors
+        if serial.flowfit is not None:
+            assert other.flowfit.to_json() == serial.flowfit.to_json()
+    assert serial.runs_read == 14
+    assert serial.computed["ingest"] == 14 and dask.computed["ingest"] == 14
+
+
+@pytest.fixture(scope="module")
+def simulated(tmp_path_factory):
+    """A small simulated data set: 16 flow steps with the drain drift and one
+    position-control run with the flow model (the simulator, known truth)."""
+    from datetime import datetime, timedelta, timezone
+
+    from seanv_analysis.io import write_run
+    from seanv_analysis.sim import simulate_flow_step, simulate_scenario
+
+    root = tmp_path_factory.mktemp("sim") / "data"
+    t = datetime(2026, 3, 2, 9, 0, tzinfo=timezone.utc)
+    grid = [(side, cam, load) for load in (0.3, 0.5)
+            for side, cams in (("supply", (-5.0, 0.0, 5.0, 10.0)), ("drain", (-40.0, -35.0, -30.0, -25.0)))
+            for cam in cams]
+    for i, (side, cam, load) in enumerate(grid):
+        run, _ = simulate_flow_step(side=side, cam_deg=cam, load_mpag=load, seed=1, run_index=i,
+                                    effects=["drift:side=drain,step=0.05,every=3"],
+                                    run_id=f"fs{i:02d}-{side}", started_at=t + timedelta(minutes=i))
+        write_run(root / "flow" / run.meta.run_id, run.meta.to_json(), run.tables)
+    simulate_scenario("paper-position-model", root / "position", seed=1)
+    return root
+
+
+def test_simulated_paper_pipeline_identical_on_all_executors(simulated, tmp_path, dask_cluster):
+    """Identified parameters, tracking, closed-loop validation and discovery:
+    bit-for-bit the same from serial, a process pool and a dask cluster."""
+    from dask.distributed import Client
+
+    doc = {"stages": [{"name": "ingest"}, {"name": "flowfit"}, {"name": "tracking"},
+                      {"name": "validate"}, {"name": "discover"}]}
+    data = [simulated / "flow", simulated / "position"]
+    keys = ("flowfit", "tracking", "validation", "validation_augmented", "discovery", "excluded",
+            "stage_errors", "runs_read")
+    serial = run_pipeline(doc, data, out_dir=tmp_path / "s", workers=1, quiet=True).to_json()
+    pool = run_pipeline(doc, data, out_dir=tmp_path / "p", workers=2, quiet=True).to_json()
+    with Client(dask_cluster) as client:
+        dask = run_pipeline(doc, data, out_dir=tmp_path / "d", client=client, quiet=True).to_json()
+    assert serial["runs_read"] == 17
+    assert serial["stage_errors"] == {} and serial["flowfit"] is not None
+    assert serial["validation"] is not None and serial["tracking"] is not None
+    for k in keys:
+        assert pool[k] == serial[k], k
+        assert dask[k] == serial[k], k
+
+
+def test_scheduler_address_connects_and_leaves_cluster_running(dataset, tmp_path, dask_cluster):
+    res = run_pipeline(INGEST_ONLY, dataset, out_dir=tmp_path / "o", quiet=True,
+                       scheduler=dask_cluster.scheduler_address)
+    assert res.executor == f"dask.distributed ({dask_cluster.scheduler_address})"
+    assert res.runs_read == 14
+    assert dask_cluster.status.name == "running"
+
+
+def test_scheduler_from_environment(dataset, tmp_path, dask_cluster, monkeypatch):
+    monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", dask_cluster.scheduler_address)
+    with make_executor() as ex:
+        assert ex.kind == "dask"
+    with make_executor(workers=1) as ex:  # an explicit --workers wins
+        assert ex.kind == "serial"
+
+
+def test_bad_runs_listed_good_runs_processed(dataset, tmp_path):
+    res = run_pipeline(INGEST_ONLY, dataset, out_dir=tmp_path / "o", workers=2, quiet=True)
+    assert res.runs_found == 15 and res.runs_read == 14
+    assert len(res.failed) == 1
+    bad = res.failed[0]
+    assert bad.stage == "ingest" and "broken" in bad.path
+    assert "encoder" in bad.message and "\n" not in bad.message
+    text = res.summary_text()
+    assert "1 failed" in text and "[ingest]" in text and "encoder" in text
+    assert not res.success
+    doc = json.loads((tmp_path / "o" / "result.json").read_text())
+    assert doc["failed"][0]["stage"] == "ingest"
+    manifest = json.loads((tmp_path / "o" / "manifest.json").read_text())
+    assert len(manifest["inputs"]) == 14 * 4  # run.json + 3 tables per good run
+
+
+def test_task_exception_collected_not_raised():
+    with make_executor(workers=1) as ex:
+        out = ex.map(_maybe_fail, [1, 0, 2], quiet=True)
+    assert [r.ok for r in out] == [True, False, True]
+    assert out[1].error.startswith("ZeroDivisionError")
+    with make_executor(workers=2) as ex:
+        out2 = ex.map(_maybe_fail, [1, 0, 2], quiet=True)
+    assert [r.value for r in out2] == [r.value for r in out]
+
+
+def _maybe_fail(x):
+    return 1 / x
+
+
+def test_progress_off_when_quiet_or_ci(monkeypatch):
+    monkeypatch.delenv("CI", raising=False)
+    assert progress_enabled(quiet=True) is True
+    assert progress_enabled() is None  # tqdm decides: off when stderr is not a TTY
+    monkeypatch.setenv("CI", "true")
+    assert progress_enabled() is True
+
+
+def test_workers_must_be_positive():
+    with pytest.raises(ConfigError, match=r"workers: 0"):
+        make_executor(workers=0)
+
+
+# cache ---------------------------------------------------------------------------
+
+@pytest.fixture
+def counted(monkeypatch):
+    """Count derive.summarize_run calls (serial runs call it in this process)."""
+    from seanv_analysis import derive
+
+    calls = []
+    real = derive.summarize_run
+
+    def counting(run, **kw):
+        calls.append(run.meta.run_id)
+        return real(run, **kw)
+
+    monkeypatch.setattr(derive, "summarize_run", counting)
+    return calls
+
+
+def test_cached_rerun_does_no_per_run_work(dataset, tmp_path, counted, monkeypatch):
+    out = tmp_path / "o"
+    first = run_pipeline(INGEST_ONLY, dataset, out_dir=out, workers=1, quiet=True)
+    assert len(counted) == 14
+    # the second run reads no log: hashes come from the stat index
+    from seanv_analysis.io import reader
+    monkeypatch.setattr(reader, "_read_tables", _no_read)
+    second = run_pipeline(INGEST_ONLY, dataset, out_dir=out, workers=1, quiet=True)
+    assert len(counted) == 14
+    assert second.computed["ingest"] == 0 and second.cached["ingest"] == 14
+    assert_frame_equal(_summary(first), _summary(second))
+    assert second.input_hashes == first.input_hashes  # provenance intact without reading
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert len(manifest["inputs"]) == 14 * 4
+
+
+def _no_read(*a, **k):
+    raise AssertionError("a run was read although nothing changed")
+
+
+def test_cache_invalidated_by_input_option_and_force(dataset, tmp_path, counted):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(dataset, data)
+    out = tmp_path / "o"
+    run_pipeline(INGEST_ONLY, data, out_dir=out, workers=1, quiet=True)
+    assert len(counted) == 14
+    # one changed log file: only that run is recomputed
+    enc = data / "z001-drain" / "encoder.csv"
+    lines = enc.read_text().splitlines()
+    t, x = lines[-1].split(",")
+    lines[-1] = f"{t},{float(x) + 0.001:.3f}"
+    enc.write_text("\n".join(lines) + "\n")
+    res = run_pipeline(INGEST_ONLY, data, out_dir=out, workers=1, quiet=True)
+    assert counted[14:] == ["z001-drain"] and res.computed["ingest"] == 1
+    # a changed option: every run
+    peak = {"pipeline": {"name": "p"}, "stages": [{"name": "ingest", "method": "peak"}]}
+    res = run_pipeline(peak, data, out_dir=out, workers=1, quiet=True)
+    assert res.computed["ingest"] == 14
+    # a changed rig constant: every run
+    from seanv_analysis.config import load_rig
+    rig2 = load_rig(overrides={"analysis": {"leakage_flow_mm3_s": 51.0}})
+    res = run_pipeline(peak, data, out_dir=out, workers=1, quiet=True, rig=rig2)
+    assert res.computed["ingest"] == 14
+    # --force: every run, results unchanged
+    before = len(counted)
+    res2 = run_pipeline(peak, data, out_dir=out, workers=1, quiet=True, rig=rig2, force=True)
+    assert len(counted) - before == 14
+    assert_frame_equal(_summary(res), _summary(res2))
+
+
+def test_run_key_depends_on_everything():
+    base = dict(stage="ingest", params={"method": "steady"}, rig={"a": 1}, version="1")
+    k = run_key({"encoder.csv": "aa"}, **base)
+    assert k == run_key({"encoder.csv": "aa"}, **base)
+    assert k != run_key({"encoder.csv": "ab"}, **base)
+    assert k != run_key({"encoder.csv": "aa"}, **{**base, "params": {}})  # removed parameter
+    assert k != run_key({"encoder.csv": "aa"}, **{**base, "rig": {"a": 2}})
+    assert k != run_key({"encoder.csv": "aa"}, **{**base, "version": "2"})
+
+
+def test_resume_after_partial_cache(dataset, tmp_path, counted):
+    """A run killed half-way leaves some entries, temp files and maybe a torn
+    entry; the next run cleans up and computes only what is missing."""
+    out = tmp_path / "o"
+    clean = run_pipeline(INGEST_ONLY, dataset, out_dir=out, workers=1, quiet=True)
+    cache = out / ".cache"
+    entries = sorted((cache / "runs").glob("*.pkl"))
+    assert len(entries) == 14
+    (cache / "index.json").unlink()                       # index not saved yet
+    for e in entries[:5]:
+        e.unlink()                                        # never written
+    entries[5].write_bytes(entries[5].read_bytes()[:10])  # torn (not via atomic write)
+    (cache / "runs" / ".deadbeef.pkl.abc.tmp").write_bytes(b"partial")
+    (out / ".summary.parquet.xyz.tmp").write_bytes(b"partial")
+    n0 = len(counted)
+    res = run_pipeline(INGEST_ONLY, dataset, out_dir=out, workers=1, quiet=True)
+    assert len(counted) - n0 == 6
+    assert res.computed["ingest"] == 6 and res.cached["ingest"] == 8
+    assert not list((cache / "runs").glob(".*.tmp"))
+    assert "resume" in res.stage_notes
+    assert_frame_equal(_summary(clean), _summary(res))
+
+
+SLOW_RUN = textwrap.dedent("""
+    import sys, time
+    from seanv_analysis import derive
+    real = derive.summarize_run
+    def slow(run, **kw):
+        time.sleep(0.3)
+        return real(run, **kw)
+    derive.summarize_run = slow
+    from seanv_analysis.batch import run_pipeline
+    run_pipeline({"pipeline": {"name": "x"}, "stages": [{"name": "ingest"}]}, sys.argv[1],
+                 out_dir=sys.argv[2], workers=1, quiet=True)
+""")
+
+
+def test_resume_after_sigkill(dataset, tmp_path, counted):
+    out = tmp_path / "o"
+    proc = subprocess.Popen([sys.executable, "-c", SLOW_RUN, str(dataset), str(out)])
+    entries = out / ".cache" / "runs"
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        if entries.is_dir() and len(list(entries.glob("*.pkl"))) >= 4:
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    done = len(list(entries.glob("*.pkl")))
+    assert 4 <= done < 14, "the run finished before it could be killed"
+    assert not (out / "summary.parquet").exists()
+    res = run_pipeline(INGEST_ONLY, dataset, out_dir=out, workers=1, quiet=True)
+    assert res.computed["ingest"] == 14 - done
+    assert res.cached["ingest"] == done
+    clean = run_pipeline(INGEST_ONLY, dataset, out_dir=tmp_path / "clean", workers=1, quiet=True)
+    assert_frame_equal(_summary(clean), _summary(res))
+    pd.read_parquet(out / "summary.parquet")  # whole and readable
+
+
+def test_cache_index_survives_garbage(tmp_path):
+    (tmp_path / "index.json").write_text("{not json")
+    cache = RunCache(tmp_path)
+    assert cache.known_hashes(tmp_path) is None

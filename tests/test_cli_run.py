@@ -1,0 +1,117 @@
+"""``seanv-analyze run`` and ``seanv-analyze plots``: thin click layers."""
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from seanv_analysis.cli import cli
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory):
+    from conftest import write_synthetic_dataset
+
+    return write_synthetic_dataset(tmp_path_factory.mktemp("cli") / "data", n_flow=6, n_position=2)
+
+
+def invoke(*args, env=None):
+    return CliRunner().invoke(cli, [*map(str, args)], env=env)
+
+
+def test_run_shipped_pipeline_by_name(data, tmp_path):
+    out = tmp_path / "o"
+    r = invoke("run", "tracking", data, "--out", out, "--workers", "1", "--quiet")
+    assert r.exit_code == 0, r.output
+    assert "runs: 8 found, 8 read (6 flow_step, 2 position_control), 0 failed" in r.output
+    assert f"report: {out / 'report.html'}" in r.output
+    assert (out / "report.html").is_file() and (out / "manifest.json").is_file()
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["command"] and manifest["version"]
+    assert manifest["extra"]["pipeline"]["pipeline"]["name"] == "tracking"
+
+
+def test_run_json_and_cache(data, tmp_path):
+    out = tmp_path / "o"
+    r1 = invoke("run", "tracking", data, "--out", out, "--workers", "2", "-q", "--json")
+    assert r1.exit_code == 0, r1.output
+    doc = json.loads(r1.stdout)
+    assert doc["runs_read"] == 8 and doc["computed"]["ingest"] == 8
+    r2 = invoke("run", "tracking", data, "--out", out, "--workers", "2", "-q", "--json")
+    doc2 = json.loads(r2.stdout)
+    assert doc2["computed"]["ingest"] == 0 and doc2["cached"]["ingest"] == 8
+    assert doc2["tracking"] == doc["tracking"]
+    r3 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json", "--force")
+    assert json.loads(r3.stdout)["computed"]["ingest"] == 8
+
+
+def test_run_pipeline_file_and_bad_runs_exit_1(data, tmp_path):
+    import shutil
+    from conftest import write_synthetic_run
+
+    d = tmp_path / "data"
+    shutil.copytree(data, d)
+    write_synthetic_run(d, "flow_step", run_id="nopressure", tables={"pressure": None},
+                        started_at="2026-03-02T11:00:00Z", duration_s=0.5)
+    pipe = tmp_path / "mine.toml"
+    pipe.write_text('[pipeline]\nname = "mine"\n[[stages]]\nname = "ingest"\n[[stages]]\n'
+                    'name = "report"\n')
+    r = invoke("run", pipe, d, "--out", tmp_path / "o", "--workers", "1", "-q")
+    assert r.exit_code == 1
+    assert "1 failed" in r.output and "nopressure" in r.output and "pressure" in r.output
+
+
+@pytest.mark.parametrize("args, match", [
+    (["run", "no-such-pipeline"], r"error: pipeline: no-such-pipeline is neither a file nor a "
+                                  r"shipped pipeline"),
+    (["run", "paper", "/no/such/folder"], r"error: /no/such/folder: not found"),
+])
+def test_run_bad_input_exit_2(args, match):
+    r = invoke(*args, "--workers", "1", "-q")
+    assert r.exit_code == 2
+    assert __import__("re").search(match, r.output)
+    assert "Traceback" not in r.output
+
+
+def test_run_bad_pipeline_option_exit_2(data, tmp_path):
+    pipe = tmp_path / "bad.toml"
+    pipe.write_text('[[stages]]\nname = "ingest"\nmethod = "mean"\n')
+    r = invoke("run", pipe, data, "--out", tmp_path / "o", "-q")
+    assert r.exit_code == 2
+    assert "stage 'ingest' option 'method' = 'mean'" in r.output
+
+
+def test_plots_command(data, tmp_path):
+    out = tmp_path / "p"
+    r = invoke("plots", data, "--fig", "6", "--fig", "7", "--out", out, "--workers", "1", "-q")
+    assert r.exit_code == 0, r.output
+    pngs = sorted(p.name for p in (out / "figures").rglob("*.png"))
+    assert "fig6_pos000.png" in pngs and "fig6_pos001.png" in pngs and "fig7.png" in pngs
+    assert sorted(p.name for p in (out / "figures").rglob("*.svg"))
+    assert not (out / "report.html").exists()
+
+
+def test_help_mentions_dask_and_cache():
+    r = invoke("run", "--help")
+    assert r.exit_code == 0
+    assert "--scheduler" in r.output and "DASK_SCHEDULER_ADDRESS" in r.output
+    assert ".cache" in r.output
+
+
+def test_run_end_to_end_subprocess(data, tmp_path):
+    out = tmp_path / "o"
+    env = {**os.environ, "CI": "true", "MPLBACKEND": "Agg"}
+    exe = Path(sys.executable).with_name("seanv-analyze")
+    cmd = [str(exe)] if exe.exists() else [sys.executable, "-c",
+                                           "from seanv_analysis.cli import main; main()"]
+    proc = subprocess.run([*cmd, "run", "tracking", str(data), "--out", str(out), "--workers", "2"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert "stage ingest done" in proc.stderr       # plain line per stage when not a TTY
+    assert "\r" not in proc.stderr                  # no progress bar
+    assert "report:" in proc.stdout
