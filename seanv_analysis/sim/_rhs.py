@@ -44,7 +44,8 @@ from ..models import _jit as J
 from .kernel import PP
 
 __all__ = ["AUX_SIZE", "make_aux", "layout", "initial_state", "derivs", "rhs",
-           "fixed_step", "check_supported"]
+           "fixed_step", "check_supported", "OpenLoopStep", "open_loop_step", "solve_ivp_grid",
+           "atol_scale"]
 
 # auxiliary parameter vector (open-loop case and regularisation)
 _A_T_ON, _A_TH0, _A_TH1, _A_PLOAD, _A_EPS, _A_QUANT = range(6)
@@ -211,8 +212,10 @@ def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     """Diagonally semi-implicit Euler over :func:`derivs` with the kernel's
     step ``pp[DT]``: y += dt f / (1 - dt d), d the stiff diagonal (implicit
     in the valve conductance, the tube resistance and the friction slope,
-    explicit elsewhere). Returns the states at every ``every``-th step,
-    ``(n_out, len(y))`` (row 0 = y0)."""
+    the kernel's stiff terms; explicit elsewhere, all from the state at the
+    start of the step, where the kernel updates pressures, then flows, then
+    the piston in sequence). Time of step k is ``k * dt``. Returns the
+    states at every ``every``-th step, ``(n_out, len(y))`` (row 0 = y0)."""
     dt = pp[_DT]
     n = y0.size
     y = y0.copy()
@@ -231,3 +234,101 @@ def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
                 y[k] += dt * dydt[k] / (1.0 - dt * diag[k])
             step += 1
     return out
+
+
+class OpenLoopStep:
+    """An open-loop flow step ready for :func:`fixed_step` and
+    :func:`solve_ivp_grid`: ``pp``, ``valves`` (packed plant valve), ``aux``,
+    ``y0``, ``t_on`` [s], ``duration`` [s], ``lay`` (:func:`layout`),
+    ``t_grid`` (1 kHz output grid)."""
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    @property
+    def args(self) -> tuple:
+        """Trailing arguments of :func:`derivs` / :func:`rhs` / :func:`fixed_step`."""
+        return (self.pp, *self.valves, self.aux)
+
+    def run_fixed_step(self) -> np.ndarray:
+        """States on ``t_grid`` from :func:`fixed_step` (kernel step, 1 kHz out)."""
+        every = int(self.pp[PP.SUBSTEPS])
+        return fixed_step(self.y0, self.t_grid.size, every, *self.args)
+
+
+def open_loop_step(plant, *, cam_deg: float, load_mpag: float, x0_mm: float = 5.0,
+                   t_cmd_s: float = 0.5, duration_s: float = 3.0, eps_v_mm_s: float = 1e-2,
+                   quantise: bool = False, run_index: int = 0) -> OpenLoopStep:
+    """The flow step of :func:`.run.simulate_flow_step` (cam from neutral to
+    ``cam_deg`` commanded at ``t_cmd_s``, held) as an ODE case: the servo
+    target switches when the kernel's servo would see the command (first
+    controller tick at or after ``t_cmd_s`` plus the dead time), i.e. at the
+    start of the plant step from which the kernel's servo uses the new
+    target (``step_on x dt``, computed as :func:`fixed_step` computes its t)."""
+    rig = plant.rig
+    neutral = float(rig["servo"]["neutral_deg"])
+    pp = plant.packed_params(neutral_deg=neutral, x_stop_mm=(-math.inf, math.inf))
+    check_supported(pp)
+    dt, nsub, every = pp[PP.DT], int(pp[PP.SUBSTEPS]), int(pp[PP.CTRL_EVERY])
+    i = 0
+    while i * dt * nsub < t_cmd_s:       # the kernel's controller ticks (1 kHz index i)
+        i += every
+    step_on = (i + int(pp[PP.SERVO_DEAD_TICKS]) * every) * nsub
+    t_on = step_on * dt
+    aux = make_aux(t_on_s=t_on, theta0_deg=neutral, theta1_deg=cam_deg, p_load_mpag=load_mpag,
+                   eps_v_mm_s=eps_v_mm_s, quantise=quantise)
+    rate = float(rig["sensors"]["encoder_rate_hz"])
+    n = int(round(duration_s * rate)) + 1
+    return OpenLoopStep(pp=pp, valves=plant.valve_at(run_index), aux=aux,
+                        y0=initial_state(pp, aux, x0_mm), t_on=t_on, duration=(n - 1) / rate,
+                        lay=layout(pp), t_grid=np.arange(n) / rate)
+
+
+def atol_scale(lay: dict) -> np.ndarray:
+    """Typical magnitude of each state (for ``atol = rtol x scale``): 1 MPa,
+    1000 mm^3/s, 10 mm, 10 mm/s, 1 deg, 1 MPa."""
+    s = np.ones(lay["n"])
+    s[lay["q"]] = 1000.0
+    s[lay["x"]] = 10.0
+    s[lay["v"]] = 10.0
+    return s
+
+
+def solve_ivp_grid(case: OpenLoopStep, *, method: str = "LSODA", rtol: float = 1e-6,
+                   atol: float | np.ndarray | None = None, restart_every_s: float | None = None):
+    """``scipy.integrate.solve_ivp`` on :func:`rhs` over the case, restarted
+    at the servo-target switch (a discontinuity in t), sampled on
+    ``t_grid``. ``atol`` defaults to ``rtol x atol_scale``.
+
+    ``restart_every_s``: also restart at every multiple of it (e.g. 0.01 s:
+    what a 100 Hz controller in the loop, which changes the servo target at
+    every tick, would force on the solver).
+
+    Returns (states ``(len(t_grid), n)``, number of RHS calls, success)."""
+    from scipy.integrate import solve_ivp
+
+    if atol is None:
+        atol = rtol * atol_scale(case.lay)
+    args = case.args
+
+    def fun(t, y):
+        return rhs(t, y, *args)
+
+    tg = case.t_grid
+    cuts = [0.0, case.t_on, case.duration]
+    if restart_every_s:
+        n = int(round(case.duration / restart_every_s))
+        cuts += [k * restart_every_s for k in range(1, n)]
+    cuts = np.unique(np.round(cuts, 12))
+    y = case.y0
+    parts, nfev, ok = [], 0, True
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        last = b >= cuts[-1]
+        sel = tg[(tg >= a) & ((tg <= b) if last else (tg < b))]
+        te = sel if last else np.r_[sel, b]
+        s = solve_ivp(fun, (a, b), y, method=method, rtol=rtol, atol=atol, t_eval=te)
+        nfev += s.nfev
+        ok = ok and s.success
+        y = s.y[:, -1]
+        parts.append(s.y if last else s.y[:, :-1])
+    return np.hstack(parts).T, int(nfev), bool(ok)
