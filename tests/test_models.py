@@ -113,3 +113,15 @@ def test_rig_overrides_and_unknown_key():
     assert rig["supply"]["pressure_mpag"] == 3.0 and RIG["supply"]["pressure_mpag"] == 3.3
     with pytest.raises(ConfigError, match="unknown rig key 'nope'"):
         RIG.with_overrides({"supply": {"nope": 1}})
+
+
+def test_compiled_threshold_inverse_equals_numpy_interp():
+    """models._jit.angle_for_height (scalar binary search) == np.interp, ends clipped."""
+    from seanv_analysis.models import _jit as J
+
+    model = ValveModel.from_rig(load_rig())
+    for side in (model.supply, model.drain):
+        z, th = side.geometry.height_table
+        x = np.random.default_rng(0).uniform(z[0] - 1.0, z[-1] + 1.0, 500)
+        got = np.array([J.angle_for_height(v, z, th) for v in x])
+        np.testing.assert_allclose(got, np.interp(x, z, th), rtol=0, atol=1e-12)
