@@ -67,13 +67,26 @@ def test_paper_drain_drift_every_three_runs():
     assert "drain side falls by" in res.report()
 
 
-def test_delay_on_position_control():
-    res = discover_sim(["paper-position"], ["delay:delay_s=0.15"])
+def test_delay_on_position_control_and_closed_loop_error_drops():
+    from seanv_analysis.analysis.validate import validate_runs
+    from seanv_analysis.models import ValveModel
+
+    runs = list(iter_scenario_runs("paper-position-model", effects=["delay:delay_s=0.15"], rig=RIG))
+    summary, _ = summarize_runs(runs, RIG)
+    res = discover_runs(runs, summary, rig=RIG)
     assert res.verdict == "effect_found"
     delay = [e for e in res.effects if e.name == "delay"][0]
     # the extra lag is measured against the nominal 0.25 s; the plant's own
     # lag is ~0.28 s, so the estimate is the injected 0.15 s plus ~0.03 s
     assert 0.13 <= delay.params["delay_s"] <= 0.23
+    # closed loop (validate): the augmented model re-runs the controller on
+    # the plant far closer to the data than the base model
+    model, specs = res.augmented_model_and_effects(RIG)
+    assert specs and specs[0].startswith("delay:")
+    before = validate_runs(runs, ValveModel.from_rig(RIG), rig=RIG).table.iloc[0]
+    after = validate_runs(runs, model, rig=RIG, effects=specs).table.iloc[0]
+    assert after["rmse_flow_mm3_s"] <= 0.7 * before["rmse_flow_mm3_s"]
+    assert after["fit_position_pct"] > before["fit_position_pct"] + 5.0
 
 
 def test_clean_position_control_says_none():

@@ -610,7 +610,12 @@ class _Context:
         discover = _optional("discover", "discover_flow_steps")
         summary = self._need_summary()
         try:
-            disc = discover(summary, model=self.model, holdout=opts["holdout"], seed=opts["seed"])
+            from ..discover.dataset import discover_runs
+
+            # flow steps from the summary; position-control runs (a few) are
+            # read here for the delay check against the nominal lag
+            disc = discover_runs(self._position_runs(), summary, rig=self.rig, model=self.model,
+                                 holdout=opts["holdout"], seed=opts["seed"])
         except SeanvError as exc:
             self._fail_stage("discover", exc)
             return
@@ -641,21 +646,12 @@ class _Context:
     def _augmented_model(self, disc: Any) -> tuple[Any, list[str]]:
         """The refitted :class:`ValveModel` and the effects found as
         ``models.effects`` specs (what the simulator's plant takes)."""
-        from ..models import ValveModel
-        from ..models.effects import parse_effect
-
-        d = disc.augmented_model_dict()
-        found = d.pop("effects", [])
-        specs = []
-        for e in found:
-            try:
-                eff = parse_effect({"name": e["name"], "side": e.get("side"),
-                                    **{k: v for k, v in e.get("params", {}).items() if v is not None}})
-                specs.append(eff.spec())
-            except (SeanvError, TypeError, KeyError) as exc:
-                self.result.stage_notes["discover"] = (f"effect {e.get('name')} not simulated in "
-                                                       f"the closed-loop check: {one_line_error(exc)}")
-        return ValveModel.from_dict(d, rig=self.rig), specs
+        try:
+            return disc.augmented_model_and_effects(self.rig)
+        except SeanvError as exc:
+            self.result.stage_notes["discover"] = (f"effects not simulated in the closed-loop "
+                                                   f"check: {one_line_error(exc)}")
+            return disc.model, []
 
     def stage_figures(self, opts: dict[str, Any]) -> None:
         folder = self.result.out_dir / "figures"

@@ -58,6 +58,8 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
                    err=True)
     model = ValveModel.load(model_file, rig=rig) if model_file else ValveModel.from_rig(rig)
     result, ds = discover_dataset(data, model=model, rig=rig, holdout=holdout, seed=seed)
+    if result.effects and any(r.kind == "position_control" for r in ds_runs(data, rig)):
+        result.validation = _closed_loop(result, ds_runs(data, rig), model, rig)
     out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
     write_json_atomic(out / "discover.json", result.to_json())
     write_json_atomic(out / "model_augmented.json", result.augmented_model_dict())
@@ -74,3 +76,27 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
         click.echo(result.report())
         click.echo(f"outputs: {out}")
     return echo_bad_runs(ds.errors)
+
+
+_RUNS: dict = {}
+
+
+def ds_runs(data, rig):
+    """Position-control runs of DATA (read once)."""
+    key = str(Path(data).resolve())
+    if key not in _RUNS:
+        from ..io.reader import read_dataset
+        _RUNS[key] = [r for r in read_dataset(data, rig=rig).runs if r.kind == "position_control"]
+    return _RUNS[key]
+
+
+def _closed_loop(result, runs, model, rig) -> dict:
+    """Closed-loop fit (validate) of the position-control runs with the base
+    and with the augmented model: {"before": {controller: numbers}, "after": ...}."""
+    from ..analysis.validate import validate_runs
+    from ..batch.runner import _validation_numbers
+
+    augmented, specs = result.augmented_model_and_effects(rig)
+    before = validate_runs(runs, model, rig=rig)
+    after = validate_runs(runs, augmented, rig=rig, effects=specs)
+    return {"before": _validation_numbers(before), "after": _validation_numbers(after)}

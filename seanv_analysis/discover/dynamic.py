@@ -51,8 +51,9 @@ class DelayDiscovery:
         return {"n_runs": self.n_runs, "nominal_lag_s": self.nominal_lag_s,
                 "lag_s": _f(self.lag_s),
                 "lag_ci95_s": None if self.lag_ci95_s is None else [_f(v) for v in self.lag_ci95_s],
-                "rmse_before_mm3_s": _f(self.rmse_before_mm3_s),
-                "rmse_after_mm3_s": _f(self.rmse_after_mm3_s)}
+                "shifted_rmse_nominal_mm3_s": _f(self.rmse_before_mm3_s),
+                "shifted_rmse_estimated_mm3_s": _f(self.rmse_after_mm3_s),
+                "found": self.finding is not None}
 
 
 def _f(v):

@@ -118,6 +118,24 @@ class Discovery:
         d["effects"] = [e.to_json() for e in self.effects]
         return d
 
+    def augmented_model_and_effects(self, rig=None) -> tuple[ValveModel, list[str]]:
+        """The refitted valve and the effects found as ``models.effects``
+        specs (what the simulator's plant and ``validate`` take)."""
+        from dataclasses import fields
+
+        from ..models.effects import EFFECTS, parse_effect
+
+        specs = []
+        for e in self.effects:
+            cls = EFFECTS.get(e.name)
+            if cls is None:
+                continue
+            known = {f.name for f in fields(cls)}
+            raw = {"side": e.side, **{k: v for k, v in e.params.items() if v is not None}}
+            specs.append(parse_effect({"name": e.name,
+                                       **{k: v for k, v in raw.items() if k in known}}).spec())
+        return self.model, specs
+
     def report(self) -> str:
         """A short text a researcher can paste into a lab note."""
         lines = []
@@ -139,9 +157,20 @@ class Discovery:
                      f"after ({-self.improvement:+.0%} error, residual = measured - model).")
         if self.position_control:
             pc = self.position_control
-            lines.append(f"Position control (n = {pc['n_runs']} runs, last 30 % of each held out): "
-                         f"{pc.get('message', '')}; flow RMSE {pc['rmse_before_mm3_s']:.0f} mm^3/s with the "
-                         f"nominal lag, {pc['rmse_after_mm3_s']:.0f} mm^3/s after.")
+            lines.append(f"Position control (n = {pc['n_runs']} runs; lag from the first 70 % of "
+                         f"each run, confirmed on the last 30 %): {pc.get('message', '')}; "
+                         + ("an extra delay is added to the model." if pc.get("found") else
+                            "no extra delay.")
+                         + " The closed-loop error before/after comes from validate.")
         if self.validation:
-            lines.append("Closed loop (validate): " + json.dumps(self.validation))
+            before, after = self.validation.get("before") or {}, self.validation.get("after") or {}
+            for ctrl, b in before.items():
+                a = after.get(ctrl) or {}
+                try:
+                    lines.append(f"Closed loop (validate, {ctrl} controller): position fit "
+                                 f"{b['fit_position_pct']:.1f} % -> {a['fit_position_pct']:.1f} %, flow "
+                                 f"RMSE {b['rmse_flow_mm3_s']:.0f} -> {a['rmse_flow_mm3_s']:.0f} mm^3/s "
+                                 "(base -> augmented model).")
+                except (KeyError, TypeError):
+                    lines.append(f"Closed loop (validate, {ctrl}): {json.dumps(b)} -> {json.dumps(a)}")
         return "\n".join(lines)
