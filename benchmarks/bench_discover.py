@@ -3,7 +3,8 @@
 1. Matrix (issue 8): every effect at two strengths and three seeds on
    ``paper-flowsteps`` (``delay`` on ``paper-position``): share of cases
    whose verdict names the injected effect (and side), and the share whose
-   held-out RMSE drops by >= 30 %; 20 clean seeds: share of ``none``.
+   held-out RMSE drops by >= 30 % (for ``delay``: the closed-loop flow RMSE of
+   ``validate``, base vs augmented model); 20 clean seeds: share of ``none``.
    Runs in a process pool (all cores).
 2. Runtime: ``discover_dataset`` on a data set holding one hour of 1 kHz
    logs (flow steps written to disk as Parquet), wall time.
@@ -50,6 +51,17 @@ def _one(args):
     res = discover_runs(runs, summary, rig=rig, seed=seed)
     found = [(e.name, e.side) for e in res.effects]
     drop = (1.0 - res.rmse_after_mm3_s / res.rmse_before_mm3_s) if res.rmse_before_mm3_s else math.nan
+    if name == "delay" and res.effects:
+        # closed loop: the flow error of validate (controller re-run on the
+        # plant) with the base and with the augmented model
+        from seanv_analysis.analysis.validate import validate_runs
+        from seanv_analysis.models import ValveModel
+
+        model, specs = res.augmented_model_and_effects(rig)
+        pos = [r for r in runs if r.kind == "position_control"]
+        before = validate_runs(pos, ValveModel.from_rig(rig), rig=rig).table
+        after = validate_runs(pos, model, rig=rig, effects=specs).table
+        drop = float(1.0 - after["rmse_flow_mm3_s"].mean() / before["rmse_flow_mm3_s"].mean())
     return {"effect": name, "spec": spec, "seed": seed, "verdict": res.verdict, "found": found,
             "named": bool(found) and found[0] == (name, side) if name != "none" else None,
             "heldout_drop": drop}
