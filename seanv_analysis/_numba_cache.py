@@ -1,0 +1,57 @@
+"""Where numba keeps the compiled simulator and controllers.
+
+numba's on-disk cache (``cache=True``) is keyed by the source file of each
+compiled function only: when a function it calls (e.g. a valve equation in
+``models``) changes, a stale machine-code cache of the caller is reused. To
+make that impossible, the cache lives in a folder named after a hash of every
+source file that compiled code is built from (and the numba version), under
+``$SEANV_NUMBA_CACHE`` or ``$XDG_CACHE_HOME/seanv-analysis`` (default
+``~/.cache/seanv-analysis``). A changed equation gets a new folder and is
+compiled afresh; the package tree itself is never written to.
+"""
+from __future__ import annotations
+
+import hashlib
+import os
+import tempfile
+from pathlib import Path
+
+__all__ = ["configure_numba_cache"]
+
+_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "models/_jit.py",
+            "control.py", "sim/kernel.py", "sim/_rhs.py")
+_DONE = False
+
+
+def configure_numba_cache() -> Path | None:
+    """Point numba's cache at a folder keyed by the compiled sources; returns it.
+
+    Call before the first ``@njit(cache=True)`` decoration (``models._jit``
+    does). Does nothing when ``NUMBA_CACHE_DIR`` is set by the user.
+    """
+    global _DONE
+    import numba
+    from numba.core import config
+
+    if _DONE or os.environ.get("NUMBA_CACHE_DIR"):
+        _DONE = True
+        return Path(config.CACHE_DIR) if config.CACHE_DIR else None
+    pkg = Path(__file__).resolve().parent
+    h = hashlib.sha256(numba.__version__.encode())
+    for rel in _SOURCES:
+        p = pkg / rel
+        if p.is_file():
+            h.update(rel.encode())
+            h.update(p.read_bytes())
+    base = os.environ.get("SEANV_NUMBA_CACHE") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+        "seanv-analysis")
+    folder = Path(base) / f"numba-{h.hexdigest()[:16]}"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        folder = Path(tempfile.gettempdir()) / "seanv-analysis" / folder.name
+        folder.mkdir(parents=True, exist_ok=True)
+    config.CACHE_DIR = str(folder)
+    _DONE = True
+    return folder
