@@ -49,6 +49,12 @@ def cli() -> None:
       seanv-analyze simulate paper-flowsteps --out data/flow   # or use your rig's logs
       seanv-analyze ingest data/flow                           # validate, derive flow, filter
       seanv-analyze flowfit data/flow                          # z0, C per side (eq. 3-5)
+      seanv-analyze simulate paper-position --out data/pos
+      seanv-analyze tracking data/pos --shift 0.25             # the paper's procedure
+      seanv-analyze validate data/pos --model outputs/flow/flowfit/model.toml
+      seanv-analyze discover data/flow                         # what the model misses
+      seanv-analyze run paper data                             # all of it + report.html
+    Without DATA, flowfit/tracking/validate/discover use a built-in simulated set.
     Every command writes under outputs/<dataset>/ and prints JSON with --json.
     """
 

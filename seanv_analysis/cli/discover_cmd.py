@@ -13,7 +13,7 @@ from ._common import default_out_dir, echo_bad_runs, sim_default_dataset
 __all__ = ["discover_cmd"]
 
 
-@cli.command("discover")
+@cli.command("discover", short_help="What the model misses: residual -> effect -> refit, error before/after.")
 @click.argument("data", required=False, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--model", "model_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Valve model file (JSON/TOML from flowfit) used as the starting point. "

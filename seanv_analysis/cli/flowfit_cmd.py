@@ -32,7 +32,7 @@ def _builtin_dataset() -> Path:
     return sim_default_dataset(BUILTIN_SCENARIO)
 
 
-@cli.command("flowfit")
+@cli.command("flowfit", short_help="Fit z0 and C per valve side (eq. 3-5) with 95 % intervals; Fig. 4.")
 @click.argument("data", required=False, type=click.Path(path_type=Path))
 @click.option("--rig", "rig_file", type=click.Path(dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change. Default: the shipped rig.")

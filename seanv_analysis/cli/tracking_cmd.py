@@ -14,7 +14,7 @@ from ._common import default_out_dir, echo_bad_runs, sim_default_dataset
 __all__ = ["tracking_cmd"]
 
 
-@cli.command("tracking")
+@cli.command("tracking", short_help="Flow delay, lag compensation and tracking RMSE (Sec. III-C); Fig. 6/7.")
 @click.argument("data", required=False, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--shift", "shift_s", type=float, default=None,
               help="Delay [s] to compensate (the paper's: 0.25). Default: estimated by "
