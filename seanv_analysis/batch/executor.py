@@ -58,68 +58,19 @@ def one_line_error(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
 
-_BLAS_PREFIXES = ("openblas", "scipy_openblas")
-_BLAS_SUFFIXES = ("", "64_", "_64")
-
-
-def _blas_controls() -> list[tuple[Any, Any]]:
-    """(get_num_threads, set_num_threads) of every OpenBLAS loaded in this
-    process (numpy's and scipy's bundled copies), found as threadpoolctl does."""
-    import ctypes
-
-    libs = set()
-    try:
-        with open("/proc/self/maps") as fh:
-            for line in fh:
-                path = line.split()[-1] if line.strip() else ""
-                if "openblas" in os.path.basename(path).lower() and path.startswith("/"):
-                    libs.add(path)
-    except OSError:
-        return []
-    out = []
-    for path in sorted(libs):
-        try:
-            lib = ctypes.CDLL(path, mode=getattr(os, "RTLD_NOLOAD", 0) | ctypes.RTLD_GLOBAL)
-        except OSError:
-            continue
-        for pre in _BLAS_PREFIXES:
-            for suf in _BLAS_SUFFIXES:
-                get = getattr(lib, f"{pre}_get_num_threads{suf}", None)
-                set_ = getattr(lib, f"{pre}_set_num_threads{suf}", None)
-                if get is not None and set_ is not None:
-                    out.append((get, set_))
-                    break
-            else:
-                continue
-            break
-    return out
-
-
 class _SingleThreadBLAS:
     """Run a task with one BLAS thread, as dask workers do (they set
     OMP_NUM_THREADS=1): multi-threaded BLAS sums in another order, so results
-    would differ in the last bits between executors."""
-
-    _controls: list[tuple[Any, Any]] | None = None
+    would differ in the last bits between executors (threadpoolctl)."""
 
     def __enter__(self) -> "_SingleThreadBLAS":
-        if _SingleThreadBLAS._controls is None:
-            _SingleThreadBLAS._controls = _blas_controls()
-        self._old = []
-        for get, set_ in _SingleThreadBLAS._controls:
-            try:
-                n = int(get())
-                if n != 1:
-                    set_(1)
-                self._old.append((set_, n))
-            except Exception:  # pragma: no cover - exotic BLAS build
-                pass
+        from threadpoolctl import threadpool_limits
+
+        self._limits = threadpool_limits(limits=1, user_api="blas")
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        for set_, n in self._old:
-            if n != 1:
-                set_(n)
+        self._limits.restore_original_limits()
 
 
 def _call(func: Callable, item: Any, kwargs: dict[str, Any]) -> tuple[bool, Any]:
