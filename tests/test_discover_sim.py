@@ -107,3 +107,23 @@ def test_two_static_effects():
                                               "pressure_law:side=supply,exponent=0.7"], seed=5)
     names = {(e.name, e.side) for e in res.effects}
     assert {("drift", "drain"), ("pressure_law", "supply")} <= names
+
+
+def test_discover_cli_on_position_only_data(tmp_path):
+    """Position-control data only: delay found, no traceback, and the held-out
+    error is the closed-loop one from validate (base vs augmented model)."""
+    import json
+
+    from click.testing import CliRunner
+
+    from seanv_analysis.cli import cli
+    from seanv_analysis.sim import simulate_scenario
+
+    data = simulate_scenario("paper-position-model", tmp_path / "pos", effects=["delay:delay_s=0.15"])
+    res = CliRunner().invoke(cli, ["discover", str(data), "--out", str(tmp_path / "out"), "--json"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert [e["name"] for e in doc["effects"]] == ["delay"]
+    assert doc["heldout_source"] == "closed_loop"
+    assert doc["heldout"]["rmse_after_mm3_s"] <= 0.7 * doc["heldout"]["rmse_before_mm3_s"]
+    assert (tmp_path / "out" / "discover.json").exists()

@@ -60,6 +60,8 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
     result, ds = discover_dataset(data, model=model, rig=rig, holdout=holdout, seed=seed)
     if result.effects and any(r.kind == "position_control" for r in ds_runs(data, rig)):
         result.validation = _closed_loop(result, ds_runs(data, rig), model, rig)
+        if result.heldout_source != "flow_step":
+            result.use_closed_loop_heldout()
     out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
     write_json_atomic(out / "discover.json", result.to_json())
     write_json_atomic(out / "model_augmented.json", result.augmented_model_dict())

@@ -48,8 +48,9 @@ def discover_runs(runs, summary, *, rig: RigConfig, model: ValveModel | None = N
     elif delay is not None:
         result = Discovery(verdict="none", effects=[], n_heldout_runs=delay.n_runs,
                            rmse_before_mm3_s=delay.rmse_before_mm3_s,
-                           rmse_after_mm3_s=delay.rmse_after_mm3_s, trend_variable=None,
-                           base_model=model, model=model, holdout="chrono (last 30 % of each run)")
+                           rmse_after_mm3_s=delay.rmse_before_mm3_s, trend_variable=None,
+                           base_model=model, model=model, holdout="chrono (last 30 % of each run)",
+                           heldout_source="position_control_shift")
     else:
         raise FitError(f"discover: {_usable_flow_steps(summary)} usable flow_step runs (need "
                        f">= {MIN_FLOW_RUNS}) and no position_control run with q_ref_mm3_s")
@@ -59,7 +60,8 @@ def discover_runs(runs, summary, *, rig: RigConfig, model: ValveModel | None = N
             result.effects.append(delay.finding)
             if result.verdict != "effect_found":
                 result.verdict, result.trend_variable = "effect_found", None
-            if _usable_flow_steps(summary) < MIN_FLOW_RUNS:
+            if result.heldout_source == "position_control_shift":
+                # until validate replaces it (Discovery.use_closed_loop_heldout)
                 result.rmse_after_mm3_s = delay.rmse_after_mm3_s
     return result
 

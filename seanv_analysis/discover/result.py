@@ -90,6 +90,10 @@ class Discovery:
     holdout: str = "chrono"
     validation: dict | None = None   # closed-loop fit % before/after, filled by the CLI/pipeline
     position_control: dict | None = None  # delay check on position-control runs (dynamic.py)
+    #: where the held-out error comes from: "flow_step" (static model on held-out
+    #: runs), "position_control_shift" (shifted-flow RMSE on held-out run tails,
+    #: position-only data) or "closed_loop" (validate's flow RMSE, base vs augmented)
+    heldout_source: str = "flow_step"
 
     @property
     def improvement(self) -> float:
@@ -105,7 +109,9 @@ class Discovery:
                "heldout": {"n_runs": int(self.n_heldout_runs),
                            "rmse_before_mm3_s": _num(self.rmse_before_mm3_s),
                            "rmse_after_mm3_s": _num(self.rmse_after_mm3_s)},
-               "trend_variable": self.trend_variable}
+               "trend_variable": self.trend_variable,
+               # additive to the issue-8 contract: where the held-out numbers come from
+               "heldout_source": self.heldout_source}
         if self.position_control:
             out["position_control"] = self.position_control
         if self.validation:
@@ -117,6 +123,22 @@ class Discovery:
         d = self.model.to_dict()
         d["effects"] = [e.to_json() for e in self.effects]
         return d
+
+    def use_closed_loop_heldout(self) -> None:
+        """Position-control-only data: take the before/after error from the
+        closed-loop check (``validation``, flow-model controller runs, else
+        all) instead of the shifted-flow RMSE, which a delay in the loop makes
+        a poor predictor (see :mod:`.dynamic`)."""
+        val = self.validation or {}
+        before, after = val.get("before") or {}, val.get("after") or {}
+        ctrl = "flow_model" if "flow_model" in before else next(iter(before), None)
+        try:
+            b = float(before[ctrl]["rmse_flow_mm3_s"])
+            a = float(after[ctrl]["rmse_flow_mm3_s"])
+        except (KeyError, TypeError, ValueError):
+            return
+        self.rmse_before_mm3_s, self.rmse_after_mm3_s = b, a
+        self.heldout_source = "closed_loop"
 
     def augmented_model_and_effects(self, rig=None) -> tuple[ValveModel, list[str]]:
         """The refitted valve and the effects found as ``models.effects``
@@ -141,10 +163,14 @@ class Discovery:
         lines = []
         if self.verdict == "effect_found":
             names = ", ".join(f"{e.name} ({e.side})" for e in self.effects)
-            lines.append(f"Discovery: the base flow model (eq. 5) misses {names}.")
+            lines.append(f"Discovery: the base model misses {names}.")
             for e in self.effects:
-                lines.append(f"- {e.sentence()}; permutation p = {e.p_value:.3f}, "
-                             f"F-test p = {e.f_p_value:.2g}.")
+                if e.name == "delay":
+                    lines.append(f"- {e.sentence()}; p = {e.p_value:.2g} (lag vs nominal, "
+                                 "from the block-bootstrap interval).")
+                else:
+                    lines.append(f"- {e.sentence()}; permutation p = {e.p_value:.3f}, "
+                                 f"F-test p = {e.f_p_value:.2g}.")
         elif self.verdict == "unexplained":
             lines.append("Discovery: the residual of the base flow model is structured "
                          f"(it trends with {self.trend_variable}), but no candidate effect "
@@ -152,7 +178,11 @@ class Discovery:
         else:
             lines.append("Discovery: nothing found. The residual of the base flow model is "
                          "consistent with noise; no candidate effect lowers the error materially.")
-        lines.append(f"Held-out runs ({self.holdout}, n = {self.n_heldout_runs}): flow RMSE "
+        what = {"closed_loop": "closed-loop flow RMSE (validate: controller re-run on the plant)",
+                "position_control_shift": "flow RMSE of actual flow shifted by the nominal "
+                                          "vs the estimated lag"}.get(self.heldout_source,
+                                                                     "flow RMSE")
+        lines.append(f"Held-out runs ({self.holdout}, n = {self.n_heldout_runs}): {what} "
                      f"{self.rmse_before_mm3_s:.0f} mm^3/s before, {self.rmse_after_mm3_s:.0f} mm^3/s "
                      f"after ({-self.improvement:+.0%} error, residual = measured - model).")
         if self.position_control:

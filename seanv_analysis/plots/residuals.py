@@ -23,8 +23,11 @@ def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "dis
                              variables=("run_index", "dp_mpa", "opening_deg", "cam_approach")):
     """Residual vs variable, all runs (fit set and held-out), before/after. PNG + SVG.
 
-    Returns the written paths.
+    Returns the written paths; none when the discovery had no flow-step runs
+    (position-control data only: its evidence is the lag and ``validate``).
     """
+    if discovery.fit_data is None or discovery.base_fit is None:
+        return []
     from ..discover.engine import _variables  # variables as discovery saw them
     from ..discover.static import predict_static
 
