@@ -6,6 +6,9 @@ report, so they all see the same per-run numbers
 """
 from __future__ import annotations
 
+import multiprocessing as mp
+import os
+from collections.abc import Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -14,7 +17,7 @@ import pandas as pd
 from .config import RigConfig, load_rig
 from .errors import DataError, SeanvError
 
-__all__ = ["DatasetSummary", "summarize_runs", "summarize_dataset"]
+__all__ = ["DatasetSummary", "summarize_runs", "summarize_dataset", "AUTO_PARALLEL_MIN_RUNS"]
 
 
 @dataclass
@@ -33,6 +36,27 @@ class DatasetSummary:
         return self.summary[self.summary["kind"] == "flow_step"]
 
 
+#: data sets with at least this many runs are summarised on all cores when
+#: ``workers`` is None (below it a process pool costs more than it saves)
+AUTO_PARALLEL_MIN_RUNS = 64
+
+
+def _summary_frame(rows: list[dict], rig: RigConfig) -> pd.DataFrame:
+    from .filters import apply_filters
+
+    if not rows:
+        return pd.DataFrame()
+    frame = pd.DataFrame(rows)
+    frame.insert(4, "run_index", range(len(frame)))
+    return apply_filters(frame, rig)
+
+
+def _summary_error(run, exc: SeanvError):
+    from .io.reader import RunError
+
+    return RunError(Path(run.meta.path), f"{run.meta.path}: {exc}")
+
+
 def summarize_runs(runs, rig: RigConfig, *, method: str = "steady") -> tuple[pd.DataFrame, list]:
     """Summary rows of runs already read (in ``started_at`` order), filters applied.
 
@@ -40,42 +64,101 @@ def summarize_runs(runs, rig: RigConfig, *, method: str = "steady") -> tuple[pd.
     reported in the returned error list; the others go on.
     """
     from .derive import summarize_run
-    from .filters import apply_filters
-    from .io.reader import RunError
 
     rows, errors = [], []
     for run in runs:
         try:
-            row = summarize_run(run, method=method)
+            rows.append(summarize_run(run, method=method))
         except SeanvError as exc:
-            errors.append(RunError(Path(run.meta.path), f"{run.meta.path}: {exc}"))
-            continue
-        rows.append(row)
-    if not rows:
-        return pd.DataFrame(), errors
-    frame = pd.DataFrame(rows)
-    frame.insert(4, "run_index", range(len(frame)))
-    return apply_filters(frame, rig), errors
+            errors.append(_summary_error(run, exc))
+    return _summary_frame(rows, rig), errors
+
+
+def _read_and_summarize(meta, *, rig: RigConfig, method: str, keep_kinds: frozenset[str]):
+    """One run of a data set: read, summarise. Returns (row or None, read
+    error or None, summary error or None, the run when its kind is kept,
+    {file: SHA-256} of what was read). Errors are values, so a bad run never
+    aborts the others."""
+    from .derive import summarize_run
+    from .io.reader import RunError, read_run_tables
+
+    run = read_run_tables(meta, rig)
+    if isinstance(run, RunError):
+        return None, run, None, None, {}
+    try:
+        row, err = summarize_run(run, method=method), None
+    except SeanvError as exc:
+        row, err = None, _summary_error(run, exc)
+    return row, None, err, (run if run.kind in keep_kinds else None), dict(run.file_sha256)
 
 
 def summarize_dataset(path: str | Path, *, rig: RigConfig | None = None, method: str = "steady",
-                      keep_runs: bool = False) -> DatasetSummary:
+                      keep_runs: bool | Collection[str] = False,
+                      workers: int | None = 1) -> DatasetSummary:
     """Read, summarise and filter every run of a data set folder.
 
     ``run_index`` is the 0-based position of a run in ``started_at`` order
     among the runs that could be read (the "use" count of drift effects).
+    Runs are streamed: only the summary rows (and the runs asked for with
+    ``keep_runs``) stay in memory.
+
+    Parameters
+    ----------
+    keep_runs : keep the validated runs in ``DatasetSummary.runs``: True (all),
+        False (none) or a collection of kinds (e.g. ``{"position_control"}``)
+    workers : local processes reading and summarising runs; 1 (default) in
+        this process; None: all cores for data sets of at least
+        :data:`AUTO_PARALLEL_MIN_RUNS` runs. The result does not depend on it.
+
+    Returns
+    -------
+    DatasetSummary
+        ``errors``: runs that could not be read (sorted by path), then runs
+        that could not be summarised (in time order).
 
     Raises
     ------
     DataError
         when no run of the data set could be read and summarised.
     """
-    from .io.reader import read_dataset
+    from .io._hashing import remember_sha256
+    from .io.reader import RunError, dataset_plan
 
     rig = rig or load_rig()
-    read = read_dataset(path, rig=rig)
-    summary, errors = summarize_runs(read.runs, rig, method=method)
-    errors = list(read.errors) + errors
+    metas, read_errors, base = dataset_plan(path, rig=rig)
+    keep = frozenset(("flow_step", "position_control") if keep_runs is True
+                     else () if keep_runs is False else keep_runs)
+    if workers is None:  # auto: never from inside a worker process (no nested pools)
+        big = len(metas) >= AUTO_PARALLEL_MIN_RUNS and mp.parent_process() is None
+        workers = (os.cpu_count() or 1) if big else 1
+    kwargs = {"rig": base, "method": method, "keep_kinds": keep}
+    if workers > 1 and len(metas) > 1:
+        from .batch.executor import make_executor
+
+        with make_executor(workers=workers) as ex:
+            results = ex.map(_read_and_summarize, metas, kwargs=kwargs, quiet=True)
+        outcomes = []
+        for r in results:
+            if not r.ok:  # a bug or a dead worker: still one line for that run
+                outcomes.append((None, RunError(r.item.path, r.error), None, None, {}))
+                continue
+            outcomes.append(r.value)
+            for file, digest in r.value[4].items():  # the manifest reuses them
+                remember_sha256(file, digest)
+    else:
+        outcomes = (_read_and_summarize(m, **kwargs) for m in metas)
+    rows, summary_errors, runs = [], [], []
+    for row, read_error, summary_error, run, _ in outcomes:
+        if row is not None:
+            rows.append(row)
+        if read_error is not None:
+            read_errors.append(read_error)
+        if summary_error is not None:
+            summary_errors.append(summary_error)
+        if run is not None:
+            runs.append(run)
+    summary = _summary_frame(rows, rig)
     if summary.empty:
         raise DataError("no valid runs in the data set", path=path)
-    return DatasetSummary(summary, errors, read.runs if keep_runs else [], Path(path))
+    errors = sorted(read_errors, key=lambda e: str(e.path)) + summary_errors
+    return DatasetSummary(summary, errors, runs, Path(path))

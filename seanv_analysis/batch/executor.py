@@ -73,12 +73,17 @@ class _SingleThreadBLAS:
         self._limits.restore_original_limits()
 
 
-def _call(func: Callable, item: Any, kwargs: dict[str, Any]) -> tuple[bool, Any]:
+def _call(func: Callable, item: Any, kwargs: dict[str, Any], limit_blas: bool = True
+          ) -> tuple[bool, Any]:
     """Run one task; exceptions become (False, one-line message) so that they
-    cross process boundaries as plain strings."""
+    cross process boundaries as plain strings. ``limit_blas``: one BLAS
+    thread for this call (False where the caller already set it once: a
+    threadpoolctl round costs ~2 ms, as much as a small task)."""
     try:
-        with _SingleThreadBLAS():
-            return True, func(item, **kwargs)
+        if limit_blas:
+            with _SingleThreadBLAS():
+                return True, func(item, **kwargs)
+        return True, func(item, **kwargs)
     except SeanvError as exc:
         return False, one_line_error(exc)
     except Exception as exc:  # a bug in a stage must not abort the batch
@@ -153,7 +158,7 @@ class Executor:
             ctx = mp.get_context("fork" if "fork" in methods and sys.platform.startswith("linux")
                                  else "spawn")
             self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
-                                             initializer=_worker_init if _ONE_ARROW_THREAD else None)
+                                             initializer=_worker_init)
         return self._pool
 
     def map(self, func: Callable, items: Sequence[Any], *, kwargs: dict[str, Any] | None = None,
@@ -189,11 +194,13 @@ class Executor:
                     on_result(res)
 
             if self.kind == "serial":
-                for i, item in enumerate(items):
-                    done(i, *_call(func, item, kwargs))
+                with _SingleThreadBLAS():
+                    for i, item in enumerate(items):
+                        done(i, *_call(func, item, kwargs, False))
             elif self.kind == "process":
-                pool = self._process_pool()
-                futures = {pool.submit(_call, func, item, kwargs): i for i, item in enumerate(items)}
+                pool = self._process_pool()  # its workers run with one BLAS thread
+                futures = {pool.submit(_call, func, item, kwargs, False): i
+                           for i, item in enumerate(items)}
                 for fut in as_completed(futures):
                     i = futures[fut]
                     try:
@@ -219,15 +226,14 @@ class Executor:
         return [r for r in out if r is not None]
 
 
-#: Worker processes use one Arrow thread each: the processes are the
-#: parallelism, and nested thread pools only contend for the same cores
-#: (measured on 2 cores, 200 runs: 1.87 s vs 2.68 s for multi-threaded Arrow).
-_ONE_ARROW_THREAD = True
-
-
 def _worker_init() -> None:
-    """Worker process set-up: one Arrow thread per process (the processes are
-    the parallelism; nested thread pools only contend)."""
+    """Worker process set-up, once per process: one BLAS thread (as dask
+    workers have, so results match across executors) and one Arrow thread
+    (the processes are the parallelism; nested thread pools only contend:
+    measured on 2 cores, 200 runs, 1.87 s vs 2.68 s with multi-threaded Arrow)."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1, user_api="blas")
     try:
         import pyarrow as pa
 

@@ -58,8 +58,8 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
                    err=True)
     model = ValveModel.load(model_file, rig=rig) if model_file else ValveModel.from_rig(rig)
     result, ds = discover_dataset(data, model=model, rig=rig, holdout=holdout, seed=seed)
-    if result.effects and any(r.kind == "position_control" for r in ds_runs(data, rig)):
-        result.validation = _closed_loop(result, ds_runs(data, rig), model, rig)
+    if result.effects and ds.runs:  # position-control runs: closed-loop check via validate
+        result.validation = _closed_loop(result, ds.runs, model, rig)
         if result.heldout_source != "flow_step":
             result.use_closed_loop_heldout()
     out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
@@ -78,18 +78,6 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
         click.echo(result.report())
         click.echo(f"outputs: {out}")
     return echo_bad_runs(ds.errors)
-
-
-_RUNS: dict = {}
-
-
-def ds_runs(data, rig):
-    """Position-control runs of DATA (read once)."""
-    key = str(Path(data).resolve())
-    if key not in _RUNS:
-        from ..io.reader import read_dataset
-        _RUNS[key] = [r for r in read_dataset(data, rig=rig).runs if r.kind == "position_control"]
-    return _RUNS[key]
 
 
 def _closed_loop(result, runs, model, rig) -> dict:

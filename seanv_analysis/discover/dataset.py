@@ -68,18 +68,22 @@ def discover_runs(runs, summary, *, rig: RigConfig, model: ValveModel | None = N
 
 def discover_dataset(path: str | Path, *, model: ValveModel | None = None,
                      rig: RigConfig | None = None, holdout: str = "chrono",
-                     nominal_lag_s: float | None = None,
-                     seed: int = 0) -> tuple[Discovery, DatasetSummary]:
+                     nominal_lag_s: float | None = None, seed: int = 0,
+                     workers: int | None = None) -> tuple[Discovery, DatasetSummary]:
     """Discovery on a data set folder.
 
     Flow-step runs: the static model (eq. 5) and its candidate effects
     (drift, threshold_shift, backlash, pressure_law, saturation,
     sensor_gain); position-control runs with Q_ref: the ``delay`` check
     against the nominal lag (rig ``analysis.nominal_flow_lag_s``).
+    ``workers``: processes reading the runs
+    (:func:`seanv_analysis.summary.summarize_dataset`; None: all cores for
+    large data sets). The returned summary's ``runs`` are the
+    position-control runs (what ``validate`` re-runs for the closed-loop
+    error before/after).
     """
     rig = rig or load_rig()
-    ds = summarize_dataset(path, rig=rig, keep_runs=True)
+    ds = summarize_dataset(path, rig=rig, keep_runs={"position_control"}, workers=workers)
     result = discover_runs(ds.runs, ds.summary, rig=rig, model=model, holdout=holdout,
                            nominal_lag_s=nominal_lag_s, seed=seed)
-    ds.runs = []
     return result, ds

@@ -646,6 +646,7 @@ def _per_run(rows_all: pd.DataFrame, use: np.ndarray, sigma_used: np.ndarray, si
 
 
 def flowfit_dataset(path: str | Path, *, rig: Any = None, method: str = "steady",
+                    workers: int | None = None,
                     sides: Sequence[str] = SIDES, **options: Any):
     """Read, summarise and filter a data set, then :func:`fit_flow` it.
 
@@ -655,6 +656,8 @@ def flowfit_dataset(path: str | Path, *, rig: Any = None, method: str = "steady"
     rig : rig config (default: the shipped one)
     method : per-run flow estimate, 'steady' (default) or the paper's 'peak'
     sides : sides to fit
+    workers : processes reading the runs (:func:`seanv_analysis.summary.summarize_dataset`;
+        None: all cores for large data sets)
     **options : passed to :func:`fit_flow` (procedure, n_boot, seed, ...)
 
     Returns
@@ -665,7 +668,7 @@ def flowfit_dataset(path: str | Path, *, rig: Any = None, method: str = "steady"
     from ..summary import summarize_dataset
 
     rig = rig or load_rig()
-    ds = summarize_dataset(path, rig=rig, method=method)
+    ds = summarize_dataset(path, rig=rig, method=method, workers=workers)
     if "kind" not in ds.summary or not (ds.summary["kind"] == "flow_step").any():
         raise DataError("no flow_step runs in the data set; expected flow-step runs "
                         "(run.json kind = 'flow_step')", path=path)

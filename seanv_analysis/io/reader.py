@@ -36,6 +36,7 @@ from .validate import (_contract, check_finite, check_increasing, check_pressure
                        check_rig_overrides, format_value, read_run_json)
 
 __all__ = ["find_runs", "is_run_dir", "read_run", "read_dataset", "iter_dataset",
+           "dataset_plan", "read_run_tables",
            "DatasetRead", "RunError", "ColumnSpec", "TableSpec", "table_specs",
            "contract_columns"]
 
@@ -602,15 +603,15 @@ def _parse_parquet(path: Path, spec: TableSpec) -> pa.Table:
 
 # data sets -----------------------------------------------------------------
 
-def iter_dataset(path: str | Path, *, rig: RigConfig | None = None,
-                 hash_files: bool = True) -> Iterator[Run | RunError]:
-    """Yield each run of a data set (or the one run of a run folder), one at a
-    time, so a caller can process and drop runs as it goes.
+def dataset_plan(path: str | Path, *, rig: RigConfig | None = None
+                 ) -> tuple[list[RunMeta], list[RunError], RigConfig]:
+    """The metadata phase of reading a data set, without touching any table.
 
-    First every run's run.json is read; :class:`RunError` items for bad
-    metadata (and repeated run ids) come first, then the good runs in
-    ``started_at`` order, each a :class:`Run` or a :class:`RunError` when its
-    tables break the contract.
+    Every run's run.json is read and checked; returns the good runs'
+    :class:`RunMeta` in ``started_at`` order (repeated run ids refused), the
+    :class:`RunError` items of bad metadata (sorted by path) and the base rig.
+    :func:`read_run_tables` then reads one run's tables (also in a worker
+    process: a ``RunMeta`` and a ``RigConfig`` pickle).
 
     Raises
     ------
@@ -643,12 +644,37 @@ def iter_dataset(path: str | Path, *, rig: RigConfig | None = None,
         seen[m.run_id] = m.path
         good.append(m)
     bad.sort(key=lambda e: str(e.path))
+    return good, bad, base
+
+
+def read_run_tables(meta: RunMeta, rig: RigConfig, *, hash_files: bool = True) -> Run | RunError:
+    """The tables of one run of :func:`dataset_plan` (validated and
+    calibrated), or its :class:`RunError` when they break the contract."""
+    try:
+        return _read_tables(meta, rig, hash_files=hash_files)
+    except (SeanvError, OSError) as exc:
+        return RunError(meta.path, _one_line(exc))
+
+
+def iter_dataset(path: str | Path, *, rig: RigConfig | None = None,
+                 hash_files: bool = True) -> Iterator[Run | RunError]:
+    """Yield each run of a data set (or the one run of a run folder), one at a
+    time, so a caller can process and drop runs as it goes.
+
+    First every run's run.json is read (:func:`dataset_plan`);
+    :class:`RunError` items for bad metadata (and repeated run ids) come
+    first, then the good runs in ``started_at`` order, each a :class:`Run` or
+    a :class:`RunError` when its tables break the contract.
+
+    Raises
+    ------
+    DataError
+        ``path`` missing, or no run.json at any depth.
+    """
+    good, bad, base = dataset_plan(path, rig=rig)
     yield from bad
     for m in good:
-        try:
-            yield _read_tables(m, base, hash_files=hash_files)
-        except (SeanvError, OSError) as exc:
-            yield RunError(m.path, _one_line(exc))
+        yield read_run_tables(m, base, hash_files=hash_files)
 
 
 def read_dataset(path: str | Path, *, rig: RigConfig | None = None,
