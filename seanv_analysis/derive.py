@@ -27,6 +27,7 @@ from scipy.signal import savgol_filter
 from .errors import ConfigError, DataError
 from .io.run import Run
 from .models import flow_from_velocity, side_pressures
+from .signals import interp_sorted
 
 __all__ = [
     "FLOW_METHODS", "DEFAULT_MAX_JITTER", "DEFAULT_SETTLE_BAND",
@@ -287,7 +288,7 @@ def derive_samples(run: Run, *, aligned: pd.DataFrame | None = None,
     if enc is not None and len(enc):
         v_enc, info = velocity_mm_s(enc["t_s"].to_numpy(), enc["position_mm"].to_numpy(),
                                     window_s=window_s, polyorder=polyorder)
-        v = np.interp(df["t_s"].to_numpy(np.float64), enc["t_s"].to_numpy(np.float64), v_enc)
+        v = interp_sorted(df["t_s"].to_numpy(np.float64), enc["t_s"].to_numpy(np.float64), v_enc)
     else:
         if "position_mm" not in df:
             raise DataError("no encoder table and no 'position_mm' column; expected one",

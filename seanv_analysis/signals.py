@@ -14,7 +14,7 @@ import pandas as pd
 
 from .errors import DataError
 
-__all__ = ["align_streams", "HOLD_COLUMNS"]
+__all__ = ["align_streams", "interp_sorted", "HOLD_COLUMNS"]
 
 #: Commands: piecewise constant between samples (the controller holds them),
 #: so they are aligned with previous-value hold, never interpolated.
@@ -136,10 +136,11 @@ def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None
                 out.update((c, np.array(v[base_slice], dtype=np.float64)) for c, v in cols.items())
             continue
         counts = idx = None
+        lin = _Interpolator(tk, t) if any(c not in hold for c in cols) else None
         for c, v in cols.items():
             v = np.asarray(v, dtype=np.float64)
             if c not in hold:
-                out[c] = np.interp(t, tk, v)
+                out[c] = lin(v)
             elif t_sorted:
                 if counts is None:
                     # sample i holds over t in [t_i, t_{i+1}); t >= lo >= tk[0]
@@ -154,3 +155,53 @@ def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None
         out[time_column] = np.array(t, dtype=np.float64)
     out = {time_column: out.pop(time_column), **out}
     return pd.DataFrame(out, copy=False)
+
+
+class _Interpolator:
+    """Linear interpolation from sample instants ``tk`` (increasing) onto
+    ``t`` (inside ``[tk[0], tk[-1]]``), the bracketing search done once and
+    shared by every column of a stream (outside it the end samples are
+    held, as np.interp does). Same arithmetic as
+    ``np.interp(t, tk, v)`` (which repeats the search per column:
+    slope (v1 - v0) / (t1 - t0) times (t - t0), plus v0); when ``t`` is
+    ``tk`` or a contiguous run of it (streams on one clock) the samples are
+    taken as they are."""
+
+    def __init__(self, tk: np.ndarray, t: np.ndarray):
+        self.t = t
+        self.same: slice | None = None
+        if t.size and tk.size >= t.size:
+            i0 = int(np.searchsorted(tk, t[0], side="left"))
+            if i0 + t.size <= tk.size and np.array_equal(tk[i0:i0 + t.size], t):
+                self.same = slice(i0, i0 + t.size)
+                return
+        self.n = tk.size
+        if tk.size < 2:
+            return
+        i = np.searchsorted(tk, t, side="right") - 1
+        self.last = i >= tk.size - 1          # t >= tk[-1]: the last sample itself
+        np.clip(i, 0, tk.size - 2, out=i)
+        self.i = i
+        self.dt = np.maximum(t, tk[0]) - tk[i]  # t < tk[0]: the first sample (np.interp)
+        self.span = tk[i + 1] - tk[i]
+
+    def __call__(self, v: np.ndarray) -> np.ndarray:
+        if self.same is not None:
+            return np.array(v[self.same], dtype=np.float64)
+        if self.n < 2:
+            return np.full(self.t.size, v[0] if v.size else np.nan)
+        lo = v[self.i]
+        out = v[self.i + 1] - lo
+        out /= self.span
+        out *= self.dt
+        out += lo
+        if self.last.any():
+            out[self.last] = v[-1]
+        return out
+
+
+def interp_sorted(t: np.ndarray, tk: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """``np.interp(t, tk, v)`` (same values, ends held), exact (no
+    arithmetic) where ``t`` is a contiguous run of ``tk``."""
+    return _Interpolator(np.asarray(tk, np.float64), np.asarray(t, np.float64))(
+        np.asarray(v, np.float64))
