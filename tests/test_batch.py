@@ -307,6 +307,21 @@ def test_run_key_depends_on_everything():
     assert k != run_key({"encoder.csv": "aa"}, **{**base, "version": "2"})
 
 
+def test_run_key_default_tracks_the_code(monkeypatch):
+    """Without an explicit version the key holds a hash of the package's
+    sources, so an edited stage is recomputed even if the version is not bumped."""
+    from seanv_analysis import __version__
+    from seanv_analysis.batch import cache
+
+    assert cache.code_version().startswith(__version__ + "+")
+    args = ({"encoder.csv": "aa"},)
+    kw = dict(stage="ingest", params={}, rig={})
+    k = run_key(*args, **kw)
+    assert k == run_key(*args, **kw, version=cache.code_version())
+    monkeypatch.setattr(cache, "code_version", lambda: __version__ + "+edited")
+    assert run_key(*args, **kw) != k
+
+
 def test_resume_after_partial_cache(dataset, tmp_path, counted):
     """A run killed half-way leaves some entries, temp files and maybe a torn
     entry; the next run cleans up and computes only what is missing."""

@@ -8,6 +8,7 @@ effect, clean data, two effects together and the paper's drain drift.
 """
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from seanv_analysis import load_rig
@@ -87,6 +88,18 @@ def test_delay_on_position_control_and_closed_loop_error_drops():
     after = validate_runs(runs, model, rig=RIG, effects=specs).table.iloc[0]
     assert after["rmse_flow_mm3_s"] <= 0.7 * before["rmse_flow_mm3_s"]
     assert after["fit_position_pct"] > before["fit_position_pct"] + 5.0
+
+
+def test_delay_found_when_q_ref_was_not_logged():
+    """A flow-model run whose logger left q_ref empty: the target is Kp e, as
+    tracking rebuilds it, and the delay is still found."""
+    runs = list(iter_scenario_runs("paper-position-model", effects=["delay:delay_s=0.15"], rig=RIG))
+    for run in runs:
+        run.tables["controller"]["q_ref_mm3_s"] = np.nan
+    summary, _ = summarize_runs(runs, RIG)
+    res = discover_runs(runs, summary, rig=RIG)
+    delay = [e for e in res.effects if e.name == "delay"]
+    assert delay and 0.13 <= delay[0].params["delay_s"] <= 0.23
 
 
 def test_clean_position_control_says_none():

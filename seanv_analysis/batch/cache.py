@@ -2,8 +2,9 @@
 
 Each per-run result is stored in its own file, named by a key: the SHA-256
 of the run's input file hashes (by file name), the stage and its
-parameters, the rig config and the package version. Change any of these
-(a byte of a log, an option, a rig constant, the version) and the key
+parameters, the rig config and the code version (package version plus a
+hash of the package's sources). Change any of these (a byte of a log, an
+option, a rig constant, a line of code) and the key
 changes, so stale results are never reused; a removed parameter changes the
 key too, because the whole option dict is hashed.
 
@@ -20,6 +21,7 @@ cache is opened again, and an unreadable entry counts as missing.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -32,7 +34,7 @@ from typing import Any, Mapping
 from .. import __version__
 from ..io.atomic import atomic_path, write_json_atomic
 
-__all__ = ["RunCache", "run_key", "folder_listing", "CACHE_DIRNAME"]
+__all__ = ["RunCache", "run_key", "code_version", "folder_listing", "CACHE_DIRNAME"]
 
 CACHE_DIRNAME = ".cache"
 _INDEX_SCHEMA = "seanv-batch-index/1"
@@ -42,8 +44,21 @@ def _canonical(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
 
 
+@functools.lru_cache(maxsize=1)
+def code_version() -> str:
+    """Package version plus a hash of every source file of the package
+    (``0.1.0+1a2b3c4d5e6f``): an edited stage invalidates cached results
+    even when the version number was not bumped."""
+    pkg = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for path in sorted(pkg.rglob("*.py")):
+        h.update(path.relative_to(pkg).as_posix().encode())
+        h.update(path.read_bytes())
+    return f"{__version__}+{h.hexdigest()[:12]}"
+
+
 def run_key(file_hashes: Mapping[str, str], *, stage: str, params: Mapping[str, Any],
-            rig: Mapping[str, Any], version: str = __version__) -> str:
+            rig: Mapping[str, Any], version: str | None = None) -> str:
     """Cache key of one run's result of one stage (hex SHA-256).
 
     Parameters
@@ -52,10 +67,11 @@ def run_key(file_hashes: Mapping[str, str], *, stage: str, params: Mapping[str, 
     stage : stage name ('ingest', 'fig6', ...)
     params : every parameter the stage uses (hashed whole)
     rig : the rig config dict
-    version : package version (default: the installed one)
+    version : code version (default: :func:`code_version`, the package
+        version plus a hash of its sources)
     """
     doc = {"files": dict(sorted(file_hashes.items())), "stage": stage, "params": params,
-           "rig": rig, "version": version}
+           "rig": rig, "version": code_version() if version is None else version}
     return hashlib.sha256(_canonical(doc).encode()).hexdigest()
 
 

@@ -62,14 +62,18 @@ def _f(v):
 
 def flow_signals(run) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """(t [s], Q_ref [mm^3/s], actual Q [mm^3/s]) of a position-control run on
-    the encoder's time base, or None when the run has no Q_ref."""
-    from ..derive import derive_samples
+    the encoder's time base, the target built as ``tracking`` builds it
+    (:func:`seanv_analysis.analysis.tracking.run_flows`: logged Q_ref, else
+    Kp e of a flow-model controller), or None when the run has no target flow."""
+    from ..analysis.tracking import run_flows
+    from ..errors import DataError
 
-    derived = derive_samples(run)
-    if "q_ref_mm3_s" not in derived or not np.isfinite(derived["q_ref_mm3_s"]).any():
+    try:
+        flows, _ = run_flows(run)
+    except DataError:
         return None
-    return (derived["t_s"].to_numpy(float), derived["q_ref_mm3_s"].to_numpy(float),
-            derived["q_mm3_s"].to_numpy(float))
+    return (flows["t_s"].to_numpy(float), flows["q_ref_mm3_s"].to_numpy(float),
+            flows["q_mm3_s"].to_numpy(float))
 
 
 def _shifted_rmse(t, q_ref, q, lag, q_range, min_abs=0.0) -> tuple[float, int]:

@@ -1,0 +1,497 @@
+"""A "foreign rig": an independent generator of data-contract data sets.
+
+This module does NOT use ``seanv_analysis.sim`` (nor the package's writer):
+it has its own, deliberately different, plant and writes the run folders
+itself, exactly as ``data-contract.md`` (``seanv-run/1``) describes. The only
+package code it calls is the paper's sealing model (eq. 3-4, through
+``seanv_analysis.models``) to place the sealing threshold theta_d, and the
+flow-model inversion (eq. 6) used by the foreign controller.
+
+How the foreign rig differs from the built-in simulator
+-------------------------------------------------------
+- plant: no tube model, no actuator mass; the flow into the actuator follows
+  the valve's steady flow (eq. 5 with this rig's z0 and C) through a
+  first-order lag (``tau_flow_s``); the head pressure is quasi-static:
+  (load force + Coulomb + viscous friction) / actuator area; at an end stop
+  the flow stops and the head pressure relaxes to the supply (or tank)
+  pressure;
+- supply at 3.0 MPaG with a flow-dependent droop and a 33 Hz ripple;
+  optional tank back pressure logged in ``p_tank_mpag``;
+- sample rates: encoder 500 Hz or 2 kHz, pressure 200 Hz, servo 50 Hz,
+  controller 50 Hz; every stream starts at its own instant (0..25 ms) and
+  carries timestamp jitter; encoder quantised to 0.01 mm; pressure noise
+  0.01 MPa; servo feedback quantised to the servo step, sometimes absent
+  (empty ``cam_deg``);
+- files: some tables are Parquet; extra columns (numbers and text) and
+  unknown run.json fields; ``started_at`` with a +09:00 offset and
+  fractional seconds; a few runs with ``load_mpag`` null;
+- position control: P controller Q_ref = kp (x_ref - x) at 50 Hz, cam from
+  eq. (6); the actual flow is the valve's flow at the cam command of
+  ``delay_s`` earlier (a pure delay, no other dynamics in the flow path).
+
+Everything is seeded: the same arguments give the same files.
+"""
+from __future__ import annotations
+
+import bisect
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+__all__ = ["ForeignTruth", "write_flowsteps", "write_position", "flowstep_plan",
+           "ACTUATOR_AREA_MM2"]
+
+ACTUATOR_AREA_MM2 = 201.06          # 16 mm bore
+LOAD_AREA_MM2 = math.pi / 4 * 32.0 ** 2   # pneumatic load piston (full bore)
+SERVO_STEP_DEG = 0.087890625        # 360/4096
+JST = timezone(timedelta(hours=9))
+
+
+@dataclass
+class ForeignTruth:
+    """The foreign rig's true valve and plant parameters."""
+
+    supply_z0_mm: float = -0.12
+    supply_c: float = 15.0
+    drain_z0_mm: float = -0.05
+    drain_c: float = -20.0
+    tau_flow_s: float = 0.15
+    delay_s: float = 0.30
+    supply_mpag: float = 3.0
+    coulomb_n: float = 30.0
+    viscous_n_s_per_mm: float = 0.4
+    stroke_mm: float = (2.0, 72.0)  # type: ignore[assignment]
+    drift: dict | None = None       # {"side": "drain", "step": 0.02, "every": 3}
+    runs: list = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        d = asdict(self)
+        d["stroke_mm"] = list(self.stroke_mm)
+        return d
+
+
+# ---------------------------------------------------------------------------
+# valve: eq. (5) with theta_d from the paper's sealing model (eq. 3-4)
+# ---------------------------------------------------------------------------
+
+class _Needle:
+    """One needle with scalar (fast) threshold and flow functions."""
+
+    def __init__(self, side: str, z0_mm: float, c: float):
+        from seanv_analysis.config import load_rig
+        from seanv_analysis.models import NeedleGeometry
+
+        g = NeedleGeometry.from_rig(load_rig(), side)
+        self.side, self.z0, self.c = side, float(z0_mm), float(c)
+        self.dn2, self.do2, self.k = g.needle_diameter_mm ** 2, g.seat_diameter_mm ** 2, \
+            g.spring_constant_n_per_mm
+        z, th = g.height_table
+        self.z_tab, self.th_tab = np.asarray(z), np.asarray(th)
+        self.up = g.opens_upward
+
+    def theta_d(self, p1, dp, z0=None):
+        """Sealing threshold [deg], eq. (1)+(3) then eq. (4) inverted (table)."""
+        z0 = self.z0 if z0 is None else z0
+        fw = math.pi / 4 * (self.dn2 * np.asarray(p1) - self.do2 * np.asarray(dp))
+        return np.interp(z0 - fw / self.k, self.z_tab, self.th_tab)
+
+    def flow(self, theta, p1, dp, c=None):
+        """Eq. (5): C (theta - theta_d)^2 sqrt(dp), zero when sealed or dp <= 0."""
+        c = self.c if c is None else c
+        d = np.asarray(theta, float) - self.theta_d(p1, dp)
+        opening = np.maximum(d if self.up else -d, 0.0)
+        return c * opening ** 2 * np.sqrt(np.maximum(np.asarray(dp, float), 0.0))
+
+    def flow1(self, theta: float, p1: float, dp: float, c: float) -> float:
+        """Scalar :meth:`flow` (pure Python, for the time-stepping loops)."""
+        if dp <= 0.0:
+            return 0.0
+        z = self.z0 - math.pi / 4 * (self.dn2 * p1 - self.do2 * dp) / self.k
+        zt, tt = self._zl, self._tl
+        j = bisect.bisect_right(zt, z)
+        if j <= 0:
+            th = tt[0]
+        elif j >= len(zt):
+            th = tt[-1]
+        else:
+            z0, z1 = zt[j - 1], zt[j]
+            th = tt[j - 1] + (tt[j] - tt[j - 1]) * (z - z0) / (z1 - z0)
+        d = theta - th if self.up else th - theta
+        return c * d * d * math.sqrt(dp) if d > 0.0 else 0.0
+
+    @property
+    def _zl(self):
+        if not hasattr(self, "_zl_"):
+            self._zl_, self._tl_ = self.z_tab.tolist(), self.th_tab.tolist()
+        return self._zl_
+
+    @property
+    def _tl(self):
+        self._zl  # noqa: B018 - fills the cache
+        return self._tl_
+
+
+# ---------------------------------------------------------------------------
+# sampling and writing
+# ---------------------------------------------------------------------------
+
+def _stamps(rng, t_end: float, rate_hz: float, *, jitter: float, start_max_s: float = 0.025,
+            end_trim_s: float = 0.0) -> np.ndarray:
+    """Sample instants of one stream: own start offset, +-jitter (fraction of dt)."""
+    dt = 1.0 / rate_hz
+    t0 = rng.uniform(0.0, start_max_s)
+    n = int(math.floor((t_end - end_trim_s - t0) / dt)) + 1
+    t = t0 + dt * np.arange(n) + rng.uniform(-jitter, jitter, n) * dt
+    t[0] = max(t[0], 0.0)
+    return np.round(t, 6)
+
+
+def _write_table(path_stem: Path, df: pd.DataFrame, fmt: str) -> None:
+    if fmt == "parquet":
+        pq.write_table(pa.Table.from_pandas(df, preserve_index=False),
+                       path_stem.with_suffix(".parquet"))
+    else:
+        df.to_csv(path_stem.with_suffix(".csv"), index=False, float_format="%.6g",
+                  na_rep="")
+
+
+def _fmt_t(df: pd.DataFrame) -> pd.DataFrame:
+    # timestamps to the microsecond in CSV (float_format %.6g would cut them)
+    df = df.copy()
+    df["t_s"] = df["t_s"].map(lambda v: f"{v:.6f}")
+    return df
+
+
+def _write_run(run_dir: Path, meta: dict, tables: dict[str, pd.DataFrame],
+               formats: dict[str, str]) -> None:
+    run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / "run.json").write_text(json.dumps(meta, indent=2))
+    for name, df in tables.items():
+        fmt = formats.get(name, "csv")
+        _write_table(run_dir / name, df if fmt == "parquet" else _fmt_t(df), fmt)
+
+
+def _iso(t: datetime) -> str:
+    return t.astimezone(JST).isoformat(timespec="milliseconds")
+
+
+# ---------------------------------------------------------------------------
+# flow-step runs
+# ---------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Step:
+    side: str
+    cam_deg: float
+    load_mpag: float
+    repeat: int
+
+
+def flowstep_plan(*, supply_cams: Sequence[float] = (-5.0, 0.0, 5.0, 10.0),
+                  drain_cams: Sequence[float] = (-40.0, -35.0, -30.0, -25.0, -20.0),
+                  loads: Sequence[float] = (0.1, 0.2, 0.3, 0.4, 0.5), repeats: int = 3
+                  ) -> list[Step]:
+    """The foreign protocol in time order: per load, per repeat, the drain
+    sweep (high to low opening) then the supply sweep (low to high)."""
+    out = []
+    for load in loads:
+        for rep in range(repeats):
+            out += [Step("drain", float(c), float(load), rep) for c in sorted(drain_cams)]
+            out += [Step("supply", float(c), float(load), rep) for c in sorted(supply_cams)]
+    return out
+
+
+def _head_pressure(load_mpag: float, v_mm_s: float, tr: ForeignTruth) -> float:
+    """Quasi-static head pressure: (load + Coulomb + viscous) / area [MPaG]."""
+    f = (load_mpag * LOAD_AREA_MM2 + tr.coulomb_n * math.tanh(v_mm_s / 0.3)
+         + tr.viscous_n_s_per_mm * v_mm_s)
+    return f / ACTUATOR_AREA_MM2
+
+
+def _servo_track(t: np.ndarray, cmd: np.ndarray, *, dead_s=0.02, tau_s=0.04,
+                 rate_deg_s=300.0) -> np.ndarray:
+    """Servo angle on the fine grid t: goal quantised to the servo step (as a
+    position-controlled servo does), dead time, rate limit, first-order lag."""
+    cmd = np.round(np.asarray(cmd, float) / SERVO_STEP_DEG) * SERVO_STEP_DEG
+    h = float(t[1] - t[0])
+    nd = int(round(dead_s / h))
+    c = np.concatenate((np.full(nd, cmd[0]), cmd[:cmd.size - nd])) if nd else cmd
+    out = np.empty_like(cmd)
+    y = cmd[0]
+    a = h / tau_s
+    for i in range(cmd.size):
+        dy = a * (c[i] - y)
+        lim = rate_deg_s * h
+        y += min(max(dy, -lim), lim)
+        out[i] = y
+    return out
+
+
+def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_now: dict,
+                   rng, *, h: float = 1e-3, p_tank: float = 0.0):
+    """Fine-grid (1 kHz) true signals of one flow step."""
+    closed = -12.0  # both needles sealed here on this rig
+    direct = rng.random() < 0.25           # log starts already at the angle
+    pre = 0.0 if direct else rng.uniform(0.3, 0.6)
+    hold = rng.uniform(2.2, 2.8)
+    post = 0.3
+    t = np.arange(0.0, pre + hold + post + 0.05, h)
+    cmd = np.where(t < pre, closed, step.cam_deg)
+    cmd = np.where(t >= pre + hold, closed, cmd)
+    cam = _servo_track(t, cmd.astype(float))
+    lo, hi = tr.stroke_mm
+    x = lo + 1.0 if step.side == "supply" else hi - 1.0
+    q = 0.0
+    at_stop = False
+    ph_stop = None
+    n = t.size
+    X, Q, PS, PH = (np.empty(n) for _ in range(4))
+    sup, drn = needles["supply"], needles["drain"]
+    ripple_phase = rng.uniform(0, 2 * math.pi)
+    cs, cd = c_now["supply"], c_now["drain"]
+    cam = cam.tolist()
+    t_l = t.tolist()
+    v = 0.0
+    for i in range(n):
+        v = q / ACTUATOR_AREA_MM2
+        ps = tr.supply_mpag - 2.0e-5 * max(q, 0.0) \
+            + 0.02 * math.sin(2 * math.pi * 33.0 * t_l[i] + ripple_phase)
+        if at_stop:
+            target = ps if step.side == "supply" else p_tank
+            ph_stop += (target - ph_stop) * h / 0.05
+            ph = ph_stop
+        else:
+            ph = _head_pressure(step.load_mpag, v, tr)
+        ci = cam[i]
+        qs = sup.flow1(ci, ps, ps - ph, cs) + drn.flow1(ci, ph, ph - p_tank, cd)
+        # seat leakage of both needles (open or sealed): a few mm^3/s, not in eq. (5)
+        qs += 1.5 * (ps - ph) - 1.5 * (ph - p_tank)
+        if not at_stop:
+            q += (qs - q) * h / tr.tau_flow_s
+            x += q / ACTUATOR_AREA_MM2 * h
+            if x >= hi or x <= lo:
+                x = min(max(x, lo), hi)
+                at_stop, ph_stop, q = True, ph, 0.0
+        X[i], Q[i], PS[i], PH[i] = x, q, ps, ph
+    return t, cmd, np.asarray(cam), X, Q, PS, PH
+
+
+def _flowstep_tables(step, t, cmd, cam, X, PS, PH, load_true, p_tank, rng, *,
+                     enc_rate, feedback: bool, tank_column: bool):
+    t_end = float(t[-1])
+    te = _stamps(rng, t_end, enc_rate, jitter=0.04)
+    tp = _stamps(rng, t_end, 200.0, jitter=0.02, end_trim_s=rng.uniform(0, 0.02))
+    tsv = _stamps(rng, t_end, 50.0, jitter=0.01, end_trim_s=rng.uniform(0, 0.03))
+    pos = np.interp(te, t, X)
+    pos = np.round(pos / 0.01) * 0.01
+    enc = pd.DataFrame({"t_s": te, "position_mm": pos,
+                        "sample_no": np.arange(te.size, dtype=np.int64)})
+    noise = 0.01
+    pres = pd.DataFrame({
+        "t_s": tp,
+        "p_supply_mpag": np.interp(tp, t, PS) + rng.normal(0, noise, tp.size),
+        "p_head_mpag": np.interp(tp, t, PH) + rng.normal(0, noise, tp.size),
+        "p_load_mpag": load_true + rng.normal(0, noise / 2, tp.size),
+    })
+    if tank_column:
+        pres["p_tank_mpag"] = p_tank + rng.normal(0, noise / 2, tp.size)
+    pres["oil_temp_c"] = 21.5 + rng.normal(0, 0.05, tp.size)
+    # the servo logs the command in force at its sample instant
+    cmd_s = cmd[np.clip(np.searchsorted(t, tsv, side="right") - 1, 0, t.size - 1)]
+    fb = np.round(np.interp(tsv, t, cam) / SERVO_STEP_DEG) * SERVO_STEP_DEG
+    fb = fb + SERVO_STEP_DEG * rng.choice([-1, 0, 0, 0, 0, 0, 1], tsv.size)
+    servo = pd.DataFrame({"t_s": tsv, "cam_cmd_deg": cmd_s,
+                          "cam_deg": fb if feedback else np.full(tsv.size, np.nan),
+                          "status": np.where(feedback, "ok", "nofb").repeat(tsv.size)})
+    return {"encoder": enc, "pressure": pres, "servo": servo}
+
+
+def write_flowsteps(out: str | Path, *, plan: Iterable[Step] | None = None, seed: int = 0,
+                    truth: ForeignTruth | None = None, start: datetime | None = None,
+                    name_prefix: str = "B", trace: bool = False) -> ForeignTruth:
+    """Write flow-step runs of the foreign rig under ``out``; return the truth.
+
+    ``truth.drift`` = {"side": ..., "step": s, "every": k} multiplies that
+    side's C by (1 - s)^floor(i / k), i = the run's 0-based position in time
+    order among all runs written here.
+    """
+    tr = truth or ForeignTruth()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng([seed, 0xF0E1])
+    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c),
+               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c)}
+    steps = list(plan) if plan is not None else flowstep_plan()
+    t_wall = start or datetime(2026, 5, 11, 1, 14, 5, 250000, tzinfo=timezone.utc)
+    for i, step in enumerate(steps):
+        c_now = {"supply": tr.supply_c, "drain": tr.drain_c}
+        if tr.drift:
+            s = tr.drift["side"]
+            c_now[s] *= (1.0 - tr.drift["step"]) ** math.floor(i / tr.drift["every"])
+        p_tank = float(rng.choice([0.0, 0.0, 0.03, 0.05]))
+        tank_column = p_tank > 0 or rng.random() < 0.3
+        load_true = step.load_mpag + rng.normal(0, 0.003)
+        t, cmd, cam, X, Q, PS, PH = _simulate_step(step, tr, needles, c_now, rng, p_tank=p_tank)
+        enc_rate = float(rng.choice([500.0, 2000.0]))
+        feedback = rng.random() > 0.2
+        tables = _flowstep_tables(step, t, cmd, cam, X, PS, PH, load_true, p_tank, rng,
+                                  enc_rate=enc_rate, feedback=feedback,
+                                  tank_column=tank_column)
+        rid = (f"{name_prefix}{i:03d}_{step.side[:3]}_L{step.load_mpag:.2f}_"
+               f"c{step.cam_deg:+.1f}_r{step.repeat + 1}")
+        load_field = None if rng.random() < 0.1 else round(step.load_mpag, 3)
+        meta = {"schema": "seanv-run/1", "run_id": rid, "kind": "flow_step",
+                "started_at": _iso(t_wall), "load_mpag": load_field, "side": step.side,
+                "cam_deg": step.cam_deg, "rig": {}, "operator": "foreign-lab",
+                "bench": {"name": "B-2", "firmware": "3.1"}}
+        formats = {k: ("parquet" if rng.random() < 0.3 else "csv") for k in tables}
+        _write_run(out / rid, meta, tables, formats)
+        if trace:  # true plant signals, for debugging only (not a contract table)
+            pd.DataFrame({"t_s": t, "x_mm": X, "q_mm3_s": Q, "p_supply_mpag": PS,
+                          "p_head_mpag": PH, "cam_deg": cam}).to_parquet(
+                out / rid / "_trace.parquet")
+        tr.runs.append({"run_id": rid, "side": step.side, "cam_deg": step.cam_deg,
+                        "load_mpag": step.load_mpag, "c_true": c_now[step.side],
+                        "p_tank_mpag": p_tank, "encoder_rate_hz": enc_rate,
+                        "feedback": bool(feedback)})
+        t_wall += timedelta(seconds=float(t[-1]) + rng.uniform(6.0, 12.0))
+    return tr
+
+
+# ---------------------------------------------------------------------------
+# position control
+# ---------------------------------------------------------------------------
+
+def _controller_model(tr: ForeignTruth):
+    from seanv_analysis.config import load_rig
+    from seanv_analysis.models import ValveModel
+
+    return ValveModel.from_rig(load_rig()).with_side("supply", z0_mm=tr.supply_z0_mm,
+                                                    c_flow=tr.supply_c) \
+        .with_side("drain", z0_mm=tr.drain_z0_mm, c_flow=tr.drain_c)
+
+
+def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_load,
+                       duration_s, kp=480.0, rate_hz=50.0, h=1e-3, p_tank=0.0):
+    model = _controller_model(tr)
+    t = np.arange(0.0, duration_s, h)
+    n = t.size
+    nd = int(round(tr.delay_s / h))
+    ctrl_every = int(round(1.0 / (rate_hz * h)))
+    x = 5.0
+    q = 0.0
+    load_reg = loads[0]
+    X, Q, PS, PH, PL, CAM = (np.empty(n) for _ in range(6))
+    ctrl_t, ctrl_x, ctrl_q = [], [], []
+    cam_hist = np.full(n, -12.0)
+    cam_cmd = -12.0
+    sup, drn = needles["supply"], needles["drain"]
+    lo, hi = tr.stroke_mm
+    for i in range(n):
+        ti = t[i]
+        load_sp = loads[np.searchsorted(t_load, ti, side="right") - 1]
+        load_reg += (load_sp - load_reg) * h / 0.1
+        v = q / ACTUATOR_AREA_MM2
+        ps = tr.supply_mpag - 2.0e-5 * max(q, 0.0) + 0.02 * math.sin(2 * math.pi * 33.0 * ti)
+        ph = _head_pressure(load_reg, v, tr)
+        if i % ctrl_every == 0:
+            x_ref = refs[np.searchsorted(t_ref, ti, side="right") - 1]
+            x_meas = round(x / 0.01) * 0.01
+            q_ref = kp * (x_ref - x_meas)
+            cam_cmd = float(model.cam_for_flow(q_ref, ps, ph, p_tank))
+            ctrl_t.append(ti)
+            ctrl_x.append(x_ref)
+            ctrl_q.append(q_ref)
+        cam_hist[i] = cam_cmd
+        cam_valve = cam_hist[i - nd] if i >= nd else -12.0
+        # pure delay: the valve sees the command of delay_s ago, flow is instantaneous
+        q = sup.flow1(cam_valve, ps, ps - ph, sup.c) + drn.flow1(cam_valve, ph, ph - p_tank, drn.c)
+        x = min(max(x + q / ACTUATOR_AREA_MM2 * h, lo), hi)
+        X[i], Q[i], PS[i], PH[i], PL[i], CAM[i] = x, q, ps, ph, load_reg, cam_valve
+    return t, X, Q, PS, PH, PL, cam_hist, CAM, (np.array(ctrl_t), np.array(ctrl_x),
+                                                np.array(ctrl_q))
+
+
+def write_position(out: str | Path, *, seed: int = 0, truth: ForeignTruth | None = None,
+                   n_runs: int = 2, duration_s: float = 64.0,
+                   start: datetime | None = None, empty_qref_run: bool = True) -> ForeignTruth:
+    """Write ``n_runs`` position-control runs (flow model, kp 480, 50 Hz) of
+    the foreign rig under ``out``. The last one logs an empty q_ref column
+    when ``empty_qref_run`` (the analysis must rebuild Q_ref from kp)."""
+    tr = truth or ForeignTruth()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng([seed, 0xB0B])
+    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c),
+               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c)}
+    t_wall = start or datetime(2026, 5, 12, 0, 30, 0, tzinfo=timezone.utc)
+    for k in range(n_runs):
+        refs = np.array([0.0, 25.0, 10.0, 35.0, 20.0, 40.0, 5.0]) + rng.uniform(-2, 2)
+        refs[0] = 5.0
+        t_ref = np.array([0.0] + [4.0 + 10.0 * j for j in range(6)])
+        loads = np.array([0.3, 0.4, 0.3, 0.4, 0.3, 0.4, 0.3])
+        t_load = np.array([0.0] + [4.0 + 10.0 * j + 5.0 for j in range(6)])
+        t, X, Q, PS, PH, PL, cam_cmd, cam_valve, ctrl = _simulate_position(
+            tr, needles, rng, refs=refs, t_ref=t_ref, loads=loads, t_load=t_load,
+            duration_s=duration_s)
+        enc_rate = 2000.0 if k % 2 == 0 else 500.0
+        te = _stamps(rng, t[-1], enc_rate, jitter=0.04)
+        tp = _stamps(rng, t[-1], 200.0, jitter=0.02)
+        tsv = _stamps(rng, t[-1], 50.0, jitter=0.01)
+        enc = pd.DataFrame({"t_s": te, "position_mm": np.round(np.interp(te, t, X) / 0.01) * 0.01})
+        pres = pd.DataFrame({
+            "t_s": tp,
+            "p_supply_mpag": np.interp(tp, t, PS) + rng.normal(0, 0.01, tp.size),
+            "p_head_mpag": np.interp(tp, t, PH) + rng.normal(0, 0.01, tp.size),
+            "p_load_mpag": np.interp(tp, t, PL) + rng.normal(0, 0.005, tp.size),
+            "p_tank_mpag": rng.normal(0, 0.003, tp.size)})
+        idx = np.clip(np.searchsorted(t, tsv, side="right") - 1, 0, t.size - 1)
+        servo = pd.DataFrame({"t_s": tsv, "cam_cmd_deg": cam_cmd[idx],
+                              "cam_deg": np.round(np.interp(tsv, t, cam_valve) / SERVO_STEP_DEG)
+                              * SERVO_STEP_DEG})
+        ct, cx, cq = ctrl
+        # the controller's log: its own instants (the control ticks), slight jitter
+        ct_log = np.round(ct + 0.004 + rng.uniform(-1e-4, 1e-4, ct.size), 6)
+        q_log = np.full(cq.size, np.nan) if (empty_qref_run and k == n_runs - 1) else cq
+        controller = pd.DataFrame({"t_s": ct_log, "x_ref_mm": cx, "q_ref_mm3_s": q_log,
+                                   "mode": "P"})
+        rid = f"B-pos-{k + 1:02d}"
+        meta = {"schema": "seanv-run/1", "run_id": rid, "kind": "position_control",
+                "started_at": _iso(t_wall), "load_mpag": None,
+                "controller": {"kp": 480.0, "flow_model": True, "rate_hz": 50},
+                "rig": {}, "operator": "foreign-lab"}
+        formats = {"encoder": "parquet" if k % 2 else "csv", "pressure": "csv",
+                   "servo": "csv", "controller": "parquet" if k % 2 == 0 else "csv"}
+        _write_run(out / rid, meta, {"encoder": enc, "pressure": pres, "servo": servo,
+                                     "controller": controller}, formats)
+        tr.runs.append({"run_id": rid, "kind": "position_control", "encoder_rate_hz": enc_rate})
+        t_wall += timedelta(seconds=duration_s + 60.0)
+    return tr
+
+
+if __name__ == "__main__":  # pragma: no cover - manual use
+    import argparse
+
+    ap = argparse.ArgumentParser(description="write a foreign-rig data set")
+    ap.add_argument("out")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--drift", action="store_true", help="drain C -2 %% every 3 runs")
+    ap.add_argument("--no-position", action="store_true")
+    ap.add_argument("--full", action="store_true", help="cam every 2.5 deg (else 5 deg)")
+    a = ap.parse_args()
+    truth = ForeignTruth(drift={"side": "drain", "step": 0.02, "every": 3} if a.drift else None)
+    plan = flowstep_plan(
+        supply_cams=np.arange(-10.0, 10.0 + 1e-9, 2.5 if a.full else 5.0),
+        drain_cams=np.arange(-40.0, -15.0 + 1e-9, 2.5 if a.full else 5.0))
+    write_flowsteps(Path(a.out) / "flow", plan=plan, seed=a.seed, truth=truth)
+    if not a.no_position:
+        write_position(Path(a.out) / "position", seed=a.seed, truth=truth)
+    (Path(a.out) / "_foreign_truth.json").write_text(json.dumps(truth.to_json(), indent=1))
