@@ -74,15 +74,14 @@ def summarize_runs(runs, rig: RigConfig, *, method: str = "steady") -> tuple[pd.
     return _summary_frame(rows, rig), errors
 
 
-def _read_and_summarize(meta, *, rig: RigConfig, method: str, keep_kinds: frozenset[str]):
-    """One run of a data set: read, summarise. Returns (row or None, read
-    error or None, summary error or None, the run when its kind is kept,
-    {file: SHA-256} of what was read). Errors are values, so a bad run never
-    aborts the others."""
+def _summarize_read(run, *, method: str, keep_kinds: frozenset[str]):
+    """One run (or the RunError of its reading): (row or None, read error or
+    None, summary error or None, the run when its kind is kept, {file:
+    SHA-256} of what was read). Errors are values, so a bad run never aborts
+    the others."""
     from .derive import summarize_run
-    from .io.reader import RunError, read_run_tables
+    from .io.reader import RunError
 
-    run = read_run_tables(meta, rig)
     if isinstance(run, RunError):
         return None, run, None, None, {}
     try:
@@ -90,6 +89,13 @@ def _read_and_summarize(meta, *, rig: RigConfig, method: str, keep_kinds: frozen
     except SeanvError as exc:
         row, err = None, _summary_error(run, exc)
     return row, None, err, (run if run.kind in keep_kinds else None), dict(run.file_sha256)
+
+
+def _read_and_summarize(meta, *, rig: RigConfig, method: str, keep_kinds: frozenset[str]):
+    """:func:`_summarize_read` of one run read here (a worker process's task)."""
+    from .io.reader import read_run_tables
+
+    return _summarize_read(read_run_tables(meta, rig), method=method, keep_kinds=keep_kinds)
 
 
 def summarize_dataset(path: str | Path, *, rig: RigConfig | None = None, method: str = "steady",
@@ -122,7 +128,7 @@ def summarize_dataset(path: str | Path, *, rig: RigConfig | None = None, method:
         when no run of the data set could be read and summarised.
     """
     from .io._hashing import remember_sha256
-    from .io.reader import RunError, dataset_plan
+    from .io.reader import RunError, dataset_plan, read_runs
 
     rig = rig or load_rig()
     metas, read_errors, base = dataset_plan(path, rig=rig)
@@ -145,8 +151,9 @@ def summarize_dataset(path: str | Path, *, rig: RigConfig | None = None, method:
             outcomes.append(r.value)
             for file, digest in r.value[4].items():  # the manifest reuses them
                 remember_sha256(file, digest)
-    else:
-        outcomes = (_read_and_summarize(m, **kwargs) for m in metas)
+    else:  # this process, the next run read ahead on a thread
+        outcomes = (_summarize_read(run, method=method, keep_kinds=keep)
+                    for run in read_runs(metas, base))
     rows, summary_errors, runs = [], [], []
     for row, read_error, summary_error, run, _ in outcomes:
         if row is not None:

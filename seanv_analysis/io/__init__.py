@@ -11,12 +11,13 @@ from .writer import TABLE_NAMES, units_from_columns, write_run, write_table_parq
 from .run import SUMMARY_COLUMNS, Run, RunMeta
 from .calibrate import calibrate
 from .reader import (DatasetRead, RunError, contract_columns, dataset_plan, find_runs,
-                     is_run_dir, iter_dataset, read_dataset, read_run, read_run_tables)
+                     is_run_dir, iter_dataset, read_dataset, read_run, read_run_tables,
+                     read_runs)
 from ._hashing import file_sha256
 
 __all__ = ["atomic_path", "write_json_atomic", "write_text_atomic", "write_bytes_atomic",
            "TABLE_NAMES", "units_from_columns", "write_run", "write_table_parquet",
            "SUMMARY_COLUMNS", "Run", "RunMeta", "calibrate", "DatasetRead", "RunError",
            "contract_columns", "find_runs", "is_run_dir", "iter_dataset", "read_dataset",
-           "dataset_plan", "read_run_tables",
+           "dataset_plan", "read_run_tables", "read_runs",
            "read_run", "file_sha256"]

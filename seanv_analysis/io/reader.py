@@ -16,6 +16,7 @@ import functools
 import hashlib
 import os
 import re
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -36,7 +37,7 @@ from .validate import (_contract, check_finite, check_increasing, check_pressure
                        check_rig_overrides, format_value, read_run_json)
 
 __all__ = ["find_runs", "is_run_dir", "read_run", "read_dataset", "iter_dataset",
-           "dataset_plan", "read_run_tables",
+           "dataset_plan", "read_run_tables", "read_runs",
            "DatasetRead", "RunError", "ColumnSpec", "TableSpec", "table_specs",
            "contract_columns"]
 
@@ -673,8 +674,28 @@ def iter_dataset(path: str | Path, *, rig: RigConfig | None = None,
     """
     good, bad, base = dataset_plan(path, rig=rig)
     yield from bad
-    for m in good:
-        yield read_run_tables(m, base, hash_files=hash_files)
+    yield from read_runs(good, base, hash_files=hash_files)
+
+
+def read_runs(metas: list[RunMeta], rig: RigConfig, *,
+              hash_files: bool = True) -> Iterator[Run | RunError]:
+    """:func:`read_run_tables` of each run, in order, reading one run ahead.
+
+    The next run's files are parsed on a helper thread (Arrow's CSV/Parquet
+    readers and the checks on numpy arrays run without the GIL) while the
+    caller works on the current one; at most two runs are in memory.
+    """
+    if len(metas) < 2:
+        for m in metas:
+            yield read_run_tables(m, rig, hash_files=hash_files)
+        return
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-read") as pool:
+        ahead = pool.submit(read_run_tables, metas[0], rig, hash_files=hash_files)
+        for i in range(len(metas)):
+            current = ahead
+            if i + 1 < len(metas):
+                ahead = pool.submit(read_run_tables, metas[i + 1], rig, hash_files=hash_files)
+            yield current.result()
 
 
 def read_dataset(path: str | Path, *, rig: RigConfig | None = None,
