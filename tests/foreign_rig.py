@@ -70,6 +70,9 @@ class ForeignTruth:
     viscous_n_s_per_mm: float = 0.4
     stroke_mm: float = (2.0, 72.0)  # type: ignore[assignment]
     drift: dict | None = None       # {"side": "drain", "step": 0.02, "every": 3}
+    # both sides' C x (1 + a sin(2 pi i / period)): a wear/temperature pattern
+    # that comes and goes, which no candidate effect describes
+    c_modulation: dict | None = None  # {"amplitude": 0.08, "period_runs": 30}
     runs: list = field(default_factory=list)
 
     def to_json(self) -> dict:
@@ -336,6 +339,10 @@ def write_flowsteps(out: str | Path, *, plan: Iterable[Step] | None = None, seed
         if tr.drift:
             s = tr.drift["side"]
             c_now[s] *= (1.0 - tr.drift["step"]) ** math.floor(i / tr.drift["every"])
+        if tr.c_modulation:
+            f = 1.0 + tr.c_modulation["amplitude"] * math.sin(
+                2.0 * math.pi * i / tr.c_modulation["period_runs"])
+            c_now = {k: v * f for k, v in c_now.items()}
         p_tank = float(rng.choice([0.0, 0.0, 0.03, 0.05]))
         tank_column = p_tank > 0 or rng.random() < 0.3
         load_true = step.load_mpag + rng.normal(0, 0.003)

@@ -117,6 +117,17 @@ def test_discover_finds_a_drain_drift(tmp_path):
     assert doc["heldout"]["rmse_after_mm3_s"] < doc["heldout"]["rmse_before_mm3_s"]
 
 
+def test_discover_says_unexplained_for_an_effect_it_has_no_name_for(tmp_path):
+    """C of both sides swinging +-8 % with a period of 30 runs (no candidate
+    describes it): the residual is structured in run order, so the verdict is
+    'unexplained' with run_index named, not 'none' and not a wrong effect."""
+    truth = ForeignTruth(c_modulation={"amplitude": 0.08, "period_runs": 30})
+    write_flowsteps(tmp_path / "flow", plan=PLAN, seed=1, truth=truth)
+    doc = run_cli("discover", tmp_path / "flow", "--out", tmp_path / "out", "--json")
+    assert doc["verdict"] == "unexplained", doc
+    assert doc["trend_variable"] == "run_index"
+
+
 def test_run_paper_pipeline(foreign):
     root, truth = foreign
     doc = run_cli("run", "paper", root / "data", "--out", root / "out" / "run", "--workers", 1,

@@ -199,7 +199,10 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
         alpha_trend = 1e-3 / max(len(trends), 1)
         structured = [t for t in trends if t.p_value < alpha_trend and abs(t.rho) > 0.2
                       and trend_amplitude(raw, variables[t.variable]) > floor]
-        drifting = lb[1] < 1e-4 and trend_amplitude(raw, fit_data.run_index) > floor
+        # run order: bins of ~4 consecutive runs, so a trend that comes and
+        # goes (temperature, a periodic wear pattern) is not averaged away
+        fine = max(8, len(raw) // 4)
+        drifting = lb[1] < 1e-4 and trend_amplitude(raw, fit_data.run_index, bins=fine) > floor
         if structured or drifting:
             verdict = "unexplained"
             trend_var = structured[0].variable if structured else "run_index"
