@@ -20,7 +20,7 @@ def dataset_with_bad_runs(tmp_path, make_dataset, make_run):
 def test_processes_give_the_same_summary_and_errors(dataset_with_bad_runs):
     serial = summarize_dataset(dataset_with_bad_runs, workers=1)
     parallel = summarize_dataset(dataset_with_bad_runs, workers=2)
-    pd.testing.assert_frame_equal(serial.summary, parallel.summary)
+    pd.testing.assert_frame_equal(serial.summary, parallel.summary, check_exact=True)
     assert [(str(e.path), e.message) for e in serial.errors] == \
         [(str(e.path), e.message) for e in parallel.errors]
     assert len(serial.summary) == 8
