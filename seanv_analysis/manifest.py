@@ -72,8 +72,9 @@ def _files_under(folder: Path) -> list[Path]:
     out = []
     for dirpath, dirnames, filenames in os.walk(folder):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
-        out.extend(Path(dirpath) / f for f in sorted(filenames) if not f.startswith("."))
-    return out
+        out.extend(Path(dirpath) / f for f in sorted(filenames)
+                   if not f.startswith(".") and os.path.isfile(os.path.join(dirpath, f)))
+    return out  # regular files only: a broken or looping link or a FIFO is no input
 
 
 def input_hashes(inputs: Mapping[str | Path, str] | Iterable[str | Path]) -> dict[str, str]:

@@ -410,7 +410,9 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
             continue
         flows.append((run, df, source))
     if not flows:
-        raise DataError("no usable position_control run; expected at least one with a "
+        why = (f" ({len(skipped)} skipped; first: {' '.join(next(iter(skipped.values())).split())})"
+               if skipped else "")
+        raise DataError(f"no usable position_control run{why}; expected at least one with a "
                         "target flow (q_ref_mm3_s, flow-model kp, or --model)")
     segs = [(df.t_s.to_numpy(), df.q_ref_mm3_s.to_numpy(), df.q_mm3_s.to_numpy())
             for _, df, _ in flows]

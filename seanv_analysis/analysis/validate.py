@@ -357,6 +357,30 @@ def _controller_model(spec, model, rig):
     raise ConfigError(f"controller_model: expected 'rig', 'plant' or a ValveModel, got {spec!r}")
 
 
+#: a log whose encoder clock starts further than this from 0 [s] (epoch
+#: seconds, negative times) is validated on a clock starting at its first sample
+_CLOCK_OFFSET_MAX_S = 1.0
+#: longest run [s] the plant is simulated for (a longer t_s span is taken as wrong units)
+_SIM_SPAN_MAX_S = 86400.0
+
+
+def _on_run_clock(run: Run) -> Run:
+    """``run`` with every table's ``t_s`` shifted so the encoder starts at 0
+    when it starts before 0 or after :data:`_CLOCK_OFFSET_MAX_S` (the plant
+    is simulated from t = 0 to the last encoder sample); else ``run``."""
+    enc = run.tables.get("encoder")
+    if enc is None or not len(enc):
+        return run
+    t0 = float(enc["t_s"].iloc[0])
+    if 0.0 <= t0 <= _CLOCK_OFFSET_MAX_S:
+        return run
+    import dataclasses
+
+    tables = {name: df.assign(t_s=df["t_s"].to_numpy(float) - t0)
+              for name, df in run.tables.items()}
+    return dataclasses.replace(run, tables=tables)
+
+
 def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[str] = (),
                  threshold_pct: float = DEFAULT_THRESHOLD_PCT, controller_model="rig",
                  simulate: Callable | None = None) -> RunValidation:
@@ -364,12 +388,17 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
     if run.meta.kind != "position_control":
         raise DataError(f"kind {run.meta.kind!r}; expected position_control", path=run.meta.path)
     sim_fn = simulate or _default_simulate()
+    run = _on_run_clock(run)
     plant_rig = run.rig if rig is None else rig.with_overrides(run.meta.rig_overrides or None)
     ctrl = build_controller(run, _controller_model(controller_model, model, plant_rig), plant_rig)
     ref_t, ref_v = reference_steps(run)
     load_t, load_v = load_steps(run)
     enc = run.tables["encoder"]
     t_enc = enc["t_s"].to_numpy(float)
+    if not t_enc[-1] <= _SIM_SPAN_MAX_S:
+        raise DataError(f"last timestamp {t_enc[-1]:.6g} s; expected a run of at most "
+                        f"{_SIM_SPAN_MAX_S:g} s to simulate (t_s in ms or ns instead of s?)",
+                        path=run.files.get("encoder", run.meta.path), column="t_s")
     x0 = float(enc["position_mm"].iloc[0])
     sim = sim_fn(plant_rig, controller=ctrl, x_ref=(ref_t, ref_v), load=(load_t, load_v),
                  duration_s=float(t_enc[-1]), seed=seed, valve=model, effects=tuple(effects),
@@ -377,6 +406,9 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
     if isinstance(sim, tuple):  # (Run, SimTrace)
         sim = sim[0]
     dm = derive_samples(run)
+    if len(dm) < 2:
+        raise DataError(f"{len(dm)} sample(s) where all streams overlap in time; expected a "
+                        "longer common span to validate", path=run.meta.path)
     ds = derive_samples(sim)
     t = dm["t_s"].to_numpy(float)
     ts = ds["t_s"].to_numpy(float)
@@ -483,8 +515,10 @@ def validate_runs(runs: Iterable[Run], model=None, *, rig=None,
         except DataError as exc:
             skipped[run.run_id] = str(exc)
     if not results:
+        why = next(iter(skipped.values()), "")
         raise DataError("no position_control run could be validated"
-                        + (f" ({len(skipped)} skipped)" if skipped else ""))
+                        + (f" ({len(skipped)} skipped; first: {' '.join(why.split())})"
+                           if skipped else ""))
     table = pd.DataFrame([r.row for r in results])
     flagged = [r.run_id for r in results if r.row["flagged"]]
     return Validation(table, flagged, float(threshold_pct), results, skipped, notes,

@@ -31,6 +31,13 @@ class _SeanvGroup(click.Group):
         except SeanvError as exc:
             click.echo(f"error: {exc}", err=True)
             ctx.exit(2)
+        except click.BadParameter as exc:
+            if isinstance(exc, click.MissingParameter):
+                raise  # click's usage block says what is missing
+            # a bad path or value (DATA not found, a file given as DATA, ...): one
+            # line like the data errors, not click's usage block
+            click.echo(f"error: {' '.join(exc.format_message().split())}", err=True)
+            ctx.exit(2)
         if isinstance(rv, int) and rv:
             ctx.exit(rv)
         return rv

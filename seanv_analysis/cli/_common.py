@@ -8,7 +8,8 @@ from pathlib import Path
 
 import click
 
-__all__ = ["default_out_dir", "echo_bad_runs", "sim_default_dataset", "OUTPUTS_ROOT"]
+__all__ = ["default_out_dir", "check_out_dir", "echo_bad_runs", "explain_unusable",
+           "sim_default_dataset", "OUTPUTS_ROOT"]
 
 OUTPUTS_ROOT = Path("outputs")
 
@@ -17,6 +18,76 @@ def default_out_dir(data: str | Path, command: str) -> Path:
     """``outputs/<dataset-name>/<command>/`` (never inside the data folder)."""
     name = Path(data).resolve().name or "dataset"
     return OUTPUTS_ROOT / name / command
+
+
+def check_out_dir(data: str | Path | None, out: str | Path) -> None:
+    """Refuse an output folder inside (or equal to) the data folder.
+
+    Raises
+    ------
+    DataError
+        ``out`` is ``data`` or lies under it (symbolic links resolved).
+    """
+    from ..errors import DataError
+
+    if data is None or not Path(data).is_dir():
+        return
+    d, o = Path(data).resolve(), Path(out).resolve()
+    if o == d or d in o.parents:
+        raise DataError(f"--out: {out} is inside the data folder; outputs never go into raw "
+                        "data: choose another --out (default: outputs/<dataset>/<command>/ under "
+                        "the current folder)", path=data)
+
+
+def _run_problems(data: Path, rig) -> tuple[int, list[str]]:
+    """(usable runs, one line per bad run) of DATA: each run read and
+    summarised as ingest does. Slow path, only after a command found nothing usable."""
+    from ..derive import derive_samples, summarize_run
+    from ..errors import SeanvError
+    from ..io.reader import RunError, iter_dataset
+
+    good, errors = 0, []
+    for item in iter_dataset(data, rig=rig, hash_files=False):
+        if isinstance(item, RunError):
+            errors.append(item.message)
+            continue
+        try:
+            summarize_run(item, derived=derive_samples(item))
+        except SeanvError as exc:
+            msg = " ".join(str(exc).split())
+            errors.append(msg if str(item.meta.path) in msg else f"{item.meta.path}: {msg}")
+            continue
+        good += 1
+    return good, errors
+
+
+def explain_unusable(data: str | Path | None, rig, exc: Exception) -> int:
+    """After a command's library call refused DATA (``exc``, e.g. "no valid
+    runs"), say which runs were bad and why.
+
+    A single run folder that is bad: its own one-line DataError is raised
+    (exit 2). A data set with bad runs: ``exc``'s line, then the bad runs
+    listed; returns 1. Otherwise (or without DATA) ``exc`` is raised again.
+    """
+    from ..errors import DataError
+    from ..io.reader import is_run_dir
+
+    if data is None or not Path(data).is_dir():
+        raise exc
+    if rig is None or isinstance(rig, (str, Path)):
+        from ..config import load_rig
+        rig = load_rig(rig)
+    _, errors = _run_problems(Path(data), rig)
+    single = is_run_dir(data)
+    if not errors:
+        msg = " ".join(str(exc).split())
+        if single and isinstance(exc, DataError) and str(data) not in msg:
+            raise DataError(msg, path=data) from None  # name the run folder at least
+        raise exc
+    if single:
+        raise DataError(errors[0]) from None
+    click.echo(f"error: {' '.join(str(exc).split())}", err=True)
+    return echo_bad_runs(errors)
 
 
 def echo_bad_runs(errors) -> int:

@@ -8,7 +8,8 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import default_out_dir, echo_bad_runs, sim_default_dataset
+from ._common import (check_out_dir, default_out_dir, echo_bad_runs, explain_unusable,
+                      sim_default_dataset)
 
 __all__ = ["discover_cmd"]
 
@@ -46,6 +47,7 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
     """
     from ..config import load_rig
     from ..discover.dataset import discover_dataset
+    from ..errors import DataError
     from ..io.atomic import write_json_atomic, write_text_atomic
     from ..models import ValveModel
     from ..plots.residuals import plot_discovery_residuals
@@ -56,13 +58,17 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
         data = sim_default_dataset("paper-flowsteps", effects=(PAPER_DRAIN_DRIFT,))
         click.echo(f"no DATA given: using the built-in simulated paper flow-step data set ({data})",
                    err=True)
+    out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
+    check_out_dir(data, out)
     model = ValveModel.load(model_file, rig=rig) if model_file else ValveModel.from_rig(rig)
-    result, ds = discover_dataset(data, model=model, rig=rig, holdout=holdout, seed=seed)
+    try:
+        result, ds = discover_dataset(data, model=model, rig=rig, holdout=holdout, seed=seed)
+    except DataError as exc:  # nothing usable: say which runs were bad and why
+        return explain_unusable(data, rig, exc)
     if result.effects and ds.runs:  # position-control runs: closed-loop check via validate
         result.validation = _closed_loop(result, ds.runs, model, rig)
         if result.heldout_source != "flow_step":
             result.use_closed_loop_heldout()
-    out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
     write_json_atomic(out / "discover.json", result.to_json())
     write_json_atomic(out / "model_augmented.json", result.augmented_model_dict())
     write_text_atomic(out / "discover.txt", result.report() + "\n")

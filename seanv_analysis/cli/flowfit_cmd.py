@@ -10,7 +10,8 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import default_out_dir, echo_bad_runs, sim_default_dataset
+from ._common import (check_out_dir, default_out_dir, echo_bad_runs, explain_unusable,
+                      sim_default_dataset)
 
 __all__ = ["flowfit_cmd", "BUILTIN_SCENARIO"]
 
@@ -86,6 +87,7 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
       seanv-analyze flowfit data/flow --side both --json
     """
     from ..config import load_rig
+    from ..errors import DataError
     from ..fit import flowfit_dataset
     from ..io.reader import find_runs
     from ..manifest import input_hashes, write_manifest
@@ -97,11 +99,15 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
         click.echo(f"no DATA given: using the built-in simulated data set "
                    f"'{BUILTIN_SCENARIO}' ({data})", err=as_json)
     out = Path(out_dir) if out_dir else default_out_dir(data, "flowfit")
+    check_out_dir(data, out)
     sides = ("supply", "drain") if side == "both" else (side,)
     with warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
-        fit, ds = flowfit_dataset(data, rig=rig, method=method, sides=sides,
-                                  procedure=procedure, cam=cam, n_boot=n_boot, seed=seed)
+        try:
+            fit, ds = flowfit_dataset(data, rig=rig, method=method, sides=sides,
+                                      procedure=procedure, cam=cam, n_boot=n_boot, seed=seed)
+        except DataError as exc:  # nothing usable: say which runs were bad and why
+            return explain_unusable(data, rig, exc)
     paths = fit.write(out)
     figures = plot_fig4(fit, out)
     runs = [Path(p) for p in find_runs(data)] if Path(data).is_dir() else [Path(data)]

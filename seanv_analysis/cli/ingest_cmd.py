@@ -179,11 +179,11 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[st
             try:
                 samples, row = process(item)
             except SeanvError as exc:
-                if single:
-                    raise
                 msg = " ".join(str(exc).split())
-                if str(item.meta.path) not in msg:
+                if str(item.meta.path) not in msg:  # e.g. alignment: name the run folder
                     msg = f"{item.meta.path}: {msg}"
+                if single:
+                    raise DataError(msg) from None
                 errors.append(RunError(item.meta.path, msg))
                 continue
             row = dict(row)

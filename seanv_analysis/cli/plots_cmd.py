@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import default_out_dir
+from ._common import check_out_dir, default_out_dir, explain_unusable
 
 __all__ = ["plots_cmd", "plots_pipeline"]
 
@@ -58,13 +58,18 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
       seanv-analyze plots data/ --fig 4 --fig 7
     """
     from ..batch import run_pipeline
+    from ..errors import DataError
 
     figs = [4, 6, 7] if "all" in fig else sorted({int(f) for f in fig})
     out = Path(out_dir) if out_dir else default_out_dir(data, "plots")
+    check_out_dir(data, out)
     interactive = sys.stderr.isatty() and not os.environ.get("CI")
     log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
-    result = run_pipeline(plots_pipeline(figs), data, out_dir=out, workers=workers, quiet=quiet,
-                          rig=rig_file, log=log, command=sys.argv)
+    try:
+        result = run_pipeline(plots_pipeline(figs), data, out_dir=out, workers=workers,
+                              quiet=quiet, rig=rig_file, log=log, command=sys.argv)
+    except DataError as exc:  # no run could be read: say which runs were bad and why
+        return explain_unusable(data, rig_file, exc)
     n = 0
     for name, paths in result.figures.items():
         for p in paths:

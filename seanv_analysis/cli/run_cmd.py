@@ -9,7 +9,7 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import default_out_dir
+from ._common import check_out_dir, default_out_dir, explain_unusable
 
 __all__ = ["run_cmd"]
 
@@ -69,6 +69,7 @@ def run_cmd(pipeline: str, data: Path | None, out_dir: Path | None, workers: int
     """
     from ..batch import run_pipeline
     from ..batch.pipeline import load_pipeline
+    from ..errors import DataError
 
     pipe = load_pipeline(pipeline)
     datas: list[Path]
@@ -81,12 +82,16 @@ def run_cmd(pipeline: str, data: Path | None, out_dir: Path | None, workers: int
     else:
         datas = [data]
         out = Path(out_dir) if out_dir else default_out_dir(data, f"run-{pipe.name}")
+        check_out_dir(data, out)
     interactive = sys.stderr.isatty() and not os.environ.get("CI")
     log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
     if scheduler is None and workers is None and os.environ.get("DASK_SCHEDULER_ADDRESS"):
         scheduler = os.environ["DASK_SCHEDULER_ADDRESS"]
-    result = run_pipeline(pipe, datas, out_dir=out, workers=workers, scheduler=scheduler,
-                          force=force, quiet=quiet, rig=rig_file, log=log, command=sys.argv)
+    try:
+        result = run_pipeline(pipe, datas, out_dir=out, workers=workers, scheduler=scheduler,
+                              force=force, quiet=quiet, rig=rig_file, log=log, command=sys.argv)
+    except DataError as exc:  # no run could be read: say which runs were bad and why
+        return explain_unusable(data, rig_file, exc)
     if as_json:
         click.echo(json.dumps(result.to_json(), default=str))
         text = result.summary_text()

@@ -9,7 +9,8 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import default_out_dir, echo_bad_runs, sim_default_dataset
+from ._common import (check_out_dir, default_out_dir, echo_bad_runs, explain_unusable,
+                      sim_default_dataset)
 
 __all__ = ["tracking_cmd"]
 
@@ -48,6 +49,7 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
     from ..analysis.tracking import tracking_runs
     from ..io import read_dataset
     from ..config import load_rig
+    from ..errors import DataError
     from ..io.atomic import write_text_atomic
     from ..models import ValveModel
 
@@ -56,13 +58,17 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
         data = sim_default_dataset("paper-position")
         click.echo(f"no DATA given: using the built-in simulated paper position-control data "
                    f"set ({data})", err=True)
+    out = Path(out_dir) if out_dir else default_out_dir(data, "tracking")
+    check_out_dir(data, out)
     model = ValveModel.load(model_file, rig=rig) if model_file else None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # collected in the result (skipped, warnings)
         ds = read_dataset(data, rig=rig)
-        result = tracking_runs(ds.runs, shift_s=shift_s, q_range=q_range, model=model)
+        try:
+            result = tracking_runs(ds.runs, shift_s=shift_s, q_range=q_range, model=model)
+        except DataError as exc:  # nothing usable: say which runs were bad and why
+            return explain_unusable(data, rig, exc)
     errors = ds.errors
-    out = Path(out_dir) if out_dir else default_out_dir(data, "tracking")
     result.write(out)
     write_text_atomic(out / "tracking.txt", result.report() + "\n")
     if not no_figures:

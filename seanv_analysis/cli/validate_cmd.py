@@ -10,7 +10,8 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import default_out_dir, echo_bad_runs, sim_default_dataset
+from ._common import (check_out_dir, default_out_dir, echo_bad_runs, explain_unusable,
+                      sim_default_dataset)
 
 __all__ = ["validate_cmd"]
 
@@ -49,6 +50,7 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     """
     from ..analysis.validate import validate_dataset
     from ..config import load_rig
+    from ..errors import DataError
     from ..models import ValveModel
 
     rig = load_rig(rig_file)
@@ -56,12 +58,16 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
         data = sim_default_dataset("paper-position")
         click.echo(f"no DATA given: using the built-in simulated paper position-control data "
                    f"set ({data})", err=True)
+    out = Path(out_dir) if out_dir else default_out_dir(data, "validate")
+    check_out_dir(data, out)
     model = ValveModel.load(model_file, rig=rig) if model_file else None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        result, errors = validate_dataset(data, model, rig=rig, threshold_pct=threshold_pct,
-                                          controller_model=controller_model)
-    out = Path(out_dir) if out_dir else default_out_dir(data, "validate")
+        try:
+            result, errors = validate_dataset(data, model, rig=rig, threshold_pct=threshold_pct,
+                                              controller_model=controller_model)
+        except DataError as exc:  # nothing usable: say which runs were bad and why
+            return explain_unusable(data, rig, exc)
     result.write(out)
     if not no_figures:
         from ..plots.validate import plot_overlay

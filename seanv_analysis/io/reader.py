@@ -12,6 +12,7 @@ hashed (SHA-256, for manifests) and parsed.
 """
 from __future__ import annotations
 
+import csv as _csv_module
 import functools
 import hashlib
 import os
@@ -172,8 +173,9 @@ def _one_line(text: str) -> str:
 # finding runs ----------------------------------------------------------------
 
 def is_run_dir(path: str | Path) -> bool:
-    """True when ``path`` is a folder holding ``run.json``."""
-    return (Path(path) / "run.json").is_file()
+    """True when ``path`` is a folder holding ``run.json`` (a file, or an entry
+    of that name that is not a readable file: reading the run says why)."""
+    return os.path.lexists(Path(path) / "run.json")
 
 
 def find_runs(dataset: str | Path) -> list[Path]:
@@ -195,7 +197,7 @@ def find_runs(dataset: str | Path) -> list[Path]:
     found = []
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
-        if "run.json" in filenames:
+        if "run.json" in filenames or "run.json" in dirnames:  # a folder: reading says so
             found.append(Path(dirpath))
     return sorted(found)
 
@@ -225,7 +227,10 @@ def read_run(run_dir: str | Path, *, rig: RigConfig | None = None,
         cam_pulse) are converted with the rig's [calibration] when the
         engineering column is absent and replaced by it; ``p_tank_mpag`` is added from the rig's
         ``supply.tank_pressure_mpag`` (0 MPaG, atmospheric) when absent.
-        A ``started_at`` without time zone is taken as UTC.
+        A ``started_at`` without time zone is taken as UTC. Column names
+        that differ from the contract's only in case or surrounding blanks
+        (" T_S") are taken as the contract's; a UTF-8 BOM and CRLF line ends
+        are fine.
 
     Raises
     ------
@@ -240,7 +245,9 @@ def read_run(run_dir: str | Path, *, rig: RigConfig | None = None,
         binary data, a missing column, a non-numeric cell, NaN/inf/empty in
         a required column (nullable cam_deg and q_ref_mm3_s may be empty),
         repeated or decreasing timestamps, a pressure above the rig's
-        ``analysis.max_plausible_pressure_mpag`` (kPa or Pa written as MPa).
+        ``analysis.max_plausible_pressure_mpag`` (kPa or Pa written as MPa);
+        a ';'- or tab-separated or non-UTF-8 header, a table entry that is a
+        folder, link loop or FIFO, a Parquet integer float64 cannot hold.
 
     Examples
     --------
@@ -297,6 +304,13 @@ def _locate(run_dir: Path, spec: TableSpec, kind: str) -> Path | None:
         return csv
     if has_pq:
         return parquet
+    for p in (csv, parquet):  # there, but not a regular file: never opened (a FIFO would block)
+        if os.path.lexists(p):
+            what = ("a folder" if p.is_dir() else
+                    "a broken or looping symbolic link" if not p.exists() else
+                    "not a regular file (pipe, socket or device)")
+            raise DataError(f"is {what}; expected the {spec.name} table as a CSV or Parquet file",
+                            path=p)
     if spec.required_file:
         needed = [s.name for s in table_specs().values() if kind in s.kinds]
         raise DataError(f"missing required file (no {csv.name} or {parquet.name}); a "
@@ -434,17 +448,51 @@ def _float_column(table: pa.Table, name: str, path: Path, col: ColumnSpec) -> np
     if not pa.types.is_float64(t):
         if pa.types.is_integer(t) or pa.types.is_floating(t) or pa.types.is_null(t) \
                 or pa.types.is_decimal(t):
-            column = column.cast(pa.float64())
+            try:
+                column = column.cast(pa.float64())
+            except (pa.ArrowInvalid, pa.ArrowException):
+                row, value = _first_inexact(column)
+                raise DataError(f"value {format_value(value)} ({t}) does not convert exactly to "
+                                f"float64; expected a float [{col.unit}] (an integer beyond 2^53, "
+                                "e.g. epoch nanoseconds, is not one)",
+                                path=path, column=name, row=row) from None
         elif pa.types.is_string(t) or pa.types.is_large_string(t):
             row, value = _first_non_number(column)
             if row is None:
                 column = pc.cast(pc.utf8_trim_whitespace(column), pa.float64())
             else:
-                raise DataError(f"value {format_value(value)} is not a number; expected a "
-                                f"decimal number [{col.unit}]", path=path, column=name, row=row)
+                raise DataError(f"value {format_value(value)} is not a number"
+                                f"{_number_hint(value)}; expected a decimal number [{col.unit}]",
+                                path=path, column=name, row=row)
         else:
             raise DataError(f"has type {t}; expected float64 [{col.unit}]", path=path, column=name)
     return _to_numpy(column)
+
+
+def _first_inexact(column: pa.ChunkedArray) -> tuple[int | None, object]:
+    """First (1-based row, value) of a numeric column that float64 cannot hold exactly."""
+    row = 0
+    for chunk in column.chunks:
+        for i in range(len(chunk)):
+            value = chunk[i].as_py()
+            if value is not None:
+                try:
+                    if float(value) != value:
+                        return row + i + 1, value
+                except (OverflowError, ValueError, TypeError):
+                    return row + i + 1, value
+        row += len(chunk)
+    return None, "?"
+
+
+_DECIMAL_COMMA = re.compile(r"^\s*[-+]?\d*,\d+\s*$")
+
+
+def _number_hint(value: object) -> str:
+    """A hint for a non-number that looks like a decimal-comma number ("0,35")."""
+    if isinstance(value, str) and _DECIMAL_COMMA.match(value):
+        return " (decimal comma? write '.' as the decimal point)"
+    return ""
 
 
 def _to_numpy(column: pa.ChunkedArray) -> np.ndarray:
@@ -461,23 +509,91 @@ def _to_numpy(column: pa.ChunkedArray) -> np.ndarray:
 # CSV ---------------------------------------------------------------------------
 
 def _parse_csv(path: Path, spec: TableSpec) -> pa.Table:
-    types = {name: pa.float64() for name in spec.typed_names}
+    header = _csv_header_names(path, spec)
+    names = _canonical_names(header, spec) if header is not None else None
+    typed = set(spec.typed_names)
+    if names is None:
+        types = {name: pa.float64() for name in typed}
+    else:  # keyed by the names as written (" T_S" is parsed as t_s)
+        types = {raw: pa.float64() for raw, name in zip(header, names) if name in typed}
     try:
-        return pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(column_types=types),
-                              memory_pool=_pool())
+        table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(column_types=types),
+                               memory_pool=_pool())
     except UnicodeDecodeError:
         raise DataError("header line is not UTF-8 text (binary data?); expected column "
                         f"names like {','.join(contract_columns(spec.name))}", path=path) from None
     except (pa.ArrowInvalid, pa.ArrowException) as exc:
-        raise _diagnose_csv(path.read_bytes(), path, spec, str(exc)) from None
+        raise _diagnose_csv(path.read_bytes(), path, spec, str(exc), header=header) from None
+    if names is not None and names != header and table.num_columns == len(names):
+        table = table.rename_columns(names)
+    return table
+
+
+def _canonical_names(names: list[str], spec: TableSpec) -> list[str]:
+    """Column names as the contract spells them when they differ only in case
+    or surrounding blanks (' T_S ' -> 't_s'); other names without surrounding
+    blanks. Units are part of the names, so nothing else is matched."""
+    known = {n.lower(): n for n in spec.typed_names}
+    out = []
+    for name in names:
+        bare = name.strip()
+        out.append(known.get(bare.lower(), bare))
+    return out
+
+
+def _csv_header_names(path: Path, spec: TableSpec) -> list[str] | None:
+    """Names of the CSV's header line as the CSV reader takes them (None when
+    the first line is not found in the first 64 KiB: the parse then decides).
+
+    Raises DataError for a header that is not UTF-8, a file holding only a
+    byte-order mark and blanks, and a header separated by ';' or tabs.
+    """
+    expected = ",".join(contract_columns(spec.name))
+    with open(path, "rb") as fh:
+        head = fh.read(_PREFIX)
+    pos = 3 if head.startswith(b"\xef\xbb\xbf") else 0
+    while True:  # the first non-empty line (the CSV reader skips empty ones)
+        ends = [i for i in (head.find(b"\n", pos), head.find(b"\r", pos)) if i >= 0]
+        if not ends and len(head) == _PREFIX:
+            return None
+        end = min(ends) if ends else len(head)
+        if end > pos or not ends:
+            break
+        pos = end + 1
+    line = head[pos:end]
+    try:
+        text = line.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        bad = format_value(line[exc.start:exc.start + 1])
+        raise DataError(f"header line is not UTF-8 text (byte {bad} at offset {exc.start}; "
+                        f"another encoding such as Latin-1?); expected UTF-8 column names like "
+                        f"{expected}", path=path) from None
+    if not text.strip():
+        if not head.decode("utf-8-sig", errors="replace").strip():
+            raise DataError(f"empty file; expected a header line "
+                            f"({', '.join(contract_columns(spec.name))}) and data rows", path=path)
+        return None  # blank first line: the CSV reader skips it
+    try:  # same quoting rules as pyarrow's reader for a header line
+        names = next(_csv_module.reader([text]))
+    except (_csv_module.Error, StopIteration):
+        return None
+    if len(names) == 1:
+        for sep, what in ((";", "semicolon"), ("\t", "tab")):
+            if sep in names[0]:
+                raise DataError(f"header {format_value(text)} is {what}-separated; expected "
+                                f"comma-separated columns ({expected}) with '.' as the decimal "
+                                "point", path=path)
+    return names
 
 
 _CONVERSION = re.compile(r"In CSV column #(\d+): .*conversion error")
 _NCOLS = re.compile(r"Expected (\d+) columns, got (\d+)")
 
 
-def _diagnose_csv(data: bytes, path: Path, spec: TableSpec, message: str) -> DataError:
-    """Slow path after pyarrow refused a CSV: find the row and value at fault."""
+def _diagnose_csv(data: bytes, path: Path, spec: TableSpec, message: str, *,
+                  header: list[str] | None = None) -> DataError:
+    """Slow path after pyarrow refused a CSV: find the row and value at fault.
+    ``header``: the header names as written (else split from ``data``)."""
     nul = data.find(b"\x00")
     if nul >= 0:
         line = data.count(b"\n", 0, nul)
@@ -486,19 +602,21 @@ def _diagnose_csv(data: bytes, path: Path, spec: TableSpec, message: str) -> Dat
                          "UTF-8 CSV text table", path=path)
     m = _CONVERSION.search(message)
     if m:
-        header = _csv_header(data)
+        header = header if header is not None else _csv_header(data)
         idx = int(m.group(1))
         if idx < len(header):
-            name = header[idx]
+            written = header[idx]
+            name = _canonical_names([written], spec)[0]
             unit = ""
             for c in spec.columns:
                 if name == c.name:
                     unit = c.unit
                 elif name in c.raw:
                     unit = raw_unit(name)
-            row, value = _locate_bad_number(data, name)
-            return DataError(f"value {format_value(value)} is not a number; expected a decimal "
-                             f"number [{unit}]", path=path, column=name, row=row)
+            row, value = _locate_bad_number(data, written)
+            return DataError(f"value {format_value(value)} is not a number"
+                             f"{_number_hint(value)}; expected a decimal number [{unit}]",
+                             path=path, column=name, row=row)
     m = _NCOLS.search(message)
     if m:
         expected = int(m.group(1))
@@ -511,11 +629,25 @@ def _diagnose_csv(data: bytes, path: Path, spec: TableSpec, message: str) -> Dat
 
 
 def _csv_header(data: bytes) -> list[str]:
-    first = data.split(b"\n", 1)[0].rstrip(b"\r").decode("utf-8-sig", errors="replace")
+    pos = 3 if data.startswith(b"\xef\xbb\xbf") else 0
+    while True:  # the first non-empty line (the CSV reader skips empty ones)
+        end = data.find(b"\n", pos)
+        line = (data[pos:] if end < 0 else data[pos:end]).rstrip(b"\r")
+        if line or end < 0:
+            break
+        pos = end + 1
+    first = line.decode("utf-8", errors="replace")
     return [h.strip().strip('"') for h in first.split(",")]
 
 
 def _locate_bad_number(data: bytes, name: str) -> tuple[int | None, object]:
+    try:
+        return _locate_bad_number_in(data, name)
+    except (pa.ArrowException, KeyError, UnicodeDecodeError):  # the error still names the column
+        return None, "?"
+
+
+def _locate_bad_number_in(data: bytes, name: str) -> tuple[int | None, object]:
     try:
         table = pacsv.read_csv(
             pa.BufferReader(data),
@@ -595,11 +727,13 @@ def _locate_bad_field_count(data: bytes, expected: int) -> tuple[int | None, int
 
 def _parse_parquet(path: Path, spec: TableSpec) -> pa.Table:
     try:
-        return pq.read_table(path)
+        table = pq.read_table(path)
     except (pa.ArrowException, OSError, ValueError) as exc:
         raise DataError(f"not a readable Parquet file ({_one_line(str(exc))[:160]}); expected a "
                         f"Parquet table with columns {', '.join(contract_columns(spec.name))}",
                         path=path) from None
+    names = _canonical_names(table.column_names, spec)
+    return table if names == table.column_names else table.rename_columns(names)
 
 
 # data sets -----------------------------------------------------------------

@@ -45,8 +45,23 @@ def format_value(value: Any, *, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
+def _one_line(text: Any) -> str:
+    return " ".join(str(text).split())
+
+
 def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _is_finite_number(value: Any) -> bool:
+    """A JSON number that is finite as a float (an integer literal too large
+    for a float, e.g. 400 digits, is not: ``math.isfinite`` would raise)."""
+    if not _is_number(value):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 @functools.lru_cache(maxsize=1)
@@ -89,6 +104,12 @@ def read_run_json(run_dir: str | Path, *, max_pressure_mpag: float = math.inf) -
         raise DataError(f"not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg}); "
                         'expected a JSON object like {"schema": "seanv-run/1", "run_id": ...}',
                         path=path) from None
+    except RecursionError:
+        raise DataError("not usable JSON (nested too deeply); expected a JSON object like "
+                        '{"schema": "seanv-run/1", "run_id": ...}', path=path) from None
+    except ValueError as exc:  # e.g. an integer literal of more than 4300 digits
+        raise DataError(f"not usable JSON ({_one_line(exc)[:120]}); expected a JSON object like "
+                        '{"schema": "seanv-run/1", "run_id": ...}', path=path) from None
     return parse_run_json(obj, path=path, max_pressure_mpag=max_pressure_mpag)
 
 
@@ -132,7 +153,7 @@ def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = mat
         fail("run_id", f"{format_value(run_id)} is not a safe file name; expected letters, "
                        "digits and . _ - + = @ (not starting with '.' or '-', no '/')")
 
-    kind = obj["kind"]
+    kind = _enum_text(obj["kind"], contract["run_kinds"])
     if kind not in contract["run_kinds"]:
         fail("kind", f"{format_value(kind)} is unknown; expected one of "
                      f"{', '.join(contract['run_kinds'])}")
@@ -141,7 +162,7 @@ def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = mat
 
     load = obj.get("load_mpag")
     if load is not None:
-        if not _is_number(load) or not math.isfinite(load):
+        if not _is_finite_number(load):
             fail("load_mpag", f"{format_value(load)} is not a finite number; expected "
                               "MPa gauge or null (load varies, read p_load_mpag)")
         if abs(load) > max_pressure_mpag:
@@ -154,19 +175,19 @@ def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = mat
         if name not in obj or obj[name] is None:
             fail(name, f"missing; required for kind '{kind}'")
 
-    side = obj.get("side")
+    side = _enum_text(obj.get("side"), contract["sides"])
     cam = obj.get("cam_deg")
     if kind == "flow_step":
         if side not in contract["sides"]:
             fail("side", f"{format_value(side)} is unknown; expected one of "
                          f"{', '.join(contract['sides'])}")
-        if not _is_number(cam) or not math.isfinite(cam):
+        if not _is_finite_number(cam):
             fail("cam_deg", f"{format_value(cam)} is not a finite number; expected the "
                             "commanded cam angle [deg]")
         cam = float(cam)
     else:
         side = side if side in contract["sides"] else None
-        cam = float(cam) if _is_number(cam) and math.isfinite(cam) else None
+        cam = float(cam) if _is_finite_number(cam) else None
 
     controller = obj.get("controller")
     if kind == "position_control":
@@ -188,6 +209,22 @@ def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = mat
                    rig_overrides=rig, extra=extra)
 
 
+def _enum_text(value: Any, choices) -> Any:
+    """``value`` as the contract spells it when it differs only in case or
+    surrounding blanks ("Supply", " drain"); otherwise unchanged."""
+    if isinstance(value, str):
+        key = value.strip().lower()
+        for choice in choices:
+            if key == choice.lower():
+                return choice
+    return value
+
+
+#: instants a summary table can hold (pandas datetime64[ns])
+_EARLIEST = datetime(1677, 9, 22, tzinfo=timezone.utc)
+_LATEST = datetime(2262, 4, 11, tzinfo=timezone.utc)
+
+
 def _parse_started_at(value: Any, fail) -> datetime:
     if not isinstance(value, str):
         fail("started_at", f"{format_value(value)} is not a string; expected an ISO 8601 "
@@ -198,7 +235,15 @@ def _parse_started_at(value: Any, fail) -> datetime:
         fail("started_at", f"{format_value(value)} is not an ISO 8601 time; expected e.g. "
                            "'2026-03-02T10:14:05Z'")
     # A time without zone is taken as UTC (documented in read_run).
-    return dt.replace(tzinfo=timezone.utc) if dt.tzinfo is None else dt.astimezone(timezone.utc)
+    try:
+        dt = dt.replace(tzinfo=timezone.utc) if dt.tzinfo is None else dt.astimezone(timezone.utc)
+    except OverflowError:  # e.g. 9999-12-31T23:59:59-23:59 is past year 9999 in UTC
+        dt = None
+    if dt is None or not _EARLIEST <= dt <= _LATEST:
+        fail("started_at", f"{format_value(value)} is out of range; expected a time between "
+                           f"{_EARLIEST.year + 1} and {_LATEST.year - 1} like "
+                           "'2026-03-02T10:14:05Z'")
+    return dt
 
 
 def _check_controller(controller: Any, fail) -> dict[str, Any]:
@@ -210,17 +255,27 @@ def _check_controller(controller: Any, fail) -> dict[str, Any]:
         if name not in controller:
             fail(f"controller.{name}", "missing; required for kind 'position_control'")
     kp = controller["kp"]
-    if not _is_number(kp) or not math.isfinite(kp):
+    if not _is_finite_number(kp):
         fail("controller.kp", f"{format_value(kp)} is not a finite number; expected the "
                               "proportional gain (mm^3/s per mm with the flow model, deg per mm without)")
     if not isinstance(controller["flow_model"], bool):
         fail("controller.flow_model", f"{format_value(controller['flow_model'])} is not a "
                                       "boolean; expected true or false")
     rate = controller.get("rate_hz")
-    if rate is not None and (not _is_number(rate) or not rate > 0 or not math.isfinite(rate)):
+    if rate is not None and (not _is_finite_number(rate) or not rate > 0):
         fail("controller.rate_hz", f"{format_value(rate)} is not a positive number; "
                                    "expected the control rate [Hz]")
     return dict(controller)
+
+
+#: rig keys (by name, any section) that the models divide by or take as
+#: physical sizes: an override must keep them > 0 (c_flow: != 0)
+_POSITIVE_RIG_KEY = re.compile(
+    r"((?<!^rod_)diameter_mm|^length_m|^stroke_mm|radius_mm|rate_hz|^cam_slope_deg"
+    r"|^spring_constant_n_per_mm|bulk_modulus_mpa|^time_step_s|^density_kg_per_m3"
+    r"|viscosity_pa_s|^moving_mass_kg|^stribeck_velocity_mm_s|time_constant_s|resolution_deg"
+    r"|resolution_mm|^kpa_per_mpa|^derivative_window_s)$")
+_NONZERO_RIG_KEY = re.compile(r"^c_flow$")
 
 
 def check_rig_overrides(overrides: Mapping[str, Any], base: Mapping[str, Any], *,
@@ -245,10 +300,17 @@ def check_rig_overrides(overrides: Mapping[str, Any], base: Mapping[str, Any], *
                 raise DataError(f"field '{here}': {format_value(value)} is not an object; "
                                 "expected a table of rig keys", path=path)
             check_rig_overrides(value, ref, path=path, where=here)
-        elif _is_number(ref) and not (_is_number(value) and math.isfinite(value)):
+        elif _is_number(ref) and not _is_finite_number(value):
             raise DataError(f"field '{here}': {format_value(value)} is not a finite number; "
                             f"expected a number like the rig config's {format_value(ref)}",
                             path=path)
+        elif _is_number(ref) and _POSITIVE_RIG_KEY.search(key) and not value > 0:
+            raise DataError(f"field '{here}': {format_value(value)} is not positive; expected a "
+                            f"size or rate > 0 like the rig config's {format_value(ref)}",
+                            path=path)
+        elif _is_number(ref) and _NONZERO_RIG_KEY.search(key) and value == 0:
+            raise DataError(f"field '{here}': 0 gives no flow; expected a nonzero flow "
+                            f"coefficient like the rig config's {format_value(ref)}", path=path)
         elif isinstance(ref, str) and not isinstance(value, str):
             raise DataError(f"field '{here}': {format_value(value)} is not a string", path=path)
         elif isinstance(ref, list) and not isinstance(value, list):
@@ -265,7 +327,9 @@ def check_finite(values: np.ndarray, *, path: str | Path, column: str,
     An empty cell reads as NaN. ``nullable`` columns (cam_deg, q_ref_mm3_s)
     may be empty, partly or entirely.
     """
-    if np.isfinite(np.add.reduce(values)):
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = np.add.reduce(values)
+    if np.isfinite(total):
         return  # one pass, no temporary: any NaN or inf would make the sum non-finite
     bad = np.isinf(values) if nullable else ~np.isfinite(values)
     if not bad.any():
