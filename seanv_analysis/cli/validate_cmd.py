@@ -44,6 +44,11 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     position fit below --threshold are flagged.
 
     \b
+    The plant is built from the rig config (tube, actuator, friction, load,
+    servo): for logs from another rig pass that rig's file with --rig, or the
+    comparison measures the difference between the rigs, not the valve model.
+
+    \b
     Writes: validate.json, validate.txt, validate_table.parquet,
     validate_<run>.parquet/.png/.svg, validate_fit.png/.svg, manifest.json.
     Example: seanv-analyze validate data/position --model outputs/flow/flowfit/model.json
