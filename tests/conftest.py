@@ -178,6 +178,23 @@ def make_dataset():
     return write_synthetic_dataset
 
 
+def snapshot(folder: Path) -> dict[str, str]:
+    """Every entry under ``folder`` (hidden ones too) with its content hash, to
+    show a command left a data folder untouched (FIFOs and links not opened)."""
+    import hashlib
+    import os
+
+    out = {}
+    for dirpath, dirnames, filenames in os.walk(folder):
+        for d in dirnames:
+            out[os.path.relpath(os.path.join(dirpath, d), folder)] = "dir"
+        for f in filenames:
+            p = Path(dirpath) / f
+            out[str(p.relative_to(folder))] = (hashlib.sha256(p.read_bytes()).hexdigest()
+                                               if p.is_file() else "special")
+    return out
+
+
 @pytest.fixture(scope="session")
 def rig():
     """The shipped default rig config."""

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import atexit
 import functools
-import hashlib
 import json
 import os
 import re
@@ -31,6 +30,7 @@ from click.testing import CliRunner
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from conftest import snapshot
 from seanv_analysis.cli import cli
 from seanv_analysis.errors import DataError
 from seanv_analysis.io import read_run
@@ -51,19 +51,6 @@ COMMANDS = {
 
 
 # helpers ---------------------------------------------------------------------
-
-def snapshot(folder: Path) -> dict[str, str]:
-    """Every entry under ``folder`` with its content hash (FIFOs and links not opened)."""
-    out = {}
-    for dirpath, dirnames, filenames in os.walk(folder):
-        for d in dirnames:
-            out[os.path.relpath(os.path.join(dirpath, d), folder)] = "dir"
-        for f in filenames:
-            p = Path(dirpath) / f
-            out[str(p.relative_to(folder))] = (hashlib.sha256(p.read_bytes()).hexdigest()
-                                               if p.is_file() else "special")
-    return out
-
 
 @contextmanager
 def deadline(seconds: int):

@@ -16,23 +16,12 @@ from click.testing import CliRunner
 from seanv_analysis.cli import cli
 from seanv_analysis.io import SUMMARY_COLUMNS, read_dataset
 
+from conftest import snapshot
 from test_io_bad_input import CASES
 
 CLI_MATCH = {  # where the CLI sees a different first problem than read_run
     "run_json_missing": r"no run\.json found at any depth",
 }
-
-
-def snapshot(folder: Path) -> dict[str, str]:
-    """Every entry under ``folder`` (hidden ones too) with its content hash."""
-    out = {}
-    for dirpath, dirnames, filenames in os.walk(folder):
-        for d in dirnames:
-            out[os.path.relpath(os.path.join(dirpath, d), folder)] = "dir"
-        for f in filenames:
-            p = Path(dirpath) / f
-            out[str(p.relative_to(folder))] = hashlib.sha256(p.read_bytes()).hexdigest()
-    return out
 
 
 def invoke(*args):
