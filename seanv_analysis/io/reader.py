@@ -324,6 +324,7 @@ class _Scan:
     sha256: str | None
     nul_offset: int      # first NUL byte, -1 if none
     blank: bool          # only whitespace (or nothing)
+    head: bytes = b""    # the first 64 KiB (the CSV header is read from it)
 
 
 def _scan(path: Path, *, want_hash: bool, find_nul: bool) -> _Scan:
@@ -336,9 +337,11 @@ def _scan(path: Path, *, want_hash: bool, find_nul: bool) -> _Scan:
     path then reports it as binary data).
     """
     h = hashlib.sha256() if want_hash else None
-    size, nul, blank = 0, -1, True
+    size, nul, blank, head = 0, -1, True, b""
     with open(path, "rb") as fh:
         while chunk := fh.read(_CHUNK if want_hash else _PREFIX):
+            if not size:
+                head = chunk[:_PREFIX]
             if h is not None:
                 h.update(chunk)
             if find_nul and nul < 0:
@@ -352,7 +355,7 @@ def _scan(path: Path, *, want_hash: bool, find_nul: bool) -> _Scan:
                 if len(chunk) == _PREFIX:
                     blank = False  # more follows: not known to be blank
                 break
-    return _Scan(size, h.hexdigest() if h is not None else None, nul, blank)
+    return _Scan(size, h.hexdigest() if h is not None else None, nul, blank, head)
 
 
 def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
@@ -378,7 +381,7 @@ def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
     # ``table`` is this frame's only reference: each column is dropped from it
     # once converted, so Arrow's copy of a column is released as numpy's is
     # made (peak: one table in Arrow + numpy, not two).
-    table = _parse_csv(path, spec) if is_csv else _parse_parquet(path, spec)
+    table = _parse_csv(path, spec, scan.head) if is_csv else _parse_parquet(path, spec)
     names = table.column_names
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
@@ -508,8 +511,9 @@ def _to_numpy(column: pa.ChunkedArray) -> np.ndarray:
 
 # CSV ---------------------------------------------------------------------------
 
-def _parse_csv(path: Path, spec: TableSpec) -> pa.Table:
-    header = _csv_header_names(path, spec)
+def _parse_csv(path: Path, spec: TableSpec, head: bytes) -> pa.Table:
+    """Parse a CSV table; ``head``: its first 64 KiB (already read by :func:`_scan`)."""
+    header = _csv_header_names(head, path, spec)
     names = _canonical_names(header, spec) if header is not None else None
     typed = set(spec.typed_names)
     if names is None:
@@ -541,16 +545,15 @@ def _canonical_names(names: list[str], spec: TableSpec) -> list[str]:
     return out
 
 
-def _csv_header_names(path: Path, spec: TableSpec) -> list[str] | None:
-    """Names of the CSV's header line as the CSV reader takes them (None when
-    the first line is not found in the first 64 KiB: the parse then decides).
+def _csv_header_names(head: bytes, path: Path, spec: TableSpec) -> list[str] | None:
+    """Names of the CSV's header line as the CSV reader takes them, from the
+    file's first 64 KiB ``head`` (None when the first line is not found in
+    it: the parse then decides).
 
     Raises DataError for a header that is not UTF-8, a file holding only a
     byte-order mark and blanks, and a header separated by ';' or tabs.
     """
     expected = ",".join(contract_columns(spec.name))
-    with open(path, "rb") as fh:
-        head = fh.read(_PREFIX)
     pos = 3 if head.startswith(b"\xef\xbb\xbf") else 0
     while True:  # the first non-empty line (the CSV reader skips empty ones)
         ends = [i for i in (head.find(b"\n", pos), head.find(b"\r", pos)) if i >= 0]
