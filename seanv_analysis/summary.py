@@ -17,7 +17,8 @@ import pandas as pd
 from .config import RigConfig, load_rig
 from .errors import DataError, SeanvError
 
-__all__ = ["DatasetSummary", "summarize_runs", "summarize_dataset", "AUTO_PARALLEL_MIN_RUNS"]
+__all__ = ["DatasetSummary", "summarize_runs", "summarize_dataset", "dataset_errors",
+           "AUTO_PARALLEL_MIN_RUNS"]
 
 
 @dataclass
@@ -52,9 +53,13 @@ def _summary_frame(rows: list[dict], rig: RigConfig) -> pd.DataFrame:
 
 
 def _summary_error(run, exc: SeanvError):
+    """RunError of a run that could be read but not summarised: one line,
+    prefixed with the run folder unless the message already names it."""
     from .io.reader import RunError
 
-    return RunError(Path(run.meta.path), f"{run.meta.path}: {exc}")
+    msg = " ".join(str(exc).split())
+    where = str(run.meta.path)
+    return RunError(Path(where), msg if where in msg else f"{where}: {msg}")
 
 
 def summarize_runs(runs, rig: RigConfig, *, method: str = "steady") -> tuple[pd.DataFrame, list]:
@@ -74,28 +79,33 @@ def summarize_runs(runs, rig: RigConfig, *, method: str = "steady") -> tuple[pd.
     return _summary_frame(rows, rig), errors
 
 
-def _summarize_read(run, *, method: str, keep_kinds: frozenset[str]):
+def _summarize_read(run, *, method: str, keep_kinds: frozenset[str], derive_all: bool = False):
     """One run (or the RunError of its reading): (row or None, read error or
     None, summary error or None, the run when its kind is kept, {file:
     SHA-256} of what was read). Errors are values, so a bad run never aborts
-    the others."""
-    from .derive import summarize_run
+    the others. ``derive_all``: derive position-control runs too (their
+    summary does not need it), so a run whose streams cannot be aligned is
+    reported."""
+    from .derive import derive_samples, summarize_run
     from .io.reader import RunError
 
     if isinstance(run, RunError):
         return None, run, None, None, {}
     try:
-        row, err = summarize_run(run, method=method), None
+        derived = derive_samples(run) if derive_all else None
+        row, err = summarize_run(run, method=method, derived=derived), None
     except SeanvError as exc:
         row, err = None, _summary_error(run, exc)
     return row, None, err, (run if run.kind in keep_kinds else None), dict(run.file_sha256)
 
 
-def _read_and_summarize(meta, *, rig: RigConfig, method: str, keep_kinds: frozenset[str]):
+def _read_and_summarize(meta, *, rig: RigConfig, method: str, keep_kinds: frozenset[str],
+                        derive_all: bool = False):
     """:func:`_summarize_read` of one run read here (a worker process's task)."""
     from .io.reader import read_run_tables
 
-    return _summarize_read(read_run_tables(meta, rig), method=method, keep_kinds=keep_kinds)
+    return _summarize_read(read_run_tables(meta, rig), method=method, keep_kinds=keep_kinds,
+                           derive_all=derive_all)
 
 
 def summarize_dataset(path: str | Path, *, rig: RigConfig | None = None, method: str = "steady",
@@ -127,17 +137,41 @@ def summarize_dataset(path: str | Path, *, rig: RigConfig | None = None, method:
     DataError
         when no run of the data set could be read and summarised.
     """
+    rig = rig or load_rig()
+    rows, errors, runs = _collect(path, rig=rig, method=method, keep_runs=keep_runs,
+                                  workers=workers)
+    summary = _summary_frame(rows, rig)
+    if summary.empty:
+        raise DataError("no valid runs in the data set", path=path)
+    return DatasetSummary(summary, errors, runs, Path(path))
+
+
+def dataset_errors(path: str | Path, *, rig: RigConfig | None = None,
+                   method: str = "steady") -> list:
+    """The runs of a data set that cannot be read or summarised
+    (:class:`seanv_analysis.io.RunError`, as :func:`summarize_dataset` lists
+    them), without raising when none is usable: what a command says after
+    it found nothing to work on. Every run is derived, position-control runs
+    too."""
+    return _collect(path, rig=rig or load_rig(), method=method, keep_runs=False, workers=1,
+                    derive_all=True)[1]
+
+
+def _collect(path, *, rig: RigConfig, method: str, keep_runs, workers: int | None,
+             derive_all: bool = False):
+    """(summary rows, errors, kept runs) of a data set: the work of
+    :func:`summarize_dataset` before the filters. Errors: runs that could not
+    be read (sorted by path), then runs that could not be summarised."""
     from .io._hashing import remember_sha256
     from .io.reader import RunError, dataset_plan, read_runs
 
-    rig = rig or load_rig()
     metas, read_errors, base = dataset_plan(path, rig=rig)
     keep = frozenset(("flow_step", "position_control") if keep_runs is True
                      else () if keep_runs is False else keep_runs)
     if workers is None:  # auto: never from inside a worker process (no nested pools)
         big = len(metas) >= AUTO_PARALLEL_MIN_RUNS and mp.parent_process() is None
         workers = (os.cpu_count() or 1) if big else 1
-    kwargs = {"rig": base, "method": method, "keep_kinds": keep}
+    kwargs = {"rig": base, "method": method, "keep_kinds": keep, "derive_all": derive_all}
     if workers > 1 and len(metas) > 1:
         from .batch.executor import make_executor
 
@@ -152,7 +186,7 @@ def summarize_dataset(path: str | Path, *, rig: RigConfig | None = None, method:
             for file, digest in r.value[4].items():  # the manifest reuses them
                 remember_sha256(file, digest)
     else:  # this process, the next run read ahead on a thread
-        outcomes = (_summarize_read(run, method=method, keep_kinds=keep)
+        outcomes = (_summarize_read(run, method=method, keep_kinds=keep, derive_all=derive_all)
                     for run in read_runs(metas, base))
     rows, summary_errors, runs = [], [], []
     for row, read_error, summary_error, run, _ in outcomes:
@@ -164,8 +198,4 @@ def summarize_dataset(path: str | Path, *, rig: RigConfig | None = None, method:
             summary_errors.append(summary_error)
         if run is not None:
             runs.append(run)
-    summary = _summary_frame(rows, rig)
-    if summary.empty:
-        raise DataError("no valid runs in the data set", path=path)
-    errors = sorted(read_errors, key=lambda e: str(e.path)) + summary_errors
-    return DatasetSummary(summary, errors, runs, Path(path))
+    return rows, sorted(read_errors, key=lambda e: str(e.path)) + summary_errors, runs

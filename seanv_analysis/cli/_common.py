@@ -39,28 +39,6 @@ def check_out_dir(data: str | Path | None, out: str | Path) -> None:
                         "the current folder)", path=data)
 
 
-def _run_problems(data: Path, rig) -> tuple[int, list[str]]:
-    """(usable runs, one line per bad run) of DATA: each run read and
-    summarised as ingest does. Slow path, only after a command found nothing usable."""
-    from ..derive import derive_samples, summarize_run
-    from ..errors import SeanvError
-    from ..io.reader import RunError, iter_dataset
-
-    good, errors = 0, []
-    for item in iter_dataset(data, rig=rig, hash_files=False):
-        if isinstance(item, RunError):
-            errors.append(item.message)
-            continue
-        try:
-            summarize_run(item, derived=derive_samples(item))
-        except SeanvError as exc:
-            msg = " ".join(str(exc).split())
-            errors.append(msg if str(item.meta.path) in msg else f"{item.meta.path}: {msg}")
-            continue
-        good += 1
-    return good, errors
-
-
 def explain_unusable(data: str | Path | None, rig, exc: Exception) -> int:
     """After a command's library call refused DATA (``exc``, e.g. "no valid
     runs"), say which runs were bad and why.
@@ -77,7 +55,9 @@ def explain_unusable(data: str | Path | None, rig, exc: Exception) -> int:
     if rig is None or isinstance(rig, (str, Path)):
         from ..config import load_rig
         rig = load_rig(rig)
-    _, errors = _run_problems(Path(data), rig)
+    from ..summary import dataset_errors
+
+    errors = [e.message for e in dataset_errors(data, rig=rig)]
     single = is_run_dir(data)
     if not errors:
         msg = " ".join(str(exc).split())
