@@ -317,6 +317,16 @@ def _flowstep_tables(step, t, cmd, cam, X, PS, PH, load_true, p_tank, rng, *,
     return {"encoder": enc, "pressure": pres, "servo": servo}
 
 
+def _start(out, truth, seed_key):
+    """(truth, output folder created, seeded rng, the two needles) of a writer."""
+    tr = truth or ForeignTruth()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c),
+               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c)}
+    return tr, out, np.random.default_rng(seed_key), needles
+
+
 def write_flowsteps(out: str | Path, *, plan: Iterable[Step] | None = None, seed: int = 0,
                     truth: ForeignTruth | None = None, start: datetime | None = None,
                     name_prefix: str = "B", trace: bool = False) -> ForeignTruth:
@@ -326,12 +336,7 @@ def write_flowsteps(out: str | Path, *, plan: Iterable[Step] | None = None, seed
     side's C by (1 - s)^floor(i / k), i = the run's 0-based position in time
     order among all runs written here.
     """
-    tr = truth or ForeignTruth()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng([seed, 0xF0E1])
-    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c),
-               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c)}
+    tr, out, rng, needles = _start(out, truth, [seed, 0xF0E1])
     steps = list(plan) if plan is not None else flowstep_plan()
     t_wall = start or datetime(2026, 5, 11, 1, 14, 5, 250000, tzinfo=timezone.utc)
     for i, step in enumerate(steps):
@@ -433,12 +438,7 @@ def write_position(out: str | Path, *, seed: int = 0, truth: ForeignTruth | None
     """Write ``n_runs`` position-control runs (flow model, kp 480, 50 Hz) of
     the foreign rig under ``out``. The last one logs an empty q_ref column
     when ``empty_qref_run`` (the analysis must rebuild Q_ref from kp)."""
-    tr = truth or ForeignTruth()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    rng = np.random.default_rng([seed, 0xB0B])
-    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c),
-               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c)}
+    tr, out, rng, needles = _start(out, truth, [seed, 0xB0B])
     t_wall = start or datetime(2026, 5, 12, 0, 30, 0, tzinfo=timezone.utc)
     for k in range(n_runs):
         refs = np.array([0.0, 25.0, 10.0, 35.0, 20.0, 40.0, 5.0]) + rng.uniform(-2, 2)
