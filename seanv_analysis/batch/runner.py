@@ -634,8 +634,7 @@ class _Context:
                 self.result.validation_augmented = after
                 disc.validation = {"before": _validation_numbers(before),
                                    "after": _validation_numbers(after)}
-                if disc.heldout_source != "flow_step":
-                    disc.use_closed_loop_heldout()
+                disc.use_closed_loop_heldout()
                 for p in _as_paths(after.write(self.result.out_dir / "validate_augmented")):
                     self._write(p)
             except SeanvError as exc:

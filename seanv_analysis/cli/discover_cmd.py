@@ -67,8 +67,7 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
         return explain_unusable(data, rig, exc)
     if result.effects and ds.runs:  # position-control runs: closed-loop check via validate
         result.validation = _closed_loop(result, ds.runs, model, rig)
-        if result.heldout_source != "flow_step":
-            result.use_closed_loop_heldout()
+        result.use_closed_loop_heldout()
     write_json_atomic(out / "discover.json", result.to_json())
     write_json_atomic(out / "model_augmented.json", result.augmented_model_dict())
     write_text_atomic(out / "discover.txt", result.report() + "\n")

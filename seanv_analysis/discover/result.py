@@ -128,7 +128,10 @@ class Discovery:
         """Position-control-only data: take the before/after error from the
         closed-loop check (``validation``, flow-model controller runs, else
         all) instead of the shifted-flow RMSE, which a delay in the loop makes
-        a poor predictor (see :mod:`.dynamic`)."""
+        a poor predictor (see :mod:`.dynamic`). Nothing changes when the
+        held-out error comes from flow-step runs."""
+        if self.heldout_source == "flow_step":
+            return
         val = self.validation or {}
         before, after = val.get("before") or {}, val.get("after") or {}
         ctrl = "flow_model" if "flow_model" in before else next(iter(before), None)

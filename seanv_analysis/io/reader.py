@@ -34,7 +34,7 @@ from ..errors import DataError, SeanvError
 from ._hashing import remember_sha256, sha256_bytes
 from .calibrate import calibrate, raw_unit
 from .run import Run, RunMeta
-from .validate import (_contract, check_finite, check_increasing, check_pressure,
+from .validate import (_contract, _one_line, check_finite, check_increasing, check_pressure,
                        check_rig_overrides, format_value, read_run_json)
 
 __all__ = ["find_runs", "is_run_dir", "read_run", "read_dataset", "iter_dataset",
@@ -164,10 +164,6 @@ class DatasetRead:
         lines = [f"{self.path}: {len(self.runs)} run(s) read, {len(self.errors)} bad"]
         lines += [f"  {e.message}" for e in self.errors]
         return "\n".join(lines)
-
-
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
 
 
 # finding runs ----------------------------------------------------------------
