@@ -14,7 +14,7 @@ import pandas as pd
 
 from .errors import DataError
 
-__all__ = ["align_streams", "interp_sorted", "HOLD_COLUMNS"]
+__all__ = ["align_streams", "interp_sorted", "same_clock", "HOLD_COLUMNS"]
 
 #: Commands: piecewise constant between samples (the controller holds them),
 #: so they are aligned with previous-value hold, never interpolated.
@@ -136,11 +136,14 @@ def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None
                 out.update((c, np.array(v[base_slice], dtype=np.float64)) for c, v in cols.items())
             continue
         counts = idx = None
-        lin = _Interpolator(tk, t) if any(c not in hold for c in cols) else None
         for c, v in cols.items():
             v = np.asarray(v, dtype=np.float64)
-            if c not in hold:
-                out[c] = lin(v)
+            if v.size and v.strides[0] == 0:
+                # a constant column (e.g. the reader's default p_tank): stays a
+                # zero-stride view, as interpolation or hold would give
+                out[c] = np.broadcast_to(v[:1], t.shape)
+            elif c not in hold:
+                out[c] = interp_sorted(t, tk, v)
             elif t_sorted:
                 if counts is None:
                     # sample i holds over t in [t_i, t_{i+1}); t >= lo >= tk[0]
@@ -157,66 +160,35 @@ def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None
     return pd.DataFrame(out, copy=False)
 
 
-class _Interpolator:
-    """Linear interpolation from sample instants ``tk`` (increasing) onto
-    ``t`` (inside ``[tk[0], tk[-1]]``), the bracketing search done once and
-    shared by every column of a stream (outside it the end samples are
-    held, as np.interp does). Same arithmetic as
-    ``np.interp(t, tk, v)`` (which repeats the search per column:
-    slope (v1 - v0) / (t1 - t0) times (t - t0), plus v0); when ``t`` is
-    ``tk`` or a contiguous run of it (streams on one clock) the samples are
-    taken as they are."""
-
-    def __init__(self, tk: np.ndarray, t: np.ndarray):
-        self.t = t
-        self.same: slice | None = None
-        if t.size and tk.size >= t.size:
-            i0 = int(np.searchsorted(tk, t[0], side="left"))
-            if i0 + t.size <= tk.size and np.array_equal(tk[i0:i0 + t.size], t):
-                self.same = slice(i0, i0 + t.size)
-                return
-        self.n = tk.size
-        if tk.size < 2:
-            return
-        i = _bracket(tk, t)
-        self.last = i >= tk.size - 1          # t >= tk[-1]: the last sample itself
-        np.clip(i, 0, tk.size - 2, out=i)
-        self.i = i
-        self.dt = np.maximum(t, tk[0]) - tk[i]  # t < tk[0]: the first sample (np.interp)
-        self.span = tk[i + 1] - tk[i]
-
-    def __call__(self, v: np.ndarray) -> np.ndarray:
-        if self.same is not None:
-            return np.array(v[self.same], dtype=np.float64)
-        if self.n < 2:
-            return np.full(self.t.size, v[0] if v.size else np.nan)
-        lo = v[self.i]
-        out = v[self.i + 1] - lo
-        out /= self.span
-        out *= self.dt
-        out += lo
-        if self.last.any():
-            out[self.last] = v[-1]
-        return out
+def same_clock(t: np.ndarray, tk: np.ndarray) -> slice | None:
+    """The slice of ``tk`` equal to ``t`` when ``t`` is a contiguous run of
+    ``tk`` (two streams on one clock), else None."""
+    if not t.size or tk.size < t.size:
+        return None
+    i0 = int(np.searchsorted(tk, t[0], side="left"))
+    if i0 + t.size <= tk.size and tk[i0] == t[0] and tk[i0 + t.size - 1] == t[-1] \
+            and np.array_equal(tk[i0:i0 + t.size], t):
+        return slice(i0, i0 + t.size)
+    return None
 
 
-def _bracket(tk: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """``np.searchsorted(tk, t, side="right") - 1`` (the largest i with
-    tk[i] <= t; -1 before tk[0]), found with np.interp's search, which
-    starts from the previous answer and so is ~3x faster on sorted ``t``;
-    one step of correction makes it exact whatever the rounding."""
-    n = tk.size
-    i = np.interp(t, tk, np.arange(n, dtype=np.float64)).astype(np.intp)
-    i[t < tk[0]] = -1
-    high = tk[np.maximum(i, 0)] > t               # rounded up past t
-    i[high & (i >= 0)] -= 1
-    nxt = np.minimum(i + 1, n - 1)
-    i[(i + 1 < n) & (tk[nxt] <= t)] += 1          # rounded down below a sample
-    return i
+def interp_sorted(t: np.ndarray, tk: np.ndarray, v: np.ndarray, *,
+                  copy: bool = True) -> np.ndarray:
+    """``np.interp(t, tk, v)`` (increasing ``tk``, ends held), except that
+    where ``t`` is a contiguous run of ``tk`` (one clock) the samples are
+    taken as they are: a copy, or with ``copy=False`` a view of ``v``.
 
-
-def interp_sorted(t: np.ndarray, tk: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``np.interp(t, tk, v)`` (same values, ends held), exact (no
-    arithmetic) where ``t`` is a contiguous run of ``tk``."""
-    return _Interpolator(np.asarray(tk, np.float64), np.asarray(t, np.float64))(
-        np.asarray(v, np.float64))
+    np.interp per column is also the fastest route on long logs: its search
+    starts from the previous answer and it allocates only the result (and
+    the slopes); sharing one bracketing search between the columns of a
+    stream needed ~25 temporaries of the log's length, whose first touch in
+    a fresh process cost more than the searches saved.
+    """
+    t = np.asarray(t, np.float64)
+    tk = np.asarray(tk, np.float64)
+    v = np.asarray(v, np.float64)
+    if t.ndim == 1 and tk.ndim == 1 and v.shape == tk.shape:
+        same = same_clock(t, tk)
+        if same is not None:
+            return np.array(v[same]) if copy else v[same]
+    return np.interp(t, tk, v)

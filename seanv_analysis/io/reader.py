@@ -222,7 +222,8 @@ def read_run(run_dir: str | Path, *, rig: RigConfig | None = None,
         Raw columns (encoder_counts, p_*_v, p_*_kpag, cam_cmd_pulse,
         cam_pulse) are converted with the rig's [calibration] when the
         engineering column is absent and replaced by it; ``p_tank_mpag`` is added from the rig's
-        ``supply.tank_pressure_mpag`` (0 MPaG, atmospheric) when absent.
+        ``supply.tank_pressure_mpag`` (0 MPaG, atmospheric) when absent (a
+        read-only constant column: a zero-stride view, no memory).
         A ``started_at`` without time zone is taken as UTC. Column names
         that differ from the contract's only in case or surrounding blanks
         (" T_S") are taken as the contract's; a UTF-8 BOM and CRLF line ends
@@ -422,7 +423,7 @@ def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
             if col.unit != _PRESSURE_UNIT:
                 continue  # an optional non-pressure column: nothing to default to
             tank = float(rig["supply"].get("tank_pressure_mpag", 0.0))
-            out[col.name] = np.full(n, tank)
+            out[col.name] = np.broadcast_to(np.float64(tank), n)  # constant: a view, no memory
             continue
         values = _float_column(table, source, path, col)
         table = table.drop_columns([source])
@@ -517,8 +518,11 @@ def _parse_csv(path: Path, spec: TableSpec, head: bytes) -> pa.Table:
     else:  # keyed by the names as written (" T_S" is parsed as t_s)
         types = {raw: pa.float64() for raw, name in zip(header, names) if name in typed}
     try:
-        table = pacsv.read_csv(path, convert_options=pacsv.ConvertOptions(column_types=types),
-                               memory_pool=_pool())
+        # the file's read buffers come from the reader's pool too (else from
+        # Arrow's default pool, which keeps ~ the file's size resident after)
+        with pa.OSFile(str(path), "r", memory_pool=_pool()) as source:
+            table = pacsv.read_csv(source, convert_options=pacsv.ConvertOptions(
+                column_types=types), memory_pool=_pool())
     except UnicodeDecodeError:
         raise DataError("header line is not UTF-8 text (binary data?); expected column "
                         f"names like {','.join(contract_columns(spec.name))}", path=path) from None
