@@ -145,7 +145,12 @@ _MODES = ("none", "bare", "ingest", "ingest_hash", "ingest_derive", "cli")
 
 
 def _child(mode: str, root: str, out: str) -> None:
-    """Run one mode in this (fresh) process; print elapsed time and peak RSS."""
+    """Run one mode in this (fresh) process; print elapsed time and peak RSS.
+    Every mode (bare included) gets the CLI's process set-up
+    (:func:`seanv_analysis._process.return_large_blocks_to_os`)."""
+    from seanv_analysis._process import return_large_blocks_to_os
+
+    return_large_blocks_to_os()
     import seanv_analysis.cli.ingest_cmd  # noqa: F401  (imports not timed)
     import seanv_analysis.io  # noqa: F401
     _derive()  # scipy.signal etc.: imports not timed

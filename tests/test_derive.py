@@ -449,3 +449,29 @@ def test_summarize_run_from_reader(tmp_path, make_run, side, cam):
     assert_allclose(row["q_steady_mm3_s"], q, rtol=0.01)
     assert row["cam_approach"] == (1.0 if side == "supply" else -1.0)
     assert_allclose(row["cam_measured_deg"], cam, atol=0.05)
+
+
+def test_derivative_beside_alignment_gives_the_same_frame(monkeypatch):
+    """Long records compute the derivative on a helper thread while the
+    streams are aligned: the frame is identical to the serial one."""
+    import seanv_analysis.derive as derive_mod
+
+    run = make_run(constant(2000.0 / AREA))
+    monkeypatch.setattr(derive_mod, "_OVERLAP_MIN_SAMPLES", 10**9)
+    serial = derive_samples(run)
+    monkeypatch.setattr(derive_mod, "_OVERLAP_MIN_SAMPLES", 0)
+    beside = derive_samples(run)
+    pd.testing.assert_frame_equal(beside, serial, check_exact=True)
+    assert beside.attrs == serial.attrs
+
+
+def test_derivative_beside_alignment_keeps_the_alignment_error_first(monkeypatch):
+    import seanv_analysis.derive as derive_mod
+
+    run = make_run(constant(5.0))
+    late = run.tables["pressure"].assign(t_s=run.tables["pressure"]["t_s"] + 100.0)
+    bad = type(run)(meta=run.meta, tables={**run.tables, "pressure": late}, rig=run.rig,
+                    files=run.files, file_sha256=run.file_sha256)
+    monkeypatch.setattr(derive_mod, "_OVERLAP_MIN_SAMPLES", 0)
+    with pytest.raises(DataError, match="do not overlap"):
+        derive_samples(bad)

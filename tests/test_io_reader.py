@@ -320,3 +320,63 @@ def test_write_manifest(tmp_path):
     assert doc["config"] == {"k": 2} and doc["extra"] == {"runs": 3}
     assert doc["command_line"] == "x y" and doc["schema"] == "seanv-manifest/1"
     assert len(doc["inputs_sha256"]) == 64 and "git_sha" in doc
+
+
+# long-log paths (threads, purging pool): same tables, same first error ------------
+
+def _tables_equal(a, b):
+    assert set(a.tables) == set(b.tables)
+    for name in a.tables:
+        pd.testing.assert_frame_equal(a.tables[name], b.tables[name], check_exact=True)
+
+
+@pytest.mark.parametrize("fmt", ["csv", "parquet"])
+def test_concurrent_and_purging_pool_read_the_same(tmp_path, make_run, monkeypatch, fmt):
+    from seanv_analysis.io import reader
+
+    run_dir = make_run(tmp_path, fmt=fmt, duration_s=2.0, seed=5)
+    plain = read_run(run_dir)
+    monkeypatch.setattr(reader, "_CONCURRENT_MIN_BYTES", 0)   # tables on threads
+    monkeypatch.setattr(reader, "_LARGE_FILE", 0)             # every file in the purging pool
+    fast = read_run(run_dir)
+    _tables_equal(plain, fast)
+    assert fast.file_sha256 == plain.file_sha256
+
+
+def test_concurrent_read_reports_the_first_bad_table_in_contract_order(tmp_path, make_run,
+                                                                        monkeypatch):
+    from seanv_analysis.io import reader
+
+    t = synthetic_tables(duration_s=0.3)
+    enc = t["encoder"].copy()
+    enc.loc[5, "t_s"] = enc.loc[4, "t_s"]                     # duplicated timestamp, row 6
+    pr = t["pressure"].drop(columns=["p_head_mpag"])          # missing column
+    run_dir = make_run(tmp_path, duration_s=0.3, tables={"encoder": enc, "pressure": pr})
+    with pytest.raises(DataError) as sequential:
+        read_run(run_dir)
+    monkeypatch.setattr(reader, "_CONCURRENT_MIN_BYTES", 0)
+    with pytest.raises(DataError) as concurrent:
+        read_run(run_dir)
+    assert str(concurrent.value) == str(sequential.value)
+    assert "encoder.csv" in str(concurrent.value) and "row 6" in str(concurrent.value)
+
+
+def test_default_tank_pressure_is_a_constant_view(tmp_path, make_run):
+    run = read_run(make_run(tmp_path, duration_s=0.2))
+    tank = run.tables["pressure"]["p_tank_mpag"].to_numpy()
+    assert tank.strides == (0,) and (tank == 0.0).all()
+    aligned = run.aligned()
+    assert aligned["p_tank_mpag"].to_numpy().strides == (0,)
+
+
+def test_return_large_blocks_to_os_is_idempotent():
+    import sys
+
+    from seanv_analysis._process import return_large_blocks_to_os
+
+    first = return_large_blocks_to_os()
+    assert return_large_blocks_to_os() is first
+    if sys.platform.startswith("linux"):
+        import platform
+        if platform.libc_ver()[0] == "glibc":
+            assert first is True

@@ -49,17 +49,26 @@ _PREFIX = 1 << 16
 _POOL: pa.MemoryPool | None = None
 
 
-def _pool() -> pa.MemoryPool:
-    """Arrow memory pool of the reader: jemalloc with immediate page purging
-    when pyarrow has it, else Arrow's default pool.
+#: tables from files at least this large are parsed into the purging pool
+_LARGE_FILE = 16 << 20
 
-    Measured on 1-hour logs: the default (mimalloc) and system pools keep the
-    CSV reader's freed blocks resident (peak RSS 620-760 MB for 170 MB of
-    CSV, varying run to run); jemalloc with decay 0 returns them at once
-    (650-680 MB). Note ``jemalloc_set_decay_ms`` is process-wide for the
-    jemalloc pool.
+
+def _pool(size_bytes: int = _LARGE_FILE) -> pa.MemoryPool:
+    """Arrow memory pool for parsing a file of ``size_bytes``.
+
+    Large files (>= 16 MiB, long logs): jemalloc with immediate page purging
+    when pyarrow has it. Measured on a 60-minute 1 kHz run: the default
+    (mimalloc) and system pools keep the CSV reader's freed buffers
+    resident (~ the file's size after the parse, peak RSS 760-810 MB for
+    170 MB of CSV); jemalloc with decay 0 returns them at once. Small files:
+    Arrow's default pool, whose kept buffers are reused by the next parse
+    (~1.5x faster than purging pages after every 1-minute run, and what it
+    keeps is bounded by one file). ``jemalloc_set_decay_ms`` is
+    process-wide for the jemalloc pool.
     """
     global _POOL
+    if size_bytes < _LARGE_FILE:
+        return pa.default_memory_pool()
     if _POOL is None:
         try:
             pool = pa.jemalloc_memory_pool()
@@ -279,16 +288,41 @@ def _read_tables(meta: RunMeta, base: RigConfig, *, hash_files: bool) -> Run:
         data = run_json.read_bytes()
         hashes[str(run_json)] = digest = sha256_bytes(data)
         remember_sha256(run_json, digest)
-    tables: dict[str, pd.DataFrame] = {}
+    todo: list[tuple[TableSpec, Path]] = []
     for spec in table_specs().values():
         if meta.kind not in spec.kinds:
             continue
         path = _locate(meta.path, spec, meta.kind)
-        if path is None:
-            continue
-        files[spec.name] = path
-        tables[spec.name] = _read_table(path, spec, rig, hashes if hash_files else None)
+        if path is not None:
+            files[spec.name] = path
+            todo.append((spec, path))
+    per_table = [{} if hash_files else None for _ in todo]
+    jobs = [functools.partial(_read_table, path, spec, rig, h)
+            for (spec, path), h in zip(todo, per_table)]
+    tables = dict(zip((spec.name for spec, _ in todo), _run_in_order(jobs, _bytes(todo))))
+    for h in per_table:
+        hashes.update(h or {})
     return Run(meta=meta, tables=tables, rig=rig, files=files, file_sha256=hashes)
+
+
+#: a run's tables are read side by side on threads when they hold at least
+#: this many bytes together (one post-processes while another parses)
+_CONCURRENT_MIN_BYTES = 8 << 20
+
+
+def _bytes(todo: list[tuple[TableSpec, Path]]) -> int:
+    return sum(_file_size(path) for _, path in todo)
+
+
+def _run_in_order(jobs: list, size: int) -> list:
+    """Results of ``jobs`` in order; on threads for large runs. The first
+    job (in order) that fails raises, as reading one table after the other
+    would."""
+    if len(jobs) < 2 or size < _CONCURRENT_MIN_BYTES:
+        return [job() for job in jobs]
+    with ThreadPoolExecutor(max_workers=len(jobs), thread_name_prefix="seanv-table") as pool:
+        futures = [pool.submit(job) for job in jobs]
+    return [f.result() for f in futures]
 
 
 def _locate(run_dir: Path, spec: TableSpec, kind: str) -> Path | None:
@@ -317,7 +351,7 @@ def _locate(run_dir: Path, spec: TableSpec, kind: str) -> Path | None:
 
 @dataclass(frozen=True)
 class _Scan:
-    size: int
+    size: int            # bytes looked at (the whole file only when hashed)
     sha256: str | None
     nul_offset: int      # first NUL byte, -1 if none
     blank: bool          # only whitespace (or nothing)
@@ -355,6 +389,13 @@ def _scan(path: Path, *, want_hash: bool, find_nul: bool) -> _Scan:
     return _Scan(size, h.hexdigest() if h is not None else None, nul, blank, head)
 
 
+def _file_size(path: Path) -> int:
+    try:
+        return path.stat().st_size
+    except OSError:
+        return 0  # reading it says why
+
+
 def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
                 hashes: dict[str, str] | None) -> pd.DataFrame:
     is_csv = path.suffix == ".csv"
@@ -378,7 +419,8 @@ def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
     # ``table`` is this frame's only reference: each column is dropped from it
     # once converted, so Arrow's copy of a column is released as numpy's is
     # made (peak: one table in Arrow + numpy, not two).
-    table = _parse_csv(path, spec, scan.head) if is_csv else _parse_parquet(path, spec)
+    pool = _pool(_file_size(path))
+    table = _parse_csv(path, spec, scan.head, pool) if is_csv else _parse_parquet(path, spec)
     names = table.column_names
     if len(set(names)) != len(names):
         dup = next(n for n in names if names.count(n) > 1)
@@ -425,7 +467,7 @@ def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
             tank = float(rig["supply"].get("tank_pressure_mpag", 0.0))
             out[col.name] = np.broadcast_to(np.float64(tank), n)  # constant: a view, no memory
             continue
-        values = _float_column(table, source, path, col)
+        values = _float_column(table, source, path, col, pool)
         table = table.drop_columns([source])
         check_finite(values, path=path, column=source, nullable=col.nullable)
         raw = source if source != col.name else None
@@ -442,7 +484,8 @@ def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
     return pd.DataFrame(out, copy=False)
 
 
-def _float_column(table: pa.Table, name: str, path: Path, col: ColumnSpec) -> np.ndarray:
+def _float_column(table: pa.Table, name: str, path: Path, col: ColumnSpec,
+                  pool: pa.MemoryPool) -> np.ndarray:
     column = table.column(name)
     t = column.type
     if not pa.types.is_float64(t):
@@ -466,7 +509,7 @@ def _float_column(table: pa.Table, name: str, path: Path, col: ColumnSpec) -> np
                                 path=path, column=name, row=row)
         else:
             raise DataError(f"has type {t}; expected float64 [{col.unit}]", path=path, column=name)
-    return _to_numpy(column)
+    return _to_numpy(column, pool)
 
 
 def _first_inexact(column: pa.ChunkedArray) -> tuple[int | None, object]:
@@ -495,7 +538,7 @@ def _number_hint(value: object) -> str:
     return ""
 
 
-def _to_numpy(column: pa.ChunkedArray) -> np.ndarray:
+def _to_numpy(column: pa.ChunkedArray, pool: pa.MemoryPool) -> np.ndarray:
     """float64 column -> contiguous numpy array (nulls -> NaN), concatenating
     chunks in the reader's pool so the memory comes from (and returns to) it."""
     chunks = column.chunks
@@ -503,12 +546,12 @@ def _to_numpy(column: pa.ChunkedArray) -> np.ndarray:
         return chunks[0].to_numpy(zero_copy_only=False)
     if not chunks:
         return np.empty(0)
-    return pa.concat_arrays(chunks, memory_pool=_pool()).to_numpy(zero_copy_only=False)
+    return pa.concat_arrays(chunks, memory_pool=pool).to_numpy(zero_copy_only=False)
 
 
 # CSV ---------------------------------------------------------------------------
 
-def _parse_csv(path: Path, spec: TableSpec, head: bytes) -> pa.Table:
+def _parse_csv(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool) -> pa.Table:
     """Parse a CSV table; ``head``: its first 64 KiB (already read by :func:`_scan`)."""
     header = _csv_header_names(head, path, spec)
     names = _canonical_names(header, spec) if header is not None else None
@@ -520,9 +563,9 @@ def _parse_csv(path: Path, spec: TableSpec, head: bytes) -> pa.Table:
     try:
         # the file's read buffers come from the reader's pool too (else from
         # Arrow's default pool, which keeps ~ the file's size resident after)
-        with pa.OSFile(str(path), "r", memory_pool=_pool()) as source:
+        with pa.OSFile(str(path), "r", memory_pool=pool) as source:
             table = pacsv.read_csv(source, convert_options=pacsv.ConvertOptions(
-                column_types=types), memory_pool=_pool())
+                column_types=types), memory_pool=pool)
     except UnicodeDecodeError:
         raise DataError("header line is not UTF-8 text (binary data?); expected column "
                         f"names like {','.join(contract_columns(spec.name))}", path=path) from None
@@ -730,7 +773,7 @@ def _locate_bad_field_count(data: bytes, expected: int) -> tuple[int | None, int
 
 def _parse_parquet(path: Path, spec: TableSpec) -> pa.Table:
     try:
-        table = pq.read_table(path)
+        table = pq.read_table(path)  # (no pool argument: Arrow's default pool)
     except (pa.ArrowException, OSError, ValueError) as exc:
         raise DataError(f"not a readable Parquet file ({_one_line(str(exc))[:160]}); expected a "
                         f"Parquet table with columns {', '.join(contract_columns(spec.name))}",
