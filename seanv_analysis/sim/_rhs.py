@@ -1,8 +1,11 @@
 """Continuous-time right-hand side f(t, y) of the plant (numba), for
-benchmarking the fixed-step kernel against a general ODE solver.
+benchmarking the simulator's integrator against a general ODE solver.
 
 Private helper of ``benchmarks/bench_sim.py`` and ``tests/test_sim_rhs.py``;
-the simulator itself runs :func:`.kernel.simulate_kernel`.
+the simulator itself runs :func:`.kernel.simulate_kernel`. Both call the
+same compiled plant physics (:func:`.rosenbrock.plant_f`), and
+:func:`fixed_step` integrates it with the kernel's own ROS2 step
+(:func:`.rosenbrock.plant_step`, :func:`.rosenbrock.servo_step`).
 
 Same physics as the kernel, from the same packed parameter vector
 (:class:`.kernel.PP`) and the same compiled valve functions
@@ -22,8 +25,9 @@ general-purpose solver can integrate (each is a switch or absent):
   piston (creep ~ eps_v) while |F_drive| < Fs;
 - servo position quantisation is optional (``quantise``: a discontinuous
   staircase in theta, off for the solver comparison);
-- the sealing thresholds are evaluated at every call (the kernel refreshes
-  them at 1 kHz);
+- :func:`derivs` evaluates the sealing thresholds at every call (the
+  kernel, and :func:`fixed_step`, at the start of each step, moved
+  linearly in the pressures for the second stage);
 - the servo target is one step (dead time already applied): ``theta0``
   before ``t_on``, ``theta1`` after (an open-loop flow step; no controller);
 - no cavitation floor, no end stops, no backlash / delay effects
@@ -41,6 +45,7 @@ import numpy as np
 from numba import njit
 
 from ..models import _jit as J
+from . import rosenbrock as RB
 from .kernel import PP
 
 __all__ = ["AUX_SIZE", "make_aux", "layout", "initial_state", "derivs", "rhs",
@@ -118,110 +123,68 @@ def check_supported(pp: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True)
-def derivs(t, y, dydt, diag, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
-    """f(t, y) into ``dydt``, and the stiff diagonal d f_i / d y_i into
-    ``diag`` (valve conductance at node 0, resistance of the segments,
-    friction slope; 0 elsewhere) for a diagonally implicit step."""
+def derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+    """f(t, y) into ``dydt``: the simulator's compiled plant physics
+    (:func:`.rosenbrock.plant_f`, friction tanh-regularised) with the
+    sealing thresholds at the current pressures, and the servo lag (target
+    ``theta0`` before ``t_on``, ``theta1`` from it)."""
     nseg = int(pp[_N_SEG])
-    iq = nseg + 1
-    ix = 2 * nseg + 1
-    iv = ix + 1
-    ith = ix + 2
-    ipl = ix + 3
-    area = pp[_AREA]
-    bulk = pp[_BULK]
-    vseg = pp[_V_SEG]
-    rseg = pp[_R_SEG]
-    iseg = pp[_I_SEG]
-    gl = pp[_LEAK_G]
-    ptank = pp[_P_TANK]
-    smooth = pp[_DP_SMOOTH]
-    x = y[ix]
-    v = y[iv]
-    theta = y[ith]
-    p_load = y[ipl]
-    for k in range(dydt.size):
-        diag[k] = 0.0
-    # servo: first-order lag towards the (dead-time shifted) target, rate limit
+    ith = 2 * nseg + 3
     target = aux[_A_TH1] if t >= aux[_A_T_ON] else aux[_A_TH0]
-    rate = (target - theta) / pp[_SERVO_TAU]
-    rmax = pp[_SERVO_RATE]
-    if rate > rmax:
-        rate = rmax
-    elif rate < -rmax:
-        rate = -rmax
-    dydt[ith] = rate
-    theta_n = theta
+    theta = y[ith]
+    dydt[ith] = RB.servo_rate(theta, target, pp)
+    needle = theta
     if aux[_A_QUANT] > 0.5:
         res = pp[_SERVO_RES]
-        theta_n = round(theta / res) * res
-    # valve into node 0 (eq. 3-5, thresholds at the current pressures)
+        needle = round(theta / res) * res
     ps = pp[_P_SUPPLY] + pp[_RIPPLE_AMP] * math.sin(2.0 * math.pi * pp[_RIPPLE_HZ] * t)
     p0 = y[0]
-    dps = ps - p0
-    dpd = p0 - ptank
-    th_s = J.threshold_deg(sup, sup_z, sup_th, ps, dps)
-    th_d = J.threshold_deg(dr, dr_z, dr_th, p0, dpd)
-    qs, gs = J.side_flow_at(sup, th_s, theta_n, dps, smooth)
-    qd, gd = J.side_flow_at(dr, th_d, theta_n, dpd, smooth)
-    qv = qs + qd + gl * dps - gl * dpd
-    g = gs - gd + 2.0 * gl
-    # node pressures (C = V / B; half segments at the ends, chamber at the last)
-    c_end = 0.5 * vseg / bulk
-    c_mid = vseg / bulk
-    dydt[0] = (qv - y[iq]) / c_end
-    diag[0] = -g / c_end
-    for k in range(1, nseg):
-        dydt[k] = (y[iq + k - 1] - y[iq + k]) / c_mid
-    c_last = c_end + (pp[_DEAD_VOL] + area * x) / bulk
-    dydt[nseg] = (y[iq + nseg - 1] - area * v) / c_last
-    # segment flows: I dq/dt = p_k - p_{k+1} - R q
-    for k in range(nseg):
-        dydt[iq + k] = (y[k] - y[k + 1] - rseg * y[iq + k]) / iseg
-        diag[iq + k] = -rseg / iseg
-    # load regulator
-    dydt[ipl] = (aux[_A_PLOAD] - p_load) / pp[_LOAD_TAU]
-    # piston: regularised Coulomb + Stribeck + viscous friction
-    m = pp[_MASS]
-    fc = pp[_F_COULOMB]
-    vs = pp[_V_STRIBECK]
-    eps = aux[_A_EPS]
-    e = math.exp(-(v / vs) ** 2)
-    fmag = fc + (pp[_F_STATIC] - fc) * e
-    th = math.tanh(v / eps)
-    ff = fmag * th + pp[_VISCOUS] * v
-    dff = (fmag * (1.0 - th * th) / eps + (pp[_F_STATIC] - fc) * e * (-2.0 * v / (vs * vs)) * th
-           + pp[_VISCOUS])
-    f_drive = y[nseg] * area - p_load * pp[_LOAD_AREA]
-    dydt[iv] = (f_drive - ff) / m
-    diag[iv] = -dff / m
-    dydt[ix] = v
+    th_s = J.threshold_deg(sup, sup_z, sup_th, ps, ps - p0)
+    th_d = J.threshold_deg(dr, dr_z, dr_th, p0, p0 - pp[_P_TANK])
+    RB.plant_f(ps, y, needle, th_s, th_d, aux[_A_PLOAD], RB.FR_SMOOTH, aux[_A_EPS], pp, sup, dr,
+               dydt, False, dydt, dydt, dydt)
 
 
 @njit(cache=True, nogil=True)
 def rhs(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     """f(t, y) as a new array (the form ``scipy.integrate.solve_ivp`` calls)."""
     dydt = np.empty(y.size)
-    diag = np.empty(y.size)
-    derivs(t, y, dydt, diag, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
+    derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
     return dydt
 
 
 @njit(cache=True, nogil=True)
 def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
-    """Diagonally semi-implicit Euler over :func:`derivs` with the kernel's
-    step ``pp[DT]``: y += dt f / (1 - dt d), d the stiff diagonal (implicit
-    in the valve conductance, the tube resistance and the friction slope,
-    the kernel's stiff terms; explicit elsewhere, all from the state at the
-    start of the step, where the kernel updates pressures, then flows, then
-    the piston in sequence). Time of step k is ``k * dt``. Returns the
-    states at every ``every``-th step, ``(n_out, len(y))`` (row 0 = y0)."""
-    dt = pp[_DT]
+    """The simulator's integrator over the same physics as :func:`derivs`:
+    ROS2 steps of ``pp[DT]`` (:func:`.rosenbrock.servo_step` then
+    :func:`.rosenbrock.plant_step`, as the kernel calls them), friction
+    tanh-regularised (``FR_SMOOTH``), sealing thresholds at the start of
+    each step moved linearly to stage 2, servo target held over a step (the
+    switch at ``t_on`` is on the step grid: from step ``round(t_on / dt)``),
+    supply ripple by a rotation recurrence (re-synchronised every 1000
+    steps). Time of step k is
+    ``k * dt``. Returns the states at every ``every``-th step,
+    ``(n_out, len(y))`` (row 0 = y0)."""
+    h = pp[_DT]
     n = y0.size
+    nseg = int(pp[_N_SEG])
+    ith = 2 * nseg + 3
     y = y0.copy()
     out = np.empty((n_out, n))
-    dydt = np.empty(n)
-    diag = np.empty(n)
+    w = (np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n),
+         np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+    thr = np.zeros(7)
+    quant = aux[_A_QUANT] > 0.5
+    res = pp[_SERVO_RES]
+    om = 2.0 * math.pi * pp[_RIPPLE_HZ]
+    ch, sh = math.cos(om * h), math.sin(om * h)
+    amp = pp[_RIPPLE_AMP]
+    psup = pp[_P_SUPPLY]
+    ptank = pp[_P_TANK]
+    pset = aux[_A_PLOAD]
+    eps = aux[_A_EPS]
+    step_on = round(aux[_A_T_ON] / h)
+    sn, cn = 0.0, 1.0
     step = 0
     for i in range(n_out):
         for k in range(n):
@@ -229,9 +192,26 @@ def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
         if i == n_out - 1:
             break
         for _ in range(every):
-            derivs(step * dt, y, dydt, diag, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
-            for k in range(n):
-                y[k] += dt * dydt[k] / (1.0 - dt * diag[k])
+            t = step * h
+            if step % 1000 == 0:
+                sn, cn = math.sin(om * t), math.cos(om * t)
+            sn1 = sn * ch + cn * sh
+            cn1 = cn * ch - sn * sh
+            ps0 = psup + amp * sn
+            ps1 = psup + amp * sn1
+            target = aux[_A_TH1] if step >= step_on else aux[_A_TH0]
+            th0 = y[ith]
+            th1 = RB.servo_step(th0, target, h, pp)
+            if quant:
+                n0 = round(th0 / res) * res
+                n1 = round(th1 / res) * res
+            else:
+                n0 = th0
+                n1 = th1
+            RB.thresholds(thr, ps0, y[0], ptank, sup, sup_z, sup_th, dr, dr_z, dr_th)
+            RB.plant_step(y, h, ps0, ps1, n0, n1, thr, pset, RB.FR_SMOOTH, eps, pp, sup, dr, w)
+            y[ith] = th1
+            sn, cn = sn1, cn1
             step += 1
     return out
 
@@ -251,7 +231,8 @@ class OpenLoopStep:
         return (self.pp, *self.valves, self.aux)
 
     def run_fixed_step(self) -> np.ndarray:
-        """States on ``t_grid`` from :func:`fixed_step` (kernel step, 1 kHz out)."""
+        """States on ``t_grid`` from :func:`fixed_step` (the kernel's ROS2 step
+        ``pp[DT]``, 1 kHz out)."""
         every = int(self.pp[PP.SUBSTEPS])
         return fixed_step(self.y0, self.t_grid.size, every, *self.args)
 

@@ -4,7 +4,7 @@ One fixed-step loop integrates the whole rig (see :mod:`.plant` for the
 physics and the packed parameter layout):
 
 - valve (eq. 3-5 through :mod:`seanv_analysis.models._jit`, sealing
-  thresholds refreshed at 1 kHz) feeding node 0 of the tube,
+  thresholds refreshed at every step) feeding node 0 of the tube,
 - 20 m tube as ``n_seg`` lumped segments (laminar resistance R and fluid
   inertance I per segment, compliance C = V / B at the nodes),
 - actuator head node (tube end + chamber volume) and piston (mass, Coulomb +
@@ -16,12 +16,21 @@ physics and the packed parameter layout):
 - sensors sampled at 1 kHz (encoder quantisation, pressure noise, sensor
   gain errors) and the controller/servo log at 100 Hz.
 
-Integration is semi-implicit Euler: node pressures are advanced first with
-the valve flow linearised in the node pressure (implicit in the valve
-conductance, which is stiff near dp = 0), segment flows implicitly in their
-resistance, piston last (symplectic). With the default 0.1 ms step every
-mode of the default rig is resolved (fastest: head node + piston,
-~600 rad/s, omega dt = 0.06).
+Integration: the 2nd-order linearly implicit Rosenbrock-W scheme ROS2
+(:mod:`.rosenbrock`, the same compiled step the ODE twin :mod:`._rhs` and
+the solver benchmark use) at ``sim.time_step_s`` (default 1 ms = one step
+per 1 kHz sample): W = I - gamma h A with A the exact tridiagonal Jacobian
+of the hydraulic chain (valve conductance at node 0, tube R-I-C ladder,
+head-node/piston spring, damping part of the friction slope), solved by a
+two-sided Thomas sweep; L-stable, so the stiff modes are damped, the
+slow ones (tube LC modes ~5-10 Hz, head node + piston ~600 rad/s,
+omega h = 0.6) integrated to 2nd order. Per step: the servo lag (same ROS2
+formula, scalar), then quantisation, backlash and the delay line give the
+needle angle at the step's end (stage 2's input; stage 1 uses the previous
+one); sealing thresholds at the step's start, moved linearly in the
+pressures for stage 2; then the non-ODE parts after the step: Karnopp
+stiction (a held piston stays at v = 0 while |F_drive| <= F_s; a sliding
+one that reversed is stopped), cavitation floor, end stops.
 """
 from __future__ import annotations
 
@@ -31,7 +40,8 @@ import numpy as np
 from numba import njit
 
 from ..control import KIND_CAM, KIND_FLOW_MODEL, controller_step
-from ..models import _jit as J
+from ..models import _jit as J  # noqa: F401  (imported first: configures the numba cache)
+from . import rosenbrock as RB
 
 __all__ = ["simulate_kernel", "PP", "PP_SIZE", "MODE_SCHEDULE"]
 
@@ -143,24 +153,6 @@ def _step_value(t_breaks, values, t):
 
 
 @njit(cache=True, nogil=True)
-def _friction_step(v, f_drive, pp, dt):
-    """Piston velocity after one step with Karnopp stiction [mm/s]."""
-    m = pp[_MASS]
-    fc = pp[_F_COULOMB]
-    fs = pp[_F_STATIC]
-    if v == 0.0:
-        if abs(f_drive) <= fs:
-            return 0.0
-        return dt * (f_drive - math.copysign(fc, f_drive)) / m
-    vs = pp[_V_STRIBECK]
-    ff = math.copysign(fc + (fs - fc) * math.exp(-(v / vs) ** 2), v) + pp[_VISCOUS] * v
-    v_new = v + dt * (f_drive - ff) / m
-    if v_new * v <= 0.0:
-        return 0.0
-    return v_new
-
-
-@njit(cache=True, nogil=True)
 def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
                     ctrl_kind, cp, csup, csup_z, csup_th, cdr, cdr_z, cdr_th,
                     ref_t, ref_v, load_t, load_v, cmd_t, cmd_v,
@@ -191,36 +183,43 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     every = int(pp[_CTRL_EVERY])
     nseg = int(pp[_N_SEG])
     nnode = nseg + 1
+    ix = 2 * nseg + 1
+    iv = ix + 1
+    ith = ix + 2
+    ipl = ix + 3
     area = pp[_AREA]
-    bulk = pp[_BULK]
-    rseg = pp[_R_SEG]
-    iseg = pp[_I_SEG]
-    vseg = pp[_V_SEG]
-    smooth = pp[_DP_SMOOTH]
-    gl = pp[_LEAK_G]
+    load_area = pp[_LOAD_AREA]
+    fs = pp[_F_STATIC]
     ptank = pp[_P_TANK]
     pcav = pp[_P_CAV]
-    two_pi_f = 2.0 * math.pi * pp[_RIPPLE_HZ]
+    stroke = pp[_STROKE]
+    psup = pp[_P_SUPPLY]
+    amp = pp[_RIPPLE_AMP]
+    om = 2.0 * math.pi * pp[_RIPPLE_HZ]
+    # supply ripple by a rotation recurrence per plant step, re-synchronised
+    # (sin, cos) every 1000 steps
+    ch, sh = math.cos(om * dt), math.sin(om * dt)
+    sn, cn = 0.0, 1.0
 
     n_ctrl = (n_fast + every - 1) // every
     fast = np.empty((n_fast, 7))
     slow = np.empty((n_ctrl, 6))
 
-    # initial state: at rest, head pressure balancing the load
+    # state (layout of .rosenbrock): at rest, head pressure balancing the load
     p_load = _step_value(load_t, load_v, 0.0)
-    p0 = p_load * pp[_LOAD_AREA] / area
-    p = np.full(nnode, p0)
-    q = np.zeros(nseg)
-    x = x0_mm
-    v = 0.0
-    # node compliances [mm^3/MPa]; the last node grows with the chamber
-    cnode = np.empty(nnode)
+    y = np.zeros(2 * nseg + 5)
     for k in range(nnode):
-        cnode[k] = vseg / bulk if 0 < k < nseg else 0.5 * vseg / bulk
-    # servo: dead-time ring of commands (in ticks), lag state, backlash, delay ring
+        y[k] = p_load * load_area / area
+    y[ix] = x0_mm
+    y[ith] = cam0_deg
+    y[ipl] = p_load
+    w = (np.zeros(y.size), np.zeros(y.size), np.zeros(y.size), np.zeros(y.size),
+         np.zeros(y.size), np.zeros(y.size), np.zeros(y.size), np.zeros(y.size),
+         np.zeros(y.size), np.zeros(y.size))
+    thr = np.zeros(7)
+    # servo: dead-time ring of commands (in ticks), backlash, delay ring
     ndead = int(pp[_SERVO_DEAD_TICKS])
     cmd_ring = np.full(ndead + 1, cam0_deg)
-    theta_s = cam0_deg
     res = pp[_SERVO_RES]
     theta_b = cam0_deg
     ndelay = int(pp[_DELAY_STEPS])
@@ -233,30 +232,31 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     x_ref = np.nan
     released = False
     t_release = np.nan
-    theta_d_s = 0.0
-    theta_d_d = 0.0
     theta_n = cam0_deg
-    ps = pp[_P_SUPPLY]
     half_w = 0.5 * pp[_BACKLASH]
     ctick = 0
     servo_target = cam0_deg
     p_load_set = p_load
+    step = 0
     for i in range(n_fast):
         t = i * dt * nsub
+        if step % 1000 == 0:
+            sn, cn = math.sin(om * step * dt), math.cos(om * step * dt)
         # ---- sensors at 1 kHz (before the controller uses them)
-        ps_true = pp[_P_SUPPLY] + pp[_RIPPLE_AMP] * math.sin(two_pi_f * t)
+        ps_true = psup + amp * sn
+        x = y[ix]
         x_meas = pp[_GAIN_X] * x
         x_meas = round(x_meas / pp[_ENC_RES]) * pp[_ENC_RES]
         ps_meas = pp[_GAIN_PS] * ps_true + noise[i, 0]
-        ph_meas = pp[_GAIN_PH] * p[0] + noise[i, 1]
-        pl_meas = pp[_GAIN_PL] * p_load + noise[i, 2]
+        ph_meas = pp[_GAIN_PH] * y[0] + noise[i, 1]
+        pl_meas = pp[_GAIN_PL] * y[ipl] + noise[i, 2]
         fast[i, 0] = t
         fast[i, 1] = x_meas
         fast[i, 2] = ps_meas
         fast[i, 3] = ph_meas
         fast[i, 4] = pl_meas
         fast[i, 5] = x
-        fast[i, 6] = v * area
+        fast[i, 6] = y[iv] * area
         # ---- controller / schedule at 100 Hz
         if i % every == 0:
             if ctrl_kind == MODE_SCHEDULE:
@@ -279,63 +279,60 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
             servo_target = cmd_ring[(ctick + 1) % (ndead + 1)] if ndead > 0 else cam_cmd
             slow[ctick, 0] = t
             slow[ctick, 1] = cam_cmd
-            slow[ctick, 2] = round(theta_s / res) * res
+            slow[ctick, 2] = round(y[ith] / res) * res
             slow[ctick, 3] = x_ref
             slow[ctick, 4] = q_ref
             slow[ctick, 5] = theta_n
             ctick += 1
             p_load_set = _step_value(load_t, load_v, t)
-        # ---- sealing thresholds at 1 kHz (eq. 3 + 4, inverted)
-        theta_d_s = J.threshold_deg(sup, sup_z, sup_th, ps_true, ps_true - p[0])
-        theta_d_d = J.threshold_deg(dr, dr_z, dr_th, p[0], p[0] - ptank)
-        for _ in range(nsub):
-            ts = t
-            ps_t = pp[_P_SUPPLY] + pp[_RIPPLE_AMP] * math.sin(two_pi_f * ts)
-            # servo: first-order lag with rate limit, quantised position
-            rate = (servo_target - theta_s) / pp[_SERVO_TAU]
-            rmax = pp[_SERVO_RATE]
-            if rate > rmax:
-                rate = rmax
-            elif rate < -rmax:
-                rate = -rmax
-            theta_s += rate * dt
+        for sub in range(nsub):
+            if sub > 0 and step % 1000 == 0:
+                sn, cn = math.sin(om * step * dt), math.cos(om * step * dt)
+            sn1 = sn * ch + cn * sh
+            cn1 = cn * ch - sn * sh
+            ps0 = psup + amp * sn
+            ps1 = psup + amp * sn1
+            # servo (ROS2 step of the rate-limited lag), quantised position,
+            # backlash play, extra transport delay -> needle at the step's end
+            theta_s = RB.servo_step(y[ith], servo_target, dt, pp)
             theta_q = round(theta_s / res) * res
-            # backlash play, then extra transport delay to the needle
             theta_b = min(max(theta_b, theta_q - half_w), theta_q + half_w)
             delay_ring[di] = theta_b
             di = (di + 1) % (ndelay + 1)
-            theta_n = delay_ring[di]
-            # valve flows into node 0 (supply +, drain -) and their conductance
-            dps = ps_t - p[0]
-            dpd = p[0] - ptank
-            qs, gs = J.side_flow_at(sup, theta_d_s, theta_n, dps, smooth)
-            qd, gd = J.side_flow_at(dr, theta_d_d, theta_n, dpd, smooth)
-            qv = qs + qd + gl * dps - gl * dpd
-            g = gs - gd + 2.0 * gl
-            # node 0, implicit in the valve conductance
-            p[0] += (dt / cnode[0]) * (qv - q[0]) / (1.0 + dt * g / cnode[0])
-            for k in range(1, nseg):
-                p[k] += dt / cnode[k] * (q[k - 1] - q[k])
-            c_last = cnode[nseg] + (pp[_DEAD_VOL] + area * x) / bulk
-            p[nseg] += dt / c_last * (q[nseg - 1] - area * v)
+            needle1 = delay_ring[di]
+            # sealing thresholds (eq. 3 + 4, inverted) at the step's start
+            RB.thresholds(thr, ps0, y[0], ptank, sup, sup_z, sup_th, dr, dr_z, dr_th)
+            # Karnopp: a held piston stays held while |F_drive| <= F_s
+            v = y[iv]
+            if v == 0.0:
+                f_drive = y[nseg] * area - y[ipl] * load_area
+                if abs(f_drive) <= fs:
+                    mode = RB.FR_STUCK
+                    sgn = 0.0
+                else:
+                    mode = RB.FR_SLIDE
+                    sgn = math.copysign(1.0, f_drive)
+            else:
+                mode = RB.FR_SLIDE
+                sgn = math.copysign(1.0, v)
+            RB.plant_step(y, dt, ps0, ps1, theta_n, needle1, thr, p_load_set, mode, sgn, pp,
+                          sup, dr, w)
+            y[ith] = theta_s
+            theta_n = needle1
+            # a sliding piston that reversed within the step sticks
+            if mode == RB.FR_SLIDE and y[iv] * sgn <= 0.0:
+                y[iv] = 0.0
             for k in range(nnode):
-                if p[k] < pcav:
-                    p[k] = pcav
-            # segment flows, implicit in the resistance
-            for k in range(nseg):
-                q[k] = (q[k] + dt / iseg * (p[k] - p[k + 1])) / (1.0 + dt * rseg / iseg)
-            # load regulator and piston
-            p_load += dt / pp[_LOAD_TAU] * (p_load_set - p_load)
-            f_drive = p[nseg] * area - p_load * pp[_LOAD_AREA]
-            v = _friction_step(v, f_drive, pp, dt)
-            x += v * dt
-            if x <= 0.0:
-                x = 0.0
-                if v < 0.0:
-                    v = 0.0
-            elif x >= pp[_STROKE]:
-                x = pp[_STROKE]
-                if v > 0.0:
-                    v = 0.0
-            t += dt
+                if y[k] < pcav:
+                    y[k] = pcav
+            if y[ix] <= 0.0:
+                y[ix] = 0.0
+                if y[iv] < 0.0:
+                    y[iv] = 0.0
+            elif y[ix] >= stroke:
+                y[ix] = stroke
+                if y[iv] > 0.0:
+                    y[iv] = 0.0
+            sn, cn = sn1, cn1
+            step += 1
     return fast, slow, t_release

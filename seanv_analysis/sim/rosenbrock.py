@@ -1,0 +1,402 @@
+"""The simulator's integrator: one step of a 2nd-order linearly implicit
+Rosenbrock-W scheme (ROS2, Verwer et al. 1999) for the plant (numba).
+
+Shared by the kernel (:mod:`.kernel`) and the continuous ODE twin of the
+plant (:mod:`._rhs`), so the twin's fixed-step run is the simulator's own
+integrator on the same physics.
+
+Scheme (step h, gamma = 1 + 1/sqrt(2), W = I - gamma h A)::
+
+    W k1 = f(t_n, y_n)
+    W k2 = f(t_n + h, y_n + h k1) - 2 k1
+    y_{n+1} = y_n + 3/2 h k1 + 1/2 h k2
+
+It is L-stable and of order 2 for ANY matrix A (a W-method), so A only needs
+the stiff couplings, exactly: here A is the Jacobian of the hydraulic chain,
+which ordered as [p_0, q_0, p_1, q_1, ..., p_nseg, v] is tridiagonal (valve
+conductance at node 0, node compliances, segment inertance and resistance,
+the head-node/piston spring, the friction slope), solved by the Thomas
+algorithm; x, theta and the load pressure are slow and enter A only through
+their own diagonal (0, servo lag, regulator lag). The dependences A leaves
+out (sealing threshold on p_0, chamber volume on x, load pressure on v)
+keep order 2, they only cost accuracy where they are stiff (they are not).
+Anti-damping parts of the friction slope (Stribeck) are left out of A: an
+unstable eigenvalue in W could make it singular.
+
+Inputs that are not states of the plant step (needle angle, supply
+pressure with its ripple) are given at both stage times t_n and t_n + h;
+the sealing thresholds are given once per step (refreshed at the step
+rate, 1 kHz by default). The servo is integrated first with the same ROS2
+formula (scalar, :func:`servo_step`), so its new angle is the stage-2
+input of the plant step (order 2: the servo does not depend on the plant).
+
+Friction modes (``fr_mode``):
+
+- ``FR_SMOOTH``: ``F = (Fc + (Fs - Fc) exp(-(v/vs)^2)) tanh(v/eps) + b v``
+  (the ODE twin; ``fr_arg`` = eps [mm/s]);
+- ``FR_SLIDE``: Coulomb + Stribeck + viscous in a fixed direction
+  ``fr_arg`` = +-1 (the kernel's Karnopp sliding phase; the kernel stops
+  the piston after the step if v reversed);
+- ``FR_STUCK``: the piston is held (v = 0, dv/dt = 0; Karnopp stuck phase).
+
+Units: mm, MPa, s, N (as :mod:`.plant`). State layout (``n = 2 nseg + 5``):
+p_0..p_nseg [MPaG], q_0..q_{nseg-1} [mm^3/s], x [mm], v [mm/s], servo theta
+[deg] (not touched by :func:`plant_step`), load pressure [MPaG].
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from ..models import _jit as J
+
+__all__ = ["GAMMA", "FR_SMOOTH", "FR_SLIDE", "FR_STUCK", "plant_f", "plant_step", "servo_step",
+           "servo_rate", "thresholds", "work_arrays"]
+
+#: ROS2 parameter (L-stable choice)
+GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
+FR_SMOOTH = 0
+FR_SLIDE = 1
+FR_STUCK = 2
+
+# packed-parameter indices used here (same values as kernel.PP; numba reads globals)
+_P_TANK = 6
+_N_SEG = 7
+_R_SEG = 8
+_I_SEG = 9
+_V_SEG = 10
+_BULK = 11
+_AREA = 12
+_LOAD_AREA = 13
+_DEAD_VOL = 14
+_MASS = 16
+_F_COULOMB = 17
+_F_STATIC = 18
+_V_STRIBECK = 19
+_VISCOUS = 20
+_LOAD_TAU = 21
+_LEAK_G = 22
+_DP_SMOOTH = 23
+_SERVO_TAU = 25
+_SERVO_RATE = 26
+
+# arrays of the work tuple (see work_arrays)
+_W_F1, _W_F2, _W_K1, _W_Y2, _W_JL, _W_JD, _W_JU, _W_CP, _W_DEN, _W_T = range(10)
+
+
+def work_arrays(n_state: int) -> tuple:
+    """Scratch space for :func:`plant_step` (allocate once per run): ten
+    float arrays of the state's length."""
+    return tuple(np.zeros(n_state) for _ in range(10))
+
+
+@njit(cache=True, nogil=True, inline='always')
+def plant_f(ps, y, needle, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, dydt,
+            want_jac, jl, jd, ju):
+    """f of the plant states at supply pressure ``ps`` [MPaG], needle angle
+    ``needle`` [deg], sealing thresholds ``th_s``, ``th_d`` [deg], load set
+    point ``p_load_set`` [MPaG], friction mode ``fr_mode`` / ``fr_arg``
+    (module doc), into ``dydt`` (the servo entry is left alone).
+
+    With ``want_jac``: the tridiagonal Jacobian of the chain
+    [p_0, q_0, ..., p_nseg, v] into ``jl`` (sub), ``jd`` (diagonal), ``ju``
+    (super), chain index j (p_k at 2k, q_k at 2k + 1, v at 2 nseg + 1),
+    units 1/s and the states' unit ratios. The friction slope enters only
+    where it damps (>= 0)."""
+    nseg = int(pp[_N_SEG])
+    iq = nseg + 1
+    ix = 2 * nseg + 1
+    iv = ix + 1
+    ipl = ix + 3
+    area = pp[_AREA]
+    bulk = pp[_BULK]
+    gl = pp[_LEAK_G]
+    ptank = pp[_P_TANK]
+    smooth = pp[_DP_SMOOTH]
+    inv_i = 1.0 / pp[_I_SEG]
+    r_i = pp[_R_SEG] * inv_i
+    inv_c_end = 2.0 * bulk / pp[_V_SEG]
+    inv_c_mid = bulk / pp[_V_SEG]
+    x = y[ix]
+    v = y[iv]
+    # valve into node 0 (eq. 3-5 for the given thresholds) and its conductance
+    p0 = y[0]
+    dps = ps - p0
+    dpd = p0 - ptank
+    qs, gs = J.side_flow_at(sup, th_s, needle, dps, smooth)
+    qd, gd = J.side_flow_at(dr, th_d, needle, dpd, smooth)
+    qv = qs + qd + gl * (dps - dpd)
+    g = gs - gd + 2.0 * gl
+    # node pressures (C = V / B; half segments at the ends, chamber at the last)
+    dydt[0] = (qv - y[iq]) * inv_c_end
+    for k in range(1, nseg):
+        dydt[k] = (y[iq + k - 1] - y[iq + k]) * inv_c_mid
+    inv_c_last = 1.0 / (0.5 * pp[_V_SEG] / bulk + (pp[_DEAD_VOL] + area * x) / bulk)
+    dydt[nseg] = (y[iq + nseg - 1] - area * v) * inv_c_last
+    # segment flows: I dq/dt = p_k - p_{k+1} - R q
+    for k in range(nseg):
+        dydt[iq + k] = (y[k] - y[k + 1]) * inv_i - r_i * y[iq + k]
+    # load regulator
+    dydt[ipl] = (p_load_set - y[ipl]) / pp[_LOAD_TAU]
+    dydt[ix] = v
+    # piston
+    m = pp[_MASS]
+    f_drive = y[nseg] * area - y[ipl] * pp[_LOAD_AREA]
+    if fr_mode == FR_STUCK:
+        dydt[iv] = 0.0
+        dff = 0.0
+    else:
+        fc = pp[_F_COULOMB]
+        dfs = pp[_F_STATIC] - fc
+        vs = pp[_V_STRIBECK]
+        u2 = (v / vs) ** 2
+        # exp(-u2) < 1e-21 beyond 48 (and tanh = +-1 in double beyond 20):
+        # skipped, the same numbers
+        e = math.exp(-u2) if u2 < 48.0 else 0.0
+        de = dfs * e * (-2.0 * v / (vs * vs))          # d/dv of the Stribeck term
+        if fr_mode == FR_SMOOTH:
+            eps = fr_arg
+            z = v / eps
+            th = math.tanh(z) if abs(z) < 20.0 else math.copysign(1.0, z)
+            fmag = fc + dfs * e
+            ff = fmag * th + pp[_VISCOUS] * v
+            dff = fmag * (1.0 - th * th) / eps + de * th + pp[_VISCOUS]
+        else:
+            s = fr_arg
+            ff = s * (fc + dfs * e) + pp[_VISCOUS] * v
+            dff = s * de + pp[_VISCOUS]
+        dydt[iv] = (f_drive - ff) / m
+    if want_jac:
+        nc = 2 * nseg + 2
+        jd[0] = -g * inv_c_end
+        jl[0] = 0.0
+        ju[0] = -inv_c_end
+        for k in range(1, nseg):
+            jl[2 * k] = inv_c_mid
+            jd[2 * k] = 0.0
+            ju[2 * k] = -inv_c_mid
+        for k in range(nseg):
+            jl[2 * k + 1] = inv_i
+            jd[2 * k + 1] = -r_i
+            ju[2 * k + 1] = -inv_i
+        jn = 2 * nseg
+        jl[jn] = inv_c_last
+        jd[jn] = 0.0
+        stuck = fr_mode == FR_STUCK
+        ju[jn] = 0.0 if stuck else -area * inv_c_last
+        jl[nc - 1] = 0.0 if stuck else area / m
+        jd[nc - 1] = -max(dff, 0.0) / m
+        ju[nc - 1] = 0.0
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _factor(wl, wd, wu, cp, den, nc):
+    """Twisted (two-sided) LU of the tridiagonal chain matrix W (sub ``wl``,
+    diagonal ``wd``, super ``wu``): eliminated from the top down to the
+    middle position m = nc // 2 and from the bottom up to it, two
+    independent recurrences the CPU overlaps. ``cp`` gets the eliminated
+    coupling, ``den`` 1 / pivot. No pivoting: W = I - gamma h A with A's
+    diagonal <= 0 and its off-diagonal pairs of opposite sign (the chain is
+    an R-L-C ladder), so every pivot is >= 1."""
+    m = nc // 2
+    inv = 1.0 / wd[0]
+    den[0] = inv
+    cp[0] = wu[0] * inv
+    for j in range(1, m):
+        inv = 1.0 / (wd[j] - wl[j] * cp[j - 1])
+        den[j] = inv
+        cp[j] = wu[j] * inv
+    inv = 1.0 / wd[nc - 1]
+    den[nc - 1] = inv
+    cp[nc - 1] = wl[nc - 1] * inv
+    for j in range(nc - 2, m, -1):
+        inv = 1.0 / (wd[j] - wu[j] * cp[j + 1])
+        den[j] = inv
+        cp[j] = wl[j] * inv
+    den[m] = 1.0 / (wd[m] - wl[m] * cp[m - 1] - wu[m] * cp[m + 1])
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _solve(r, o, tmp, wl, wu, cp, den, nseg, d_pl):
+    """Solve W k = r into ``o`` (may be ``r``): the chain by the factorised
+    twisted sweep (:func:`_factor`), x (W = 1) and the load pressure
+    (``d_pl``) by their diagonals; the servo entry is left alone. Chain
+    order p_0, q_0, p_1, ..., q_{nseg-1}, p_nseg, v (gathered into ``tmp``)."""
+    iq = nseg + 1
+    iv = 2 * nseg + 2
+    nc = 2 * nseg + 2
+    m = nc // 2
+    for k in range(nseg):
+        tmp[2 * k] = r[k]
+        tmp[2 * k + 1] = r[iq + k]
+    tmp[nc - 2] = r[nseg]
+    tmp[nc - 1] = r[iv]
+    # the recurrences carry their value in a register (prev), not through memory
+    top = tmp[0] * den[0]
+    tmp[0] = top
+    for j in range(1, m):
+        top = (tmp[j] - wl[j] * top) * den[j]
+        tmp[j] = top
+    bot = tmp[nc - 1] * den[nc - 1]
+    tmp[nc - 1] = bot
+    for j in range(nc - 2, m, -1):
+        bot = (tmp[j] - wu[j] * bot) * den[j]
+        tmp[j] = bot
+    mid = (tmp[m] - wl[m] * top - wu[m] * bot) * den[m]
+    tmp[m] = mid
+    prev = mid
+    for j in range(m - 1, -1, -1):
+        prev = tmp[j] - cp[j] * prev
+        tmp[j] = prev
+    prev = mid
+    for j in range(m + 1, nc):
+        prev = tmp[j] - cp[j] * prev
+        tmp[j] = prev
+    for k in range(nseg):
+        o[k] = tmp[2 * k]
+        o[iq + k] = tmp[2 * k + 1]
+    o[nseg] = tmp[nc - 2]
+    o[iv] = tmp[nc - 1]
+    o[iv - 1] = r[iv - 1]              # x: W = 1
+    o[iv + 2] = r[iv + 2] / d_pl       # load pressure
+
+
+@njit(cache=True, nogil=True, inline='always')
+def _threshold_lin(params, z_table, theta_table, p1_mpa, dp_mpa, hint):
+    """:func:`seanv_analysis.models._jit.threshold_deg` (same arithmetic,
+    same value) and its partial derivatives d/dp1, d/d(dp) [deg/MPa]: eq. (1)
+    and (3) are linear in the pressures, the inverse of eq. (4) is the
+    height table interpolated linearly (slope of the segment, 0 beyond the
+    table's ends). The table segment is looked up next to ``hint`` (the
+    previous call's) first, by bisection otherwise -- the same segment the
+    bisection of ``angle_for_height`` finds (z[lo] <= z < z[lo + 1] of a
+    strictly increasing table). Returns (theta, d/dp1, d/d(dp), segment)."""
+    z_thr = J.threshold_displacement(params[J.SP_Z0],
+                                     J.fluid_force(p1_mpa, dp_mpa, params[J.SP_DN],
+                                                   params[J.SP_DO]),
+                                     params[J.SP_K])
+    q = math.pi / 4 / params[J.SP_K]
+    dz_dp1 = -q * params[J.SP_DN] ** 2
+    dz_ddp = q * params[J.SP_DO] ** 2
+    n = z_table.size
+    if z_thr <= z_table[0]:
+        return theta_table[0], 0.0, 0.0, hint
+    if z_thr >= z_table[n - 1]:
+        return theta_table[n - 1], 0.0, 0.0, hint
+    lo = hint
+    if 0 <= lo < n - 1 and z_table[lo] <= z_thr:
+        while lo < n - 2 and z_table[lo + 1] <= z_thr and lo - hint < 3:
+            lo += 1
+        ok = z_thr < z_table[lo + 1]
+    elif 1 <= lo < n and z_table[lo - 1] <= z_thr:
+        lo -= 1
+        ok = True
+    else:
+        ok = False
+    if not ok:
+        lo, hi = 0, n - 1
+        while hi - lo > 1:
+            mid = (lo + hi) >> 1
+            if z_table[mid] <= z_thr:
+                lo = mid
+            else:
+                hi = mid
+    hi = lo + 1
+    w = (z_thr - z_table[lo]) / (z_table[hi] - z_table[lo])
+    theta = theta_table[lo] + w * (theta_table[hi] - theta_table[lo])
+    slope = (theta_table[hi] - theta_table[lo]) / (z_table[hi] - z_table[lo])
+    return theta, slope * dz_dp1, slope * dz_ddp, lo
+
+
+@njit(cache=True, nogil=True, inline='always')
+def thresholds(thr, ps, p0, p_tank, sup, sup_z, sup_th, dr, dr_z, dr_th):
+    """Sealing thresholds at supply pressure ``ps`` and node-0 pressure ``p0``
+    [MPaG] into ``thr`` (length 7): [theta_d supply, theta_d drain] [deg],
+    then d theta_d,s / d ps, d theta_d,s / d p0, d theta_d,d / d p0
+    [deg/MPa] (supply side: p1 = ps, dp = ps - p0; drain side: p1 = p0,
+    dp = p0 - p_tank); ``thr[5:7]`` keep the table segments between calls
+    (start at 0)."""
+    th, a, b, seg = _threshold_lin(sup, sup_z, sup_th, ps, ps - p0, int(thr[5]))
+    thr[0] = th
+    thr[2] = a + b
+    thr[3] = -b
+    thr[5] = seg
+    th, a, b, seg = _threshold_lin(dr, dr_z, dr_th, p0, p0 - p_tank, int(thr[6]))
+    thr[1] = th
+    thr[4] = a + b
+    thr[6] = seg
+
+
+@njit(cache=True, nogil=True, inline='always')
+def plant_step(y, h, ps0, ps1, needle0, needle1, thr, p_load_set, fr_mode, fr_arg, pp, sup,
+               dr, w):
+    """Advance the plant states of ``y`` (all but the servo angle) by one
+    ROS2 step ``h`` [s] in place. ``ps0``/``ps1`` supply pressure [MPaG] and
+    ``needle0``/``needle1`` needle angle [deg] at t_n / t_n + h; ``thr``
+    the sealing thresholds at t_n with their slopes (:func:`thresholds`),
+    moved linearly to stage 2's pressures (exact within a segment of the
+    valve's height table); load set point [MPaG] and friction mode held
+    over the step. ``w``: :func:`work_arrays`."""
+    nseg = int(pp[_N_SEG])
+    n = y.size
+    nc = 2 * nseg + 2
+    ith = 2 * nseg + 3
+    f1, f2, k1, y2, jl, jd, ju, cp, den, tmp = w
+    th_s = thr[0]
+    th_d = thr[1]
+    plant_f(ps0, y, needle0, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, f1,
+            True, jl, jd, ju)
+    # W = I - gamma h A on the chain (into jl, jd, ju), factorised
+    gh = GAMMA * h
+    for j in range(nc):
+        jl[j] = -gh * jl[j]
+        jd[j] = 1.0 - gh * jd[j]
+        ju[j] = -gh * ju[j]
+    _factor(jl, jd, ju, cp, den, nc)
+    d_pl = 1.0 + gh / pp[_LOAD_TAU]
+    _solve(f1, k1, tmp, jl, ju, cp, den, nseg, d_pl)
+    k1[ith] = 0.0
+    for k in range(n):
+        y2[k] = y[k] + h * k1[k]
+    dp0 = y2[0] - y[0]
+    th_s += thr[2] * (ps1 - ps0) + thr[3] * dp0
+    th_d += thr[4] * dp0
+    plant_f(ps1, y2, needle1, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, f2,
+            False, jl, jd, ju)
+    for k in range(n):
+        f2[k] -= 2.0 * k1[k]
+    _solve(f2, f2, tmp, jl, ju, cp, den, nseg, d_pl)   # k2 in place of its right-hand side
+    for k in range(n):
+        if k != ith:
+            y[k] += h * (1.5 * k1[k] + 0.5 * f2[k])
+
+
+@njit(cache=True, nogil=True, inline='always')
+def servo_rate(theta, target, pp):
+    """Servo angle rate: first-order lag towards ``target``, rate-limited [deg/s]."""
+    rate = (target - theta) / pp[_SERVO_TAU]
+    rmax = pp[_SERVO_RATE]
+    if rate > rmax:
+        return rmax
+    if rate < -rmax:
+        return -rmax
+    return rate
+
+
+@njit(cache=True, nogil=True, inline='always')
+def servo_step(theta, target, h, pp):
+    """Servo angle after one ROS2 step ``h`` towards ``target`` (held) [deg];
+    A = -1/tau while the lag is not rate-limited, else 0."""
+    inv_tau = 1.0 / pp[_SERVO_TAU]
+    rmax = pp[_SERVO_RATE]
+    r1 = (target - theta) * inv_tau
+    free = abs(r1) < rmax
+    inv_w = 1.0 / (1.0 + GAMMA * h * inv_tau) if free else 1.0
+    r1 = min(max(r1, -rmax), rmax)
+    k1 = r1 * inv_w
+    r2 = (target - (theta + h * k1)) * inv_tau
+    r2 = min(max(r2, -rmax), rmax)
+    k2 = (r2 - 2.0 * k1) * inv_w
+    return theta + h * (1.5 * k1 + 0.5 * k2)
