@@ -19,7 +19,7 @@
 3. Prints the summary and where ``report.html`` is.
 
 The simulated data sets are kept under ``outputs/demo/data/`` (made once,
-keyed by the package version) and the per-run results are cached, so a
+keyed by the simulator's version: package version + hash of its sources) and the per-run results are cached, so a
 second ``make demo`` takes seconds. Options: ``--out DIR``, ``--workers N``,
 ``--force`` (recompute everything), ``--quiet``.
 """
@@ -50,9 +50,11 @@ def demo_datasets(root: str | Path | None = None, *, seed: int = 0, progress: bo
     unless they are there already; return their folders.
 
     A data set is (re)made when its ``.complete`` marker is missing or was
-    written for other scenario, effects, seed or package version.
+    written for other scenario, effects, seed or simulator
+    (:func:`~seanv_analysis.batch.cache.simulator_version`: the package version
+    and a hash of the simulator's sources and the default rig).
     """
-    from . import __version__
+    from .batch.cache import simulator_version
     from .sim import SCENARIOS, simulate_scenario
 
     root = Path(root) if root is not None else Path("outputs") / "demo" / "data"
@@ -64,7 +66,7 @@ def demo_datasets(root: str | Path | None = None, *, seed: int = 0, progress: bo
             continue  # e.g. no 'without the flow model' scenario in this version
         folder = root / name
         stamp = json.dumps({"scenario": scenario, "effects": list(effects), "seed": seed,
-                            "version": __version__}, sort_keys=True)
+                            "version": simulator_version()}, sort_keys=True)
         marker = folder / ".complete"
         folders.append(folder)
         if marker.is_file() and marker.read_text() == stamp:

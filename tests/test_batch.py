@@ -385,3 +385,29 @@ def test_cache_index_survives_garbage(tmp_path):
     (tmp_path / "index.json").write_text("{not json")
     cache = RunCache(tmp_path)
     assert cache.known_hashes(tmp_path) is None
+
+
+def test_demo_data_is_remade_when_the_simulator_changes(tmp_path, monkeypatch):
+    """The demo's simulated data sets are keyed by the simulator's sources, so
+    a changed plant or integrator never serves data of the old one."""
+    from seanv_analysis import demo
+    from seanv_analysis.batch import cache
+
+    real = cache.simulator_version()
+    assert real.startswith("0.") and "+sim" in real and real != cache.code_version()
+    made = []
+
+    def fake_simulate(scenario, folder, **kw):
+        Path(folder).mkdir(parents=True)
+        made.append(scenario)
+        return Path(folder)
+
+    monkeypatch.setattr("seanv_analysis.sim.simulate_scenario", fake_simulate)
+    demo.demo_datasets(tmp_path)
+    n = len(made)
+    assert n >= 1
+    demo.demo_datasets(tmp_path)
+    assert len(made) == n                                  # cached
+    monkeypatch.setattr(cache, "simulator_version", lambda: "0.0.0+simother")
+    demo.demo_datasets(tmp_path)
+    assert len(made) == 2 * n                              # re-simulated

@@ -57,6 +57,29 @@ def code_version() -> str:
     return f"{__version__}+{h.hexdigest()[:12]}"
 
 
+#: what a simulated data set depends on (package-relative paths or folders)
+_SIMULATOR_SOURCES = ("sim", "models", "control.py", "config.py", "io/writer.py",
+                      "../data_schema/rig/default.toml")
+
+
+@functools.lru_cache(maxsize=1)
+def simulator_version() -> str:
+    """Package version plus a hash of the simulator's sources and the default
+    rig (``0.1.0+sim1a2b3c4d5e6f``): the key of cached built-in simulated data
+    sets, so a changed plant or integrator re-simulates them while an edited
+    plot or report does not."""
+    pkg = Path(__file__).resolve().parents[1]
+    h = hashlib.sha256()
+    for rel in _SIMULATOR_SOURCES:
+        base = (pkg / rel).resolve()
+        files = sorted(base.rglob("*.py")) if base.is_dir() else [base]
+        for path in files:
+            if path.is_file():
+                h.update(rel.encode() + b"/" + path.name.encode())
+                h.update(path.read_bytes())
+    return f"{__version__}+sim{h.hexdigest()[:12]}"
+
+
 def run_key(file_hashes: Mapping[str, str], *, stage: str, params: Mapping[str, Any],
             rig: Mapping[str, Any], version: str | None = None) -> str:
     """Cache key of one run's result of one stage (hex SHA-256).

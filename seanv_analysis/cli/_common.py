@@ -82,11 +82,13 @@ def echo_bad_runs(errors) -> int:
 
 def sim_default_dataset(scenario: str, *, seed: int = 0, effects: tuple[str, ...] = ()) -> Path:
     """Path of a built-in simulated data set, generated on first use and cached
-    under ``outputs/_builtin/`` (keyed by scenario, seed, effects and package version)."""
-    from .. import __version__
+    under ``outputs/_builtin/`` (keyed by scenario, seed, effects and the
+    simulator's version: package version + hash of its sources and rig)."""
+    from ..batch.cache import simulator_version
     from ..sim import simulate_scenario
 
-    key = hashlib.sha256(json.dumps([scenario, seed, list(effects), __version__]).encode()).hexdigest()[:10]
+    key = hashlib.sha256(json.dumps([scenario, seed, list(effects),
+                                     simulator_version()]).encode()).hexdigest()[:10]
     path = OUTPUTS_ROOT / "_builtin" / f"{scenario}-{key}"
     done = path / ".complete"
     if not done.exists():
