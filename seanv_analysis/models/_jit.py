@@ -110,7 +110,8 @@ def side_flow_at(params, theta_d_deg, theta_deg, dp_mpa, smooth_mpa):
     """Flow of one side for a known threshold angle, eq. (5) with the smoothed
     dp law and the flow cap [mm^3/s].
 
-    Returns (Q, dQ/d(dp)) -- the slope for the semi-implicit pressure update.
+    Returns (Q [mm^3/s], dQ/d(dp) [mm^3/(s MPa)]) -- the slope is the valve
+    conductance entry of the ROS2 step's Jacobian (:mod:`seanv_analysis.sim.rosenbrock`).
     """
     o = opening(theta_deg, theta_d_deg, params[SP_UP] > 0.5)
     if o <= 0.0:

@@ -156,8 +156,9 @@ def rhs(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
 @njit(cache=True, nogil=True)
 def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     """The simulator's integrator over the same physics as :func:`derivs`:
-    ROS2 steps of ``pp[DT]`` (:func:`.rosenbrock.servo_step` then
-    :func:`.rosenbrock.plant_step`, as the kernel calls them), friction
+    ROS2 steps of ``pp[DT]`` (:func:`.rosenbrock.servo_step`, the servo
+    lag solved exactly, then :func:`.rosenbrock.plant_step`, as the kernel
+    calls them), friction
     tanh-regularised (``FR_SMOOTH``), sealing thresholds at the start of
     each step moved linearly to stage 2, servo target held over a step (the
     switch at ``t_on`` is on the step grid: from step ``round(t_on / dt)``),

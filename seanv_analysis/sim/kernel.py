@@ -24,8 +24,8 @@ of the hydraulic chain (valve conductance at node 0, tube R-I-C ladder,
 head-node/piston spring, damping part of the friction slope), solved by a
 two-sided Thomas sweep; L-stable, so the stiff modes are damped, the
 slow ones (tube LC modes ~5-10 Hz, head node + piston ~600 rad/s,
-omega h = 0.6) integrated to 2nd order. Per step: the servo lag (same ROS2
-formula, scalar), then quantisation, backlash and the delay line give the
+omega h = 0.6) integrated to 2nd order. Per step: the servo lag (exact
+solution of the rate-limited lag), then quantisation, backlash and the delay line give the
 needle angle at the step's end (stage 2's input; stage 1 uses the previous
 one); sealing thresholds at the step's start, moved linearly in the
 pressures for stage 2; then the non-ODE parts after the step: Karnopp

@@ -26,9 +26,9 @@ unstable eigenvalue in W could make it singular.
 Inputs that are not states of the plant step (needle angle, supply
 pressure with its ripple) are given at both stage times t_n and t_n + h;
 the sealing thresholds are given once per step (refreshed at the step
-rate, 1 kHz by default). The servo is integrated first with the same ROS2
-formula (scalar, :func:`servo_step`), so its new angle is the stage-2
-input of the plant step (order 2: the servo does not depend on the plant).
+rate, 1 kHz by default). The servo is advanced first by the exact solution
+of its rate-limited lag (:func:`servo_step`), so its new angle is the
+stage-2 input of the plant step (the servo does not depend on the plant).
 
 Friction modes (``fr_mode``):
 
@@ -387,16 +387,20 @@ def servo_rate(theta, target, pp):
 
 @njit(cache=True, nogil=True, inline='always')
 def servo_step(theta, target, h, pp):
-    """Servo angle after one ROS2 step ``h`` towards ``target`` (held) [deg];
-    A = -1/tau while the lag is not rate-limited, else 0."""
-    inv_tau = 1.0 / pp[_SERVO_TAU]
-    rmax = pp[_SERVO_RATE]
-    r1 = (target - theta) * inv_tau
-    free = abs(r1) < rmax
-    inv_w = 1.0 / (1.0 + GAMMA * h * inv_tau) if free else 1.0
-    r1 = min(max(r1, -rmax), rmax)
-    k1 = r1 * inv_w
-    r2 = (target - (theta + h * k1)) * inv_tau
-    r2 = min(max(r2, -rmax), rmax)
-    k2 = (r2 - 2.0 * k1) * inv_w
-    return theta + h * (1.5 * k1 + 0.5 * k2)
+    """Servo angle after a step ``h`` [s] towards ``target`` (held) [deg]:
+    the exact solution of the rate-limited first-order lag
+    (:func:`servo_rate`): at the rate limit (a straight line) while
+    |target - theta| > rate limit x tau, exponential from there on.
+    Exact, so the servo adds no integration error to the plant's inputs
+    (its ROS2 step at 1 ms was off by ~2e-3 deg after a 20 deg command, at
+    the switch from the rate limit to the lag)."""
+    tau = pp[_SERVO_TAU]
+    e = target - theta
+    ae = abs(e)
+    lim = pp[_SERVO_RATE] * tau          # |error| [deg] below which the lag is not rate-limited
+    if ae <= lim:
+        return target - e * math.exp(-h / tau)
+    t_lim = (ae - lim) / pp[_SERVO_RATE]  # time [s] spent at the rate limit
+    if t_lim >= h:
+        return theta + math.copysign(pp[_SERVO_RATE] * h, e)
+    return target - math.copysign(lim, e) * math.exp(-(h - t_lim) / tau)
