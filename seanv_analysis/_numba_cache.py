@@ -19,7 +19,7 @@ from pathlib import Path
 __all__ = ["configure_numba_cache"]
 
 _SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "models/_jit.py",
-            "control.py", "sim/kernel.py", "sim/_rhs.py", "sim/rosenbrock.py")
+            "control.py", "sim/_pp.py", "sim/kernel.py", "sim/_rhs.py", "sim/rosenbrock.py")
 _DONE = False
 
 

@@ -47,8 +47,9 @@ def _errors(case, ys, ref):
             float(np.abs(ys[:, ip] - ref[:, ip]).max()))
 
 
-def test_rosenbrock_indices_match_kernel():
-    """rosenbrock.py keeps its own copies of the packed-parameter indices."""
+def test_rosenbrock_binds_the_shared_indices():
+    """The integrator step reads the packed parameters at the indices of the
+    one layout (sim/_pp.py) the kernel and the packer use."""
     for name in ("P_TANK", "N_SEG", "R_SEG", "I_SEG", "V_SEG", "BULK", "AREA", "LOAD_AREA",
                  "DEAD_VOL", "MASS", "F_COULOMB", "F_STATIC", "V_STRIBECK", "VISCOUS",
                  "LOAD_TAU", "LEAK_G", "DP_SMOOTH", "SERVO_TAU", "SERVO_RATE"):

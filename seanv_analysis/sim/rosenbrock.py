@@ -51,6 +51,7 @@ import numpy as np
 from numba import njit
 
 from ..models import _jit as J
+from ._pp import PP
 
 __all__ = ["GAMMA", "FR_SMOOTH", "FR_SLIDE", "FR_STUCK", "plant_f", "plant_step", "servo_step",
            "servo_rate", "thresholds", "work_arrays"]
@@ -61,26 +62,26 @@ FR_SMOOTH = 0
 FR_SLIDE = 1
 FR_STUCK = 2
 
-# packed-parameter indices used here (same values as kernel.PP; numba reads globals)
-_P_TANK = 6
-_N_SEG = 7
-_R_SEG = 8
-_I_SEG = 9
-_V_SEG = 10
-_BULK = 11
-_AREA = 12
-_LOAD_AREA = 13
-_DEAD_VOL = 14
-_MASS = 16
-_F_COULOMB = 17
-_F_STATIC = 18
-_V_STRIBECK = 19
-_VISCOUS = 20
-_LOAD_TAU = 21
-_LEAK_G = 22
-_DP_SMOOTH = 23
-_SERVO_TAU = 25
-_SERVO_RATE = 26
+# packed-parameter indices used here (numba reads module globals)
+_P_TANK = PP.P_TANK
+_N_SEG = PP.N_SEG
+_R_SEG = PP.R_SEG
+_I_SEG = PP.I_SEG
+_V_SEG = PP.V_SEG
+_BULK = PP.BULK
+_AREA = PP.AREA
+_LOAD_AREA = PP.LOAD_AREA
+_DEAD_VOL = PP.DEAD_VOL
+_MASS = PP.MASS
+_F_COULOMB = PP.F_COULOMB
+_F_STATIC = PP.F_STATIC
+_V_STRIBECK = PP.V_STRIBECK
+_VISCOUS = PP.VISCOUS
+_LOAD_TAU = PP.LOAD_TAU
+_LEAK_G = PP.LEAK_G
+_DP_SMOOTH = PP.DP_SMOOTH
+_SERVO_TAU = PP.SERVO_TAU
+_SERVO_RATE = PP.SERVO_RATE
 
 # arrays of the work tuple (see work_arrays)
 _W_F1, _W_F2, _W_K1, _W_Y2, _W_JL, _W_JD, _W_JU, _W_CP, _W_DEN, _W_T = range(10)

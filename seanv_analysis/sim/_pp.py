@@ -1,0 +1,57 @@
+"""Layout of the packed plant parameter vector (units in the comments).
+
+One definition for the kernel (:mod:`.kernel`), the integrator step
+(:mod:`.rosenbrock`), the ODE twin (:mod:`._rhs`) and the packer
+(:meth:`.plant.Plant.packed_params`); numba reads module globals, so the
+compiled modules bind the indices they use as ``_NAME = PP.NAME``.
+"""
+from __future__ import annotations
+
+__all__ = ["PP", "PP_SIZE"]
+
+
+class PP:
+    """Indices of the packed plant parameter vector (units in the names)."""
+
+    DT = 0                # integration step [s]
+    SUBSTEPS = 1          # plant steps per 1 kHz sample [-]
+    CTRL_EVERY = 2        # 1 kHz samples per controller tick [-]
+    P_SUPPLY = 3          # supply pressure [MPaG]
+    RIPPLE_AMP = 4        # pump ripple amplitude [MPa]
+    RIPPLE_HZ = 5         # pump ripple frequency [Hz]
+    P_TANK = 6            # tank pressure [MPaG]
+    N_SEG = 7             # tube segments [-]
+    R_SEG = 8             # laminar resistance per segment [MPa s/mm^3]
+    I_SEG = 9             # inertance per segment [MPa s^2/mm^3]
+    V_SEG = 10            # tube volume per segment [mm^3]
+    BULK = 11             # effective bulk modulus [MPa]
+    AREA = 12             # piston area [mm^2]
+    LOAD_AREA = 13        # load piston area [mm^2]
+    DEAD_VOL = 14         # head volume at x = 0 [mm^3]
+    STROKE = 15           # stroke [mm]
+    MASS = 16             # moving mass [N s^2/mm]
+    F_COULOMB = 17        # [N]
+    F_STATIC = 18         # [N]
+    V_STRIBECK = 19       # [mm/s]
+    VISCOUS = 20          # [N s/mm]
+    LOAD_TAU = 21         # load regulator time constant [s]
+    LEAK_G = 22           # leakage conductance per side [mm^3/(s MPa)]
+    DP_SMOOTH = 23        # dp smoothing [MPa]
+    SERVO_DEAD_TICKS = 24  # servo dead time in controller ticks [-]
+    SERVO_TAU = 25        # servo time constant [s]
+    SERVO_RATE = 26       # servo rate limit [deg/s]
+    SERVO_RES = 27        # servo resolution [deg]
+    BACKLASH = 28         # backlash width [deg] (effect)
+    DELAY_STEPS = 29      # extra transport delay [plant steps] (effect)
+    ENC_RES = 30          # encoder resolution [mm]
+    GAIN_X = 31           # encoder gain (effect) [-]
+    GAIN_PS = 32          # p_supply sensor gain [-]
+    GAIN_PH = 33          # p_head sensor gain [-]
+    GAIN_PL = 34          # p_load sensor gain [-]
+    P_CAV = 35            # cavitation floor [MPaG]
+    NEUTRAL = 36          # cam angle after a flow step's release [deg]
+    X_STOP_LO = 37        # flow step: release when x <= this (drain) [mm]
+    X_STOP_HI = 38        # flow step: release when x >= this (supply) [mm]
+
+
+PP_SIZE = 39
