@@ -42,6 +42,20 @@ threshold_displacement = njit(**_opts)(_sealing.threshold_displacement_core)
 
 
 @njit(**_opts)
+def table_segment(z_table_mm, z_mm):
+    """Index lo of the segment with z[lo] <= z < z[lo + 1] of a strictly
+    increasing table, for z[0] < z < z[-1] (bisection)."""
+    lo, hi = 0, z_table_mm.size - 1
+    while hi - lo > 1:
+        mid = (lo + hi) >> 1
+        if z_table_mm[mid] <= z_mm:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@njit(**_opts)
 def angle_for_height(z_mm, z_table_mm, theta_table_deg):
     """Scalar form of :func:`.sealing.angle_for_height_core` (inverse of
     eq. 4): the same linear interpolation, clipped at the table ends, by a
@@ -52,13 +66,8 @@ def angle_for_height(z_mm, z_table_mm, theta_table_deg):
         return theta_table_deg[0]
     if z_mm >= z_table_mm[n - 1]:
         return theta_table_deg[n - 1]
-    lo, hi = 0, n - 1
-    while hi - lo > 1:
-        mid = (lo + hi) >> 1
-        if z_table_mm[mid] <= z_mm:
-            lo = mid
-        else:
-            hi = mid
+    lo = table_segment(z_table_mm, z_mm)
+    hi = lo + 1
     w = (z_mm - z_table_mm[lo]) / (z_table_mm[hi] - z_table_mm[lo])
     return theta_table_deg[lo] + w * (theta_table_deg[hi] - theta_table_deg[lo])
 

@@ -271,9 +271,9 @@ def _threshold_lin(params, z_table, theta_table, p1_mpa, dp_mpa, hint):
     and (3) are linear in the pressures, the inverse of eq. (4) is the
     height table interpolated linearly (slope of the segment, 0 beyond the
     table's ends). The table segment is looked up next to ``hint`` (the
-    previous call's) first, by bisection otherwise -- the same segment the
-    bisection of ``angle_for_height`` finds (z[lo] <= z < z[lo + 1] of a
-    strictly increasing table). Returns (theta, d/dp1, d/d(dp), segment)."""
+    previous call's) first, by bisection otherwise (``J.table_segment``, as
+    ``angle_for_height``): z[lo] <= z < z[lo + 1] of a strictly increasing
+    table. Returns (theta, d/dp1, d/d(dp), segment)."""
     z_thr = J.threshold_displacement(params[J.SP_Z0],
                                      J.fluid_force(p1_mpa, dp_mpa, params[J.SP_DN],
                                                    params[J.SP_DO]),
@@ -297,13 +297,7 @@ def _threshold_lin(params, z_table, theta_table, p1_mpa, dp_mpa, hint):
     else:
         ok = False
     if not ok:
-        lo, hi = 0, n - 1
-        while hi - lo > 1:
-            mid = (lo + hi) >> 1
-            if z_table[mid] <= z_thr:
-                lo = mid
-            else:
-                hi = mid
+        lo = J.table_segment(z_table, z_thr)
     hi = lo + 1
     w = (z_thr - z_table[lo]) / (z_table[hi] - z_table[lo])
     theta = theta_table[lo] + w * (theta_table[hi] - theta_table[lo])
