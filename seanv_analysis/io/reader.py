@@ -53,7 +53,7 @@ _POOL: pa.MemoryPool | None = None
 _LARGE_FILE = 16 << 20
 
 
-def _pool(size_bytes: int = _LARGE_FILE) -> pa.MemoryPool:
+def _pool(size_bytes: int) -> pa.MemoryPool:
     """Arrow memory pool for parsing a file of ``size_bytes``.
 
     Large files (>= 16 MiB, long logs): jemalloc with immediate page purging
@@ -297,9 +297,10 @@ def _read_tables(meta: RunMeta, base: RigConfig, *, hash_files: bool) -> Run:
             files[spec.name] = path
             todo.append((spec, path))
     per_table = [{} if hash_files else None for _ in todo]
-    jobs = [functools.partial(_read_table, path, spec, rig, h)
-            for (spec, path), h in zip(todo, per_table)]
-    tables = dict(zip((spec.name for spec, _ in todo), _run_in_order(jobs, _bytes(todo))))
+    sizes = [_file_size(path) for _, path in todo]
+    jobs = [functools.partial(_read_table, path, spec, rig, h, size)
+            for (spec, path), h, size in zip(todo, per_table, sizes)]
+    tables = dict(zip((spec.name for spec, _ in todo), _run_in_order(jobs, sum(sizes))))
     for h in per_table:
         hashes.update(h or {})
     return Run(meta=meta, tables=tables, rig=rig, files=files, file_sha256=hashes)
@@ -308,10 +309,6 @@ def _read_tables(meta: RunMeta, base: RigConfig, *, hash_files: bool) -> Run:
 #: a run's tables are read side by side on threads when they hold at least
 #: this many bytes together (one post-processes while another parses)
 _CONCURRENT_MIN_BYTES = 8 << 20
-
-
-def _bytes(todo: list[tuple[TableSpec, Path]]) -> int:
-    return sum(_file_size(path) for _, path in todo)
 
 
 def _run_in_order(jobs: list, size: int) -> list:
@@ -397,7 +394,8 @@ def _file_size(path: Path) -> int:
 
 
 def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
-                hashes: dict[str, str] | None) -> pd.DataFrame:
+                hashes: dict[str, str] | None, size: int) -> pd.DataFrame:
+    """One table file (``size`` bytes), validated and calibrated."""
     is_csv = path.suffix == ".csv"
     try:
         scan = _scan(path, want_hash=hashes is not None, find_nul=is_csv)
@@ -419,7 +417,7 @@ def _read_table(path: Path, spec: TableSpec, rig: RigConfig,
     # ``table`` is this frame's only reference: each column is dropped from it
     # once converted, so Arrow's copy of a column is released as numpy's is
     # made (peak: one table in Arrow + numpy, not two).
-    pool = _pool(_file_size(path))
+    pool = _pool(size)
     table = _parse_csv(path, spec, scan.head, pool) if is_csv else _parse_parquet(path, spec)
     names = table.column_names
     if len(set(names)) != len(names):
