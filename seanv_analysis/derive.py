@@ -15,6 +15,7 @@ Units: s, mm, mm/s, mm^2, mm^3/s, MPa (gauge), deg.
 """
 from __future__ import annotations
 
+import functools
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
@@ -300,14 +301,16 @@ def derive_samples(run: Run, *, aligned: pd.DataFrame | None = None,
     enc = run.tables.get("encoder")
     if enc is not None and not len(enc):
         enc = None
-    helper = pending = None
-    if enc is not None and aligned is None and len(enc) >= _OVERLAP_MIN_SAMPLES:
-        # a long record: the derivative (scipy.ndimage) and the alignment
-        # (np.interp) both release the GIL, so they run side by side
-        helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-derive")
-        pending = helper.submit(velocity_mm_s, enc["t_s"].to_numpy(),
-                                enc["position_mm"].to_numpy(), window_s=window_s,
-                                polyorder=polyorder)
+    derivative = helper = pending = None
+    if enc is not None:
+        derivative = functools.partial(velocity_mm_s, enc["t_s"].to_numpy(),
+                                       enc["position_mm"].to_numpy(), window_s=window_s,
+                                       polyorder=polyorder)
+        if aligned is None and len(enc) >= _OVERLAP_MIN_SAMPLES:
+            # a long record: the derivative (scipy.ndimage) and the alignment
+            # (np.interp) both release the GIL, so they run side by side
+            helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-derive")
+            pending = helper.submit(derivative)
     try:
         # run.aligned() is a fresh frame we own; a caller's frame gets a shallow
         # copy (new columns do not touch it). A deep copy here consolidated the
@@ -321,11 +324,7 @@ def derive_samples(run: Run, *, aligned: pd.DataFrame | None = None,
         if helper is not None:
             helper.shutdown(wait=True)   # the derivative is done (or its error kept)
     if enc is not None:
-        if pending is not None:
-            v_enc, info = pending.result()
-        else:
-            v_enc, info = velocity_mm_s(enc["t_s"].to_numpy(), enc["position_mm"].to_numpy(),
-                                        window_s=window_s, polyorder=polyorder)
+        v_enc, info = pending.result() if pending is not None else derivative()
         v = interp_sorted(df["t_s"].to_numpy(np.float64), enc["t_s"].to_numpy(np.float64), v_enc,
                           copy=False)  # v_enc is ours: on the encoder's clock, a view of it
     else:
