@@ -155,3 +155,45 @@ def test_rhs_refuses_cam_effects():
     plant = Plant.from_rig(load_rig(), effects=["backlash:width_deg=1.0"])
     with pytest.raises(ValueError):
         R.open_loop_step(plant, cam_deg=CAM, load_mpag=LOAD)
+
+
+@pytest.mark.parametrize("nseg", [1, 2, 3, 4])
+@pytest.mark.parametrize("stuck", [False, True])
+def test_chain_solve_equals_dense_solve(nseg, stuck):
+    """The step's twisted tridiagonal solve (_factor + _solve) of
+    W k = r, W = I - gamma h A on the chain [p_0, q_0, ..., p_nseg, v]
+    (x and the load pressure by their diagonals), equals a dense solve of
+    the same W to rounding: random R-L-C ladders (A's diagonal <= 0,
+    off-diagonal pairs of opposite sign), and the stuck piston (couplings
+    of v zeroed, as plant_f sets them)."""
+    rng = np.random.default_rng(10 * nseg + stuck)
+    nc = 2 * nseg + 2
+    n = 2 * nseg + 5
+    for _ in range(20):
+        a_l = np.zeros(nc)
+        a_d = -rng.uniform(0.0, 1e3, nc) * (rng.random(nc) < 0.7)
+        a_u = np.zeros(nc)
+        for j in range(nc - 1):
+            c = 10.0 ** rng.uniform(-3, 6)
+            ratio = 10.0 ** rng.uniform(-6, 2)
+            sgn = rng.choice([-1.0, 1.0])
+            a_u[j] = sgn * c                     # A[j, j + 1]
+            a_l[j + 1] = -sgn * c * ratio        # A[j + 1, j], opposite sign
+        if stuck:
+            a_u[nc - 2] = a_l[nc - 1] = a_d[nc - 1] = 0.0
+        gh = RB.GAMMA * 1e-3
+        wl, wd, wu = -gh * a_l, 1.0 - gh * a_d, -gh * a_u
+        dense = np.diag(wd) + np.diag(wl[1:], -1) + np.diag(wu[:-1], 1)
+        r = rng.normal(size=n)
+        d_pl = 1.0 + gh / 0.05
+        cp, den, tmp, o = np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n)
+        RB._factor(wl, wd, wu, cp, den, nc)
+        RB._solve(r, o, tmp, wl, wu, cp, den, nseg, d_pl)
+        iq, iv = nseg + 1, 2 * nseg + 2
+        chain = np.r_[np.ravel(np.c_[np.arange(nseg), iq + np.arange(nseg)]), nseg, iv]
+        k = np.linalg.solve(dense, r[chain])
+        scale = np.abs(k).max()
+        assert np.abs(o[chain] - k).max() <= 1e-12 * scale
+        assert o[iv - 1] == r[iv - 1] and o[iv + 2] == pytest.approx(r[iv + 2] / d_pl, rel=1e-15)
+        if stuck:
+            assert o[iv] == pytest.approx(r[iv] / wd[nc - 1], rel=1e-15)

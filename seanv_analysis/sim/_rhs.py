@@ -142,7 +142,7 @@ def derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     th_s = J.threshold_deg(sup, sup_z, sup_th, ps, ps - p0)
     th_d = J.threshold_deg(dr, dr_z, dr_th, p0, p0 - pp[_P_TANK])
     RB.plant_f(ps, y, needle, th_s, th_d, aux[_A_PLOAD], RB.FR_SMOOTH, aux[_A_EPS], pp, sup, dr,
-               dydt, False, dydt)
+               dydt, False, dydt, dydt, dydt)
 
 
 @njit(cache=True, nogil=True)
@@ -172,7 +172,8 @@ def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     ith = 2 * nseg + 3
     y = y0.copy()
     out = np.empty((n_out, n))
-    w = RB.work_arrays(pp, h)
+    w = (np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n),
+         np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
     thr = np.zeros(7)
     quant = aux[_A_QUANT] > 0.5
     res = pp[_SERVO_RES]

@@ -167,7 +167,9 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     y[ix] = x0_mm
     y[ith] = cam0_deg
     y[ipl] = p_load
-    w = RB.work_arrays(pp, dt)
+    w = (np.zeros(y.size), np.zeros(y.size), np.zeros(y.size), np.zeros(y.size),
+         np.zeros(y.size), np.zeros(y.size), np.zeros(y.size), np.zeros(y.size),
+         np.zeros(y.size), np.zeros(y.size))
     thr = np.zeros(7)
     # servo: dead-time ring of commands (in ticks), backlash, delay ring
     ndead = int(pp[_SERVO_DEAD_TICKS])

@@ -83,108 +83,39 @@ _DP_SMOOTH = PP.DP_SMOOTH
 _SERVO_TAU = PP.SERVO_TAU
 _SERVO_RATE = PP.SERVO_RATE
 
-# the work tuple (see work_arrays): arrays, then the scalars in _W_CONST
-_W_F1, _W_F2, _W_K1, _W_Y2, _W_TMP, _W_JAC, _W_TINV, _W_CONST = range(8)
-# _W_CONST: step h [s], gamma h [s], W of the load pressure, W[p_0, q_0],
-# then B (interior length L) and C (L)
-_C_H, _C_GH, _C_DPL, _C_E0, _C_B = range(5)
+# plant_step and thresholds, the two entry points the callers' step loops
+# call, are compiled without numba's reference counting (_nrt=False) and not
+# inlined into the callers: they only read and write the arrays they are
+# given (no allocation, no array kept), so the counts would be balanced no-ops,
+# but inlined into the callers' loops they cost dozens of atomic
+# increments/decrements per step that numba's pruning leaves in the branchy
+# code (~120 of ~410 ns per step). Called, not inlined: the arguments are
+# borrowed, nothing is counted. error_model='numpy': no zero-division checks
+# (every divisor here is a parameter validated > 0 or a pivot >= 1), ~4 %.
+
+# arrays of the work tuple (see work_arrays)
+_W_F1, _W_F2, _W_K1, _W_Y2, _W_JL, _W_JD, _W_JU, _W_CP, _W_DEN, _W_T = range(10)
 
 
-@njit(cache=True, nogil=True)
-def work_arrays(pp, h):
-    """Scratch space and the per-run part of the chain solve for
-    :func:`plant_step` with step ``h`` [s] and plant ``pp`` (call once per
-    run, pass the same ``h`` to every step).
-
-    W = I - gamma h A on the chain [p_0, q_0, ..., q_{nseg-1}, p_nseg, v]
-    changes from step to step only in its boundary rows: p_0 (valve
-    conductance), p_nseg (its compliance 1/C depends on x) and v (friction
-    slope; the stuck mode drops the couplings). The interior rows q_0, p_1,
-    ..., q_{nseg-1} (the L = 2 nseg - 1 unknowns between p_0 and p_nseg)
-    hold segment inertance, resistance and inner node compliances, constant
-    for a given h: their block T of W is inverted here once (the Thomas
-    algorithm on each unit vector, pivots >= 1, see :func:`_solve`), and
-    stored with B = T^-1 W[:, p_0] and C = T^-1 W[:, p_nseg] (the interior's
-    couplings to the two boundary nodes).
-
-    Returns (f1, f2, k1, y2 [length n], tmp [L], jac [5], T^-1 [L x L,
-    row-major, interior positions in state order p_1..p_{nseg-1},
-    q_0..q_{nseg-1}], constants [4 + 2 L])."""
-    nseg = int(pp[_N_SEG])
-    n = 2 * nseg + 5
-    nl = 2 * nseg - 1
-    gh = GAMMA * h
-    inv_i = 1.0 / pp[_I_SEG]
-    r_i = pp[_R_SEG] * inv_i
-    inv_c_mid = pp[_BULK] / pp[_V_SEG]
-    inv_c_end = 2.0 * pp[_BULK] / pp[_V_SEG]
-    # T in chain order (interior chain index j = 1..2 nseg - 1 at t = j - 1):
-    # q rows (j odd): -gh [1/I, -R/I, -1/I]; p rows (j even): -gh [1/C, 0, -1/C]
-    tl = np.zeros(nl)
-    td = np.zeros(nl)
-    tu = np.zeros(nl)
-    for t in range(nl):
-        if t % 2 == 0:
-            tl[t] = -gh * inv_i
-            td[t] = 1.0 + gh * r_i
-            tu[t] = gh * inv_i
-        else:
-            tl[t] = -gh * inv_c_mid
-            td[t] = 1.0
-            tu[t] = gh * inv_c_mid
-    # Thomas factors (no pivoting: pivots >= 1, see _solve)
-    cp = np.zeros(nl)
-    den = np.zeros(nl)
-    for t in range(nl):
-        piv = td[t] - (tl[t] * cp[t - 1] if t > 0 else 0.0)
-        den[t] = 1.0 / piv
-        cp[t] = tu[t] * den[t]
-    # state position of chain interior t: p_k (t = 2k - 1) -> k - 1,
-    # q_k (t = 2k) -> nseg - 1 + k
-    pos = np.zeros(nl, dtype=np.int64)
-    for t in range(nl):
-        pos[t] = (t + 1) // 2 - 1 if t % 2 == 1 else nseg - 1 + t // 2
-    tinv = np.zeros(nl * nl)
-    col = np.zeros(nl)
-    for b in range(nl):
-        for t in range(nl):
-            col[t] = 1.0 if t == b else 0.0
-        col[0] = col[0] * den[0]
-        for t in range(1, nl):
-            col[t] = (col[t] - tl[t] * col[t - 1]) * den[t]
-        for t in range(nl - 2, -1, -1):
-            col[t] = col[t] - cp[t] * col[t + 1]
-        for t in range(nl):
-            tinv[pos[t] * nl + pos[b]] = col[t]
-    cst = np.zeros(4 + 2 * nl)
-    cst[_C_H] = h
-    cst[_C_GH] = gh
-    cst[_C_DPL] = 1.0 + gh / pp[_LOAD_TAU]
-    cst[_C_E0] = gh * inv_c_end                      # W[p_0, q_0]
-    iq0 = nseg - 1                                   # position of q_0
-    iql = nl - 1                                     # position of q_{nseg-1}
-    for a in range(nl):
-        cst[_C_B + a] = tinv[a * nl + iq0] * (-gh * inv_i)        # W[q_0, p_0]
-        cst[_C_B + nl + a] = tinv[a * nl + iql] * (gh * inv_i)    # W[q_{nseg-1}, p_nseg]
-    return (np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(nl), np.zeros(5),
-            tinv, cst)
+def work_arrays(n_state: int) -> tuple:
+    """Scratch space for :func:`plant_step` (allocate once per run): ten
+    float arrays of the state's length."""
+    return tuple(np.zeros(n_state) for _ in range(10))
 
 
 @njit(cache=True, nogil=True, inline='always')
 def plant_f(ps, y, needle, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, dydt,
-            want_jac, jac):
+            want_jac, jl, jd, ju):
     """f of the plant states at supply pressure ``ps`` [MPaG], needle angle
     ``needle`` [deg], sealing thresholds ``th_s``, ``th_d`` [deg], load set
     point ``p_load_set`` [MPaG], friction mode ``fr_mode`` / ``fr_arg``
     (module doc), into ``dydt`` (the servo entry is left alone).
 
-    With ``want_jac``: the entries of the chain Jacobian A (tridiagonal on
-    [p_0, q_0, ..., p_nseg, v]) that change from step to step, into ``jac``
-    (units 1/s and the states' unit ratios): dp_0'/dp_0 (valve
-    conductance), dp_nseg'/dq_{nseg-1} (1/C of the last node, x-dependent),
-    dp_nseg'/dv, dv'/dp_nseg (both 0 when stuck) and dv'/dv (the friction
-    slope, only where it damps: <= 0). The constant rest (segments, inner
-    nodes, dp_0'/dq_0) is in :func:`work_arrays`."""
+    With ``want_jac``: the tridiagonal Jacobian of the chain
+    [p_0, q_0, ..., p_nseg, v] into ``jl`` (sub), ``jd`` (diagonal), ``ju``
+    (super), chain index j (p_k at 2k, q_k at 2k + 1, v at 2 nseg + 1),
+    units 1/s and the states' unit ratios. The friction slope enters only
+    where it damps (>= 0)."""
     nseg = int(pp[_N_SEG])
     iq = nseg + 1
     ix = 2 * nseg + 1
@@ -249,80 +180,98 @@ def plant_f(ps, y, needle, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr,
             dff = s * de + pp[_VISCOUS]
         dydt[iv] = (f_drive - ff) / m
     if want_jac:
+        nc = 2 * nseg + 2
+        jd[0] = -g * inv_c_end
+        jl[0] = 0.0
+        ju[0] = -inv_c_end
+        for k in range(1, nseg):
+            jl[2 * k] = inv_c_mid
+            jd[2 * k] = 0.0
+            ju[2 * k] = -inv_c_mid
+        for k in range(nseg):
+            jl[2 * k + 1] = inv_i
+            jd[2 * k + 1] = -r_i
+            ju[2 * k + 1] = -inv_i
+        jn = 2 * nseg
+        jl[jn] = inv_c_last
+        jd[jn] = 0.0
         stuck = fr_mode == FR_STUCK
-        jac[0] = -g * inv_c_end
-        jac[1] = inv_c_last
-        jac[2] = 0.0 if stuck else -area * inv_c_last
-        jac[3] = 0.0 if stuck else area / m
-        jac[4] = -max(dff, 0.0) / m
+        ju[jn] = 0.0 if stuck else -area * inv_c_last
+        jl[nc - 1] = 0.0 if stuck else area / m
+        jd[nc - 1] = -max(dff, 0.0) / m
+        ju[nc - 1] = 0.0
 
 
 @njit(cache=True, nogil=True, inline='always')
-def _boundary(jac, w):
-    """The per-step part of the chain solve (:func:`_solve`): W's varying
-    entries from ``jac`` (:func:`plant_f`) and the Schur complement of the
-    interior on (p_0, p_nseg, v), after eliminating v from the p_nseg row.
-    Returns the tuple :func:`_solve` takes."""
-    cst = w[_W_CONST]
-    nl = w[_W_TMP].size
-    gh = cst[_C_GH]
-    e0 = cst[_C_E0]
-    w00 = 1.0 - gh * jac[0]
-    wnq = -gh * jac[1]                  # W[p_nseg, q_{nseg-1}]
-    wnv = -gh * jac[2]                  # W[p_nseg, v]
-    wvn = -gh * jac[3]                  # W[v, p_nseg]
-    wvv = 1.0 - gh * jac[4]
-    iq0 = (nl - 1) // 2                 # interior position of q_0 (= nseg - 1)
-    sa = w00 - e0 * cst[_C_B + iq0]
-    sb = -e0 * cst[_C_B + nl + iq0]
-    sc = -wnq * cst[_C_B + nl - 1]
-    # the p_nseg row times wvv, v eliminated: sd = wvv (1 - wnq C_last) - wnv wvn
-    sd = wvv * (1.0 - wnq * cst[_C_B + 2 * nl - 1]) - wnv * wvn
-    inv_det = 1.0 / (sa * sd - sb * sc * wvv)
-    return e0, wnq, wnv, wvn, wvv, 1.0 / wvv, sa, sb, sc * wvv, sd, inv_det
+def _factor(wl, wd, wu, cp, den, nc):
+    """Twisted (two-sided) LU of the tridiagonal chain matrix W (sub ``wl``,
+    diagonal ``wd``, super ``wu``): eliminated from the top down to the
+    middle position m = nc // 2 and from the bottom up to it, two
+    independent recurrences the CPU overlaps. ``cp`` gets the eliminated
+    coupling, ``den`` 1 / pivot. No pivoting: W = I - gamma h A with A's
+    diagonal <= 0 and its off-diagonal pairs of opposite sign (the chain is
+    an R-L-C ladder), so every pivot is >= 1."""
+    m = nc // 2
+    inv = 1.0 / wd[0]
+    den[0] = inv
+    cp[0] = wu[0] * inv
+    for j in range(1, m):
+        inv = 1.0 / (wd[j] - wl[j] * cp[j - 1])
+        den[j] = inv
+        cp[j] = wu[j] * inv
+    inv = 1.0 / wd[nc - 1]
+    den[nc - 1] = inv
+    cp[nc - 1] = wl[nc - 1] * inv
+    for j in range(nc - 2, m, -1):
+        inv = 1.0 / (wd[j] - wu[j] * cp[j + 1])
+        den[j] = inv
+        cp[j] = wl[j] * inv
+    den[m] = 1.0 / (wd[m] - wl[m] * cp[m - 1] - wu[m] * cp[m + 1])
 
 
 @njit(cache=True, nogil=True, inline='always')
-def _solve(r, o, w, bd, nseg):
-    """Solve W k = r into ``o`` (may be ``r``), W = I - gamma h A: the chain
-    [p_0, q_0, ..., q_{nseg-1}, p_nseg, v] by its interior block T (inverted
-    once per run, :func:`work_arrays`) and the 3 x 3 Schur complement on
-    (p_0, p_nseg, v) (:func:`_boundary`), the same linear system as a
-    tridiagonal (Thomas) solve, equal to rounding; x (W = 1) and the load
-    pressure by their diagonals; the servo entry is left alone. No
-    pivoting: A's diagonal is <= 0 and its off-diagonal pairs have opposite
-    signs (an R-L-C ladder), so the Thomas pivots of T are >= 1 and the
-    Schur determinant is positive (T's symmetric part, after the diagonal
-    scaling that makes the couplings skew, is positive definite)."""
-    e0, wnq, wnv, wvn, wvv, inv_wvv, sa, sb, scw, sd, inv_det = bd
-    u = w[_W_TMP]
-    tinv = w[_W_TINV]
-    cst = w[_W_CONST]
-    nl = 2 * nseg - 1
+def _solve(r, o, tmp, wl, wu, cp, den, nseg, d_pl):
+    """Solve W k = r into ``o`` (may be ``r``): the chain by the factorised
+    twisted sweep (:func:`_factor`), x (W = 1) and the load pressure
+    (``d_pl``) by their diagonals; the servo entry is left alone. Chain
+    order p_0, q_0, p_1, ..., q_{nseg-1}, p_nseg, v (gathered into ``tmp``)."""
     iq = nseg + 1
     iv = 2 * nseg + 2
-    # u = T^-1 r_interior (interior positions: p_1..p_{nseg-1} at 0..nseg-2,
-    # q_0..q_{nseg-1} at nseg-1..nl-1; state index = position + 1, + 2 for q)
-    for a in range(nl):
-        u[a] = 0.0
-    for b in range(nl):
-        rb = r[b + 1] if b < nseg - 1 else r[b + 2]
-        for a in range(nl):
-            u[a] += tinv[a * nl + b] * rb
-    r0 = r[0]
-    rv = r[iv]
-    s0 = r0 - e0 * u[nseg - 1]
-    sn = wvv * (r[nseg] - wnq * u[nl - 1]) - wnv * rv
-    z0 = (sd * s0 - sb * sn) * inv_det
-    zn = (sa * sn - scw * s0) * inv_det
-    o[0] = z0
-    o[nseg] = zn
-    o[iv] = (rv - wvn * zn) * inv_wvv
-    for a in range(nl):
-        k = a + 1 if a < nseg - 1 else a + 2
-        o[k] = u[a] - cst[_C_B + a] * z0 - cst[_C_B + nl + a] * zn
-    o[iv - 1] = r[iv - 1]                           # x: W = 1
-    o[iv + 2] = r[iv + 2] / cst[_C_DPL]             # load pressure
+    nc = 2 * nseg + 2
+    m = nc // 2
+    for k in range(nseg):
+        tmp[2 * k] = r[k]
+        tmp[2 * k + 1] = r[iq + k]
+    tmp[nc - 2] = r[nseg]
+    tmp[nc - 1] = r[iv]
+    # the recurrences carry their value in a register (prev), not through memory
+    top = tmp[0] * den[0]
+    tmp[0] = top
+    for j in range(1, m):
+        top = (tmp[j] - wl[j] * top) * den[j]
+        tmp[j] = top
+    bot = tmp[nc - 1] * den[nc - 1]
+    tmp[nc - 1] = bot
+    for j in range(nc - 2, m, -1):
+        bot = (tmp[j] - wu[j] * bot) * den[j]
+        tmp[j] = bot
+    mid = (tmp[m] - wl[m] * top - wu[m] * bot) * den[m]
+    tmp[m] = mid
+    prev = mid
+    for j in range(m - 1, -1, -1):
+        prev = tmp[j] - cp[j] * prev
+        tmp[j] = prev
+    prev = mid
+    for j in range(m + 1, nc):
+        prev = tmp[j] - cp[j] * prev
+        tmp[j] = prev
+    for k in range(nseg):
+        o[k] = tmp[2 * k]
+        o[iq + k] = tmp[2 * k + 1]
+    o[nseg] = tmp[nc - 2]
+    o[iv] = tmp[nc - 1]
+    o[iv - 1] = r[iv - 1]              # x: W = 1
+    o[iv + 2] = r[iv + 2] / d_pl       # load pressure
 
 
 @njit(cache=True, nogil=True, inline='always')
@@ -366,7 +315,7 @@ def _threshold_lin(params, z_table, theta_table, p1_mpa, dp_mpa, hint):
     return theta, slope * dz_dp1, slope * dz_ddp, lo
 
 
-@njit(cache=True, nogil=True, inline='always')
+@njit(cache=True, nogil=True, _nrt=False, error_model='numpy')
 def thresholds(thr, ps, p0, p_tank, sup, sup_z, sup_th, dr, dr_z, dr_th):
     """Sealing thresholds at supply pressure ``ps`` and node-0 pressure ``p0``
     [MPaG] into ``thr`` (length 7): [theta_d supply, theta_d drain] [deg],
@@ -385,7 +334,7 @@ def thresholds(thr, ps, p0, p_tank, sup, sup_z, sup_th, dr, dr_z, dr_th):
     thr[6] = seg
 
 
-@njit(cache=True, nogil=True, inline='always')
+@njit(cache=True, nogil=True, _nrt=False, error_model='numpy')
 def plant_step(y, h, ps0, ps1, needle0, needle1, thr, p_load_set, fr_mode, fr_arg, pp, sup,
                dr, w):
     """Advance the plant states of ``y`` (all but the servo angle) by one
@@ -397,16 +346,22 @@ def plant_step(y, h, ps0, ps1, needle0, needle1, thr, p_load_set, fr_mode, fr_ar
     over the step. ``w``: :func:`work_arrays`."""
     nseg = int(pp[_N_SEG])
     n = y.size
+    nc = 2 * nseg + 2
     ith = 2 * nseg + 3
-    f1, f2, k1, y2, _u, jac, _tinv, cst = w
-    if h != cst[_C_H]:
-        raise ValueError("plant_step: h differs from the step of work_arrays")
+    f1, f2, k1, y2, jl, jd, ju, cp, den, tmp = w
     th_s = thr[0]
     th_d = thr[1]
     plant_f(ps0, y, needle0, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, f1,
-            True, jac)
-    bd = _boundary(jac, w)
-    _solve(f1, k1, w, bd, nseg)
+            True, jl, jd, ju)
+    # W = I - gamma h A on the chain (into jl, jd, ju), factorised
+    gh = GAMMA * h
+    for j in range(nc):
+        jl[j] = -gh * jl[j]
+        jd[j] = 1.0 - gh * jd[j]
+        ju[j] = -gh * ju[j]
+    _factor(jl, jd, ju, cp, den, nc)
+    d_pl = 1.0 + gh / pp[_LOAD_TAU]
+    _solve(f1, k1, tmp, jl, ju, cp, den, nseg, d_pl)
     k1[ith] = 0.0
     for k in range(n):
         y2[k] = y[k] + h * k1[k]
@@ -414,10 +369,10 @@ def plant_step(y, h, ps0, ps1, needle0, needle1, thr, p_load_set, fr_mode, fr_ar
     th_s += thr[2] * (ps1 - ps0) + thr[3] * dp0
     th_d += thr[4] * dp0
     plant_f(ps1, y2, needle1, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, f2,
-            False, jac)
+            False, jl, jd, ju)
     for k in range(n):
         f2[k] -= 2.0 * k1[k]
-    _solve(f2, f2, w, bd, nseg)                      # k2 in place of its right-hand side
+    _solve(f2, f2, tmp, jl, ju, cp, den, nseg, d_pl)   # k2 in place of its right-hand side
     for k in range(n):
         if k != ith:
             y[k] += h * (1.5 * k1[k] + 0.5 * f2[k])
