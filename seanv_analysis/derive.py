@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from scipy.ndimage import uniform_filter1d
-from scipy.signal import savgol_coeffs
+from scipy.signal import savgol_filter
 
 from .errors import ConfigError, DataError
 from .io.run import Run
@@ -126,57 +126,13 @@ def _window_samples(window_s: float, dt_s: float, polyorder: int) -> int:
     return max(n, n_min)
 
 
-@functools.lru_cache(maxsize=32)
-def _savgol_operators(n: int, polyorder: int, dt: float
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(interior coefficients, left-edge operator, right-edge operator) of the
-    Savitzky-Golay first derivative over ``n`` samples of step ``dt`` [s]:
-    ``savgol_coeffs(n, polyorder, deriv=1, delta=dt)`` for np.convolve, and
-    the ``(n // 2, n)`` matrices mapping the first/last ``n`` samples to the
-    derivative of their least-squares polynomial at the first/last
-    ``n // 2`` positions (``savgol_filter``'s ``mode='interp'`` edges)."""
-    coeffs = savgol_coeffs(n, polyorder, deriv=1, delta=dt)
-    half = n // 2
-    centre = (n - 1) / 2.0                      # centred abscissa: better conditioned
-    s = np.arange(n, dtype=np.float64) - centre
-    to_poly = np.linalg.pinv(np.vander(s, polyorder + 1, increasing=True))  # samples -> coefficients
-
-    def slope_rows(positions: np.ndarray) -> np.ndarray:
-        d = np.zeros((positions.size, polyorder + 1))
-        for k in range(1, polyorder + 1):
-            d[:, k] = k * positions ** (k - 1)
-        return d @ to_poly / dt
-
-    left = slope_rows(np.arange(half, dtype=np.float64) - centre)
-    right = slope_rows(np.arange(n - half, n, dtype=np.float64) - centre)
-    for a in (coeffs, left, right):
-        a.setflags(write=False)
-    return coeffs, left, right
-
-
-def _savgol_derivative(x: np.ndarray, n: int, polyorder: int, dt: float) -> np.ndarray:
-    """Savitzky-Golay first derivative [units of x / s] of uniformly sampled
-    ``x`` (len >= n, n odd): ``savgol_filter(x, n, polyorder, deriv=1,
-    delta=dt, mode='interp')`` to rounding."""
-    coeffs, left, right = _savgol_operators(n, polyorder, dt)
-    v = np.convolve(x, coeffs, mode="same")
-    half = n // 2
-    if half:
-        v[:half] = left @ x[:n]
-        v[-half:] = right @ x[-n:]
-    return v
-
-
 def velocity_mm_s(t_s, position_mm, *, window_s: float, polyorder: int,
                   max_jitter: float = DEFAULT_MAX_JITTER) -> tuple[np.ndarray, DerivativeInfo]:
     """Actuator velocity from encoder position, Savitzky-Golay derivative.
 
     v(t_i) = d/dt of the least-squares polynomial of order ``polyorder``
-    fitted to the ``window_samples`` positions centred on t_i: what
-    ``scipy.signal.savgol_filter(deriv=1, mode='interp')`` gives (to ~1e-14
-    relative), computed as its coefficients (``savgol_coeffs``) convolved
-    by ``np.convolve`` (half the time of scipy.ndimage's convolution) plus
-    the two edge fits as fixed linear operators (:func:`_savgol_derivative`).
+    fitted to the ``window_samples`` positions centred on t_i
+    (``scipy.signal.savgol_filter(deriv=1)``).
 
     Parameters
     ----------
@@ -273,7 +229,7 @@ def velocity_mm_s(t_s, position_mm, *, window_s: float, polyorder: int,
         raise DataError(f"{x_u.size} samples, fewer than the {n}-sample derivative window "
                         f"({window_s} s at {1 / dt:.4g} Hz); expected a longer record",
                         column="position_mm")
-    v_u = _savgol_derivative(x_u, n, polyorder, dt)
+    v_u = savgol_filter(x_u, n, polyorder, deriv=1, delta=dt, mode="interp")
     v = np.interp(t, t_u, v_u) if resampled else v_u
     half = n // 2
     info = DerivativeInfo(window_samples=n, window_s=n * dt, requested_window_s=float(window_s),

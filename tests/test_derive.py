@@ -475,20 +475,3 @@ def test_derivative_beside_alignment_keeps_the_alignment_error_first(monkeypatch
     monkeypatch.setattr(derive_mod, "_OVERLAP_MIN_SAMPLES", 0)
     with pytest.raises(DataError, match="do not overlap"):
         derive_samples(bad)
-
-
-@pytest.mark.parametrize("n,order", [(3, 1), (5, 2), (51, 2), (51, 3), (101, 4), (7, 5)])
-@pytest.mark.parametrize("size_over_n", [1, 2, 40])
-def test_savgol_derivative_is_scipy_savgol_filter(n, order, size_over_n):
-    """The derivative equals scipy.signal.savgol_filter(deriv=1, mode='interp'),
-    interior and edges, on a rough signal (random walk + sine)."""
-    from scipy.signal import savgol_filter
-
-    from seanv_analysis.derive import _savgol_derivative
-
-    rng = np.random.default_rng(n * 10 + order)
-    m = n * size_over_n
-    x = np.cumsum(rng.normal(size=m)) * 1e-2 + 3.0 * np.sin(np.arange(m) * 0.01) + 40.0
-    ref = savgol_filter(x, n, order, deriv=1, delta=1e-3, mode="interp")
-    got = _savgol_derivative(x, n, order, 1e-3)
-    assert_allclose(got, ref, rtol=0, atol=1e-9 * np.abs(ref).max())
