@@ -7,7 +7,7 @@ compiled modules bind the indices they use as ``_NAME = PP.NAME``.
 """
 from __future__ import annotations
 
-__all__ = ["PP", "PP_SIZE"]
+__all__ = ["PP", "PP_SIZE"]  # and the _NAME bindings below
 
 
 class PP:
@@ -55,3 +55,46 @@ class PP:
 
 
 PP_SIZE = 39
+
+
+# module-level bindings of the indices, imported by the compiled modules
+# (numba reads module globals, not class attributes)
+_DT = PP.DT
+_SUBSTEPS = PP.SUBSTEPS
+_CTRL_EVERY = PP.CTRL_EVERY
+_P_SUPPLY = PP.P_SUPPLY
+_RIPPLE_AMP = PP.RIPPLE_AMP
+_RIPPLE_HZ = PP.RIPPLE_HZ
+_P_TANK = PP.P_TANK
+_N_SEG = PP.N_SEG
+_R_SEG = PP.R_SEG
+_I_SEG = PP.I_SEG
+_V_SEG = PP.V_SEG
+_BULK = PP.BULK
+_AREA = PP.AREA
+_LOAD_AREA = PP.LOAD_AREA
+_DEAD_VOL = PP.DEAD_VOL
+_STROKE = PP.STROKE
+_MASS = PP.MASS
+_F_COULOMB = PP.F_COULOMB
+_F_STATIC = PP.F_STATIC
+_V_STRIBECK = PP.V_STRIBECK
+_VISCOUS = PP.VISCOUS
+_LOAD_TAU = PP.LOAD_TAU
+_LEAK_G = PP.LEAK_G
+_DP_SMOOTH = PP.DP_SMOOTH
+_SERVO_DEAD_TICKS = PP.SERVO_DEAD_TICKS
+_SERVO_TAU = PP.SERVO_TAU
+_SERVO_RATE = PP.SERVO_RATE
+_SERVO_RES = PP.SERVO_RES
+_BACKLASH = PP.BACKLASH
+_DELAY_STEPS = PP.DELAY_STEPS
+_ENC_RES = PP.ENC_RES
+_GAIN_X = PP.GAIN_X
+_GAIN_PS = PP.GAIN_PS
+_GAIN_PH = PP.GAIN_PH
+_GAIN_PL = PP.GAIN_PL
+_P_CAV = PP.P_CAV
+_NEUTRAL = PP.NEUTRAL
+_X_STOP_LO = PP.X_STOP_LO
+_X_STOP_HI = PP.X_STOP_HI

@@ -47,6 +47,7 @@ from numba import njit
 from ..models import _jit as J
 from . import rosenbrock as RB
 from .kernel import PP
+from ._pp import (_DT, _P_SUPPLY, _RIPPLE_AMP, _RIPPLE_HZ, _P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_TAU, _SERVO_RATE, _SERVO_RES)  # noqa: F401
 
 __all__ = ["AUX_SIZE", "make_aux", "layout", "initial_state", "derivs", "rhs",
            "fixed_step", "check_supported", "OpenLoopStep", "open_loop_step", "solve_ivp_grid",
@@ -56,30 +57,6 @@ __all__ = ["AUX_SIZE", "make_aux", "layout", "initial_state", "derivs", "rhs",
 _A_T_ON, _A_TH0, _A_TH1, _A_PLOAD, _A_EPS, _A_QUANT = range(6)
 AUX_SIZE = 6
 
-_DT = PP.DT
-_P_SUPPLY = PP.P_SUPPLY
-_RIPPLE_AMP = PP.RIPPLE_AMP
-_RIPPLE_HZ = PP.RIPPLE_HZ
-_P_TANK = PP.P_TANK
-_N_SEG = PP.N_SEG
-_R_SEG = PP.R_SEG
-_I_SEG = PP.I_SEG
-_V_SEG = PP.V_SEG
-_BULK = PP.BULK
-_AREA = PP.AREA
-_LOAD_AREA = PP.LOAD_AREA
-_DEAD_VOL = PP.DEAD_VOL
-_MASS = PP.MASS
-_F_COULOMB = PP.F_COULOMB
-_F_STATIC = PP.F_STATIC
-_V_STRIBECK = PP.V_STRIBECK
-_VISCOUS = PP.VISCOUS
-_LOAD_TAU = PP.LOAD_TAU
-_LEAK_G = PP.LEAK_G
-_DP_SMOOTH = PP.DP_SMOOTH
-_SERVO_TAU = PP.SERVO_TAU
-_SERVO_RATE = PP.SERVO_RATE
-_SERVO_RES = PP.SERVO_RES
 
 
 def make_aux(*, t_on_s: float, theta0_deg: float, theta1_deg: float, p_load_mpag: float,

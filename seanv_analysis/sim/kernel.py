@@ -43,52 +43,13 @@ from ..control import KIND_CAM, KIND_FLOW_MODEL, controller_step
 from ..models import _jit as J  # noqa: F401  (imported first: configures the numba cache)
 from . import rosenbrock as RB
 from ._pp import PP, PP_SIZE
+from ._pp import (_DT, _SUBSTEPS, _CTRL_EVERY, _P_SUPPLY, _RIPPLE_AMP, _RIPPLE_HZ, _P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _STROKE, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_DEAD_TICKS, _SERVO_TAU, _SERVO_RATE, _SERVO_RES, _BACKLASH, _DELAY_STEPS, _ENC_RES, _GAIN_X, _GAIN_PS, _GAIN_PH, _GAIN_PL, _P_CAV, _NEUTRAL, _X_STOP_LO, _X_STOP_HI)  # noqa: F401
 
 __all__ = ["simulate_kernel", "PP", "PP_SIZE", "MODE_SCHEDULE"]
 
 #: controller kind for an open-loop cam schedule (flow-step runs)
 MODE_SCHEDULE = 0
 
-# module-level copies of the PP indices (numba reads globals, not class attributes)
-_DT = PP.DT
-_SUBSTEPS = PP.SUBSTEPS
-_CTRL_EVERY = PP.CTRL_EVERY
-_P_SUPPLY = PP.P_SUPPLY
-_RIPPLE_AMP = PP.RIPPLE_AMP
-_RIPPLE_HZ = PP.RIPPLE_HZ
-_P_TANK = PP.P_TANK
-_N_SEG = PP.N_SEG
-_R_SEG = PP.R_SEG
-_I_SEG = PP.I_SEG
-_V_SEG = PP.V_SEG
-_BULK = PP.BULK
-_AREA = PP.AREA
-_LOAD_AREA = PP.LOAD_AREA
-_DEAD_VOL = PP.DEAD_VOL
-_STROKE = PP.STROKE
-_MASS = PP.MASS
-_F_COULOMB = PP.F_COULOMB
-_F_STATIC = PP.F_STATIC
-_V_STRIBECK = PP.V_STRIBECK
-_VISCOUS = PP.VISCOUS
-_LOAD_TAU = PP.LOAD_TAU
-_LEAK_G = PP.LEAK_G
-_DP_SMOOTH = PP.DP_SMOOTH
-_SERVO_DEAD_TICKS = PP.SERVO_DEAD_TICKS
-_SERVO_TAU = PP.SERVO_TAU
-_SERVO_RATE = PP.SERVO_RATE
-_SERVO_RES = PP.SERVO_RES
-_BACKLASH = PP.BACKLASH
-_DELAY_STEPS = PP.DELAY_STEPS
-_ENC_RES = PP.ENC_RES
-_GAIN_X = PP.GAIN_X
-_GAIN_PS = PP.GAIN_PS
-_GAIN_PH = PP.GAIN_PH
-_GAIN_PL = PP.GAIN_PL
-_P_CAV = PP.P_CAV
-_NEUTRAL = PP.NEUTRAL
-_X_STOP_LO = PP.X_STOP_LO
-_X_STOP_HI = PP.X_STOP_HI
 
 #: columns of the 1 kHz sensor output
 OUT_FAST = ("t_s", "position_mm", "p_supply_mpag", "p_head_mpag", "p_load_mpag",

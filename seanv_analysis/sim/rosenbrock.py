@@ -51,7 +51,7 @@ import numpy as np
 from numba import njit
 
 from ..models import _jit as J
-from ._pp import PP
+from ._pp import (_P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_TAU, _SERVO_RATE)  # noqa: F401
 
 __all__ = ["GAMMA", "FR_SMOOTH", "FR_SLIDE", "FR_STUCK", "plant_f", "plant_step", "servo_step",
            "servo_rate", "thresholds", "work_arrays"]
@@ -62,26 +62,6 @@ FR_SMOOTH = 0
 FR_SLIDE = 1
 FR_STUCK = 2
 
-# packed-parameter indices used here (numba reads module globals)
-_P_TANK = PP.P_TANK
-_N_SEG = PP.N_SEG
-_R_SEG = PP.R_SEG
-_I_SEG = PP.I_SEG
-_V_SEG = PP.V_SEG
-_BULK = PP.BULK
-_AREA = PP.AREA
-_LOAD_AREA = PP.LOAD_AREA
-_DEAD_VOL = PP.DEAD_VOL
-_MASS = PP.MASS
-_F_COULOMB = PP.F_COULOMB
-_F_STATIC = PP.F_STATIC
-_V_STRIBECK = PP.V_STRIBECK
-_VISCOUS = PP.VISCOUS
-_LOAD_TAU = PP.LOAD_TAU
-_LEAK_G = PP.LEAK_G
-_DP_SMOOTH = PP.DP_SMOOTH
-_SERVO_TAU = PP.SERVO_TAU
-_SERVO_RATE = PP.SERVO_RATE
 
 # plant_step and thresholds, the two entry points the callers' step loops
 # call, are compiled without numba's reference counting (_nrt=False) and not
