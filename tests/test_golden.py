@@ -1,0 +1,107 @@
+"""Golden numbers: the paper pipeline on a fixed small simulated data set.
+
+Every stage's JSON numbers (flow fit, tracking, validation, discovery with
+its closed-loop check, exclusions, bad runs, the files written) must stay what
+they were when ``tests/golden/paper_pipeline.json`` was recorded. A change of
+behaviour shows here; a change of layout must not.
+
+The data: 24 flow steps on both sides at two loads with the paper's
+drain-side drift (step 5 % every 3 runs, strong enough for 24 runs), plus the
+position-control test with and without the flow model, simulated with the
+built-in plant (seed 5). Re-record after an intended change of numbers with::
+
+    SEANV_UPDATE_GOLDEN=1 .venv/bin/python -m pytest tests/test_golden.py
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import pytest
+
+GOLDEN = Path(__file__).parent / "golden" / "paper_pipeline.json"
+DRIFT = "drift:side=drain,step=0.05,every=3"
+#: keys of result.json that depend on the machine or the clock, not the numbers
+VOLATILE = ("timings_s", "computed", "cached", "executor", "version")
+
+
+@pytest.fixture(scope="module")
+def golden_data(tmp_path_factory):
+    from seanv_analysis.io import write_run
+    from seanv_analysis.sim import simulate_flow_step, simulate_scenario
+
+    root = tmp_path_factory.mktemp("golden") / "data"
+    t = datetime(2026, 3, 2, 9, 0, tzinfo=timezone.utc)
+    grid = [(side, cam, load) for load in (0.3, 0.5) for rep in range(2)
+            for side, cams in (("supply", (-5.0, 0.0, 5.0)), ("drain", (-40.0, -32.5, -25.0)))
+            for cam in cams]
+    for i, (side, cam, load) in enumerate(grid):
+        run, _ = simulate_flow_step(side=side, cam_deg=cam, load_mpag=load, seed=5, run_index=i,
+                                    effects=[DRIFT], run_id=f"fs{i:02d}-{side}",
+                                    started_at=t + timedelta(minutes=i))
+        write_run(root / "flow" / run.meta.run_id, run.meta.to_json(), run.tables)
+    simulate_scenario("paper-position", root / "position", seed=5)
+    return root
+
+
+def _portable(obj, replace: dict[str, str]):
+    """The document with temporary paths replaced by placeholders."""
+    if isinstance(obj, dict):
+        return {k: _portable(v, replace) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_portable(v, replace) for v in obj]
+    if isinstance(obj, str):
+        for old, new in replace.items():
+            obj = obj.replace(old, new)
+        return obj
+    return obj
+
+
+def _compare(got, want, where: str = "") -> list[str]:
+    """Differences between two JSON documents; floats equal to 1e-9 relative
+    (the last bits may differ between CPUs, the numbers must not)."""
+    if isinstance(want, dict) and isinstance(got, dict):
+        out = [f"{where}/{k}: missing" for k in want if k not in got]
+        out += [f"{where}/{k}: unexpected" for k in got if k not in want]
+        for k in want:
+            if k in got:
+                out += _compare(got[k], want[k], f"{where}/{k}")
+        return out
+    if isinstance(want, list) and isinstance(got, list):
+        if len(want) != len(got):
+            return [f"{where}: {len(got)} items, golden {len(want)}"]
+        return [d for i, (g, w) in enumerate(zip(got, want)) for d in _compare(g, w, f"{where}[{i}]")]
+    if isinstance(want, float) and isinstance(got, (int, float)) and not isinstance(got, bool):
+        if math.isnan(want) and math.isnan(got):
+            return []
+        if math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-12):
+            return []
+    elif got == want and type(got) is type(want):
+        return []
+    return [f"{where}: {got!r}, golden {want!r}"]
+
+
+def test_paper_pipeline_numbers_unchanged(golden_data, tmp_path):
+    from seanv_analysis.batch import run_pipeline
+
+    out = tmp_path / "out"
+    run_pipeline("paper", [golden_data / "flow", golden_data / "position"], out_dir=out,
+                 workers=1, quiet=True, command=["golden"])
+    doc = json.loads((out / "result.json").read_text())
+    for key in VOLATILE:
+        doc.pop(key, None)
+    doc["outputs"] = sorted(doc["outputs"])
+    doc = _portable(doc, {str(out): "<out>", str(golden_data): "<data>"})
+    if os.environ.get("SEANV_UPDATE_GOLDEN"):
+        GOLDEN.parent.mkdir(exist_ok=True)
+        GOLDEN.write_text(json.dumps(doc, indent=1, sort_keys=True) + "\n")
+    want = json.loads(GOLDEN.read_text())
+    diffs = _compare(doc, want)
+    assert not diffs, "\n".join(diffs[:40])
+    # the recorded run exercised every stage
+    assert want["stage_errors"] == {}
+    assert want["flowfit"] and want["tracking"] and want["validation"]
+    assert want["discovery"]["verdict"] == "effect_found"
