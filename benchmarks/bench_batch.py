@@ -48,7 +48,7 @@ def main() -> dict:
     """Measure and write ``benchmarks/results/batch.json``; return the results."""
     from benchmarks.bench_ingest import write_hour
     import seanv_analysis.batch  # noqa: F401  (imports not timed)
-    import seanv_analysis.derive  # noqa: F401
+    import seanv_analysis.signals.derive  # noqa: F401
 
     load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="bench-batch-") as tmp:

@@ -9,7 +9,7 @@ position-control style log; worst case for per-run memory). For each:
 - ``ingest``: read + validate + calibrate + align (``Run.aligned``);
 - ``ingest_hash``: the same plus the SHA-256 of every file (for the manifest);
 - ``ingest_derive``: plus ``derive.derive_samples`` + ``derive.summarize_run``
-  (when ``seanv_analysis.derive`` exists; another engineer's stage);
+  (when ``seanv_analysis.signals.derive`` exists; another engineer's stage);
 - ``cli``: the whole ``ingest`` command function (also writes the Parquet
   tables, the summary and the manifest).
 
@@ -106,9 +106,9 @@ def _derive():
     import importlib
 
     try:
-        return importlib.import_module("seanv_analysis.derive")
+        return importlib.import_module("seanv_analysis.signals.derive")
     except ModuleNotFoundError as exc:
-        if exc.name != "seanv_analysis.derive":
+        if exc.name != "seanv_analysis.signals.derive":
             raise
         return None
 
@@ -147,8 +147,8 @@ _MODES = ("none", "bare", "ingest", "ingest_hash", "ingest_derive", "cli")
 def _child(mode: str, root: str, out: str) -> None:
     """Run one mode in this (fresh) process; print elapsed time and peak RSS.
     Every mode (bare included) gets the CLI's process set-up
-    (:func:`seanv_analysis._process.return_large_blocks_to_os`)."""
-    from seanv_analysis._process import return_large_blocks_to_os
+    (:func:`seanv_analysis.batch.process_setup.return_large_blocks_to_os`)."""
+    from seanv_analysis.batch.process_setup import return_large_blocks_to_os
 
     return_large_blocks_to_os()
     import seanv_analysis.cli.ingest_cmd  # noqa: F401  (imports not timed)

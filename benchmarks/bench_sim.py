@@ -85,7 +85,7 @@ _COLD = r"""
 import json, time
 t0 = time.perf_counter()
 from seanv_analysis import load_rig
-from seanv_analysis.control import FlowModelController
+from seanv_analysis.sim.control import FlowModelController
 from seanv_analysis.sim import simulate_position_control
 from seanv_analysis.sim.scenarios import paper_position_profile
 t1 = time.perf_counter()
@@ -138,7 +138,7 @@ def _cold_compile() -> dict:
 
 def _rtf() -> dict:
     from seanv_analysis import load_rig
-    from seanv_analysis.control import FlowModelController
+    from seanv_analysis.sim.control import FlowModelController
     from seanv_analysis.sim import simulate_position_control, simulate_scenario
     from seanv_analysis.sim.scenarios import paper_position_profile
 
@@ -282,7 +282,7 @@ def _valve_cost_ns(plant) -> dict:
     """ns per call of the compiled valve functions (shared by kernel and RHS)."""
     from numba import njit
 
-    from seanv_analysis.models import _jit as J
+    from seanv_analysis.sim import jit as J
 
     @njit(cache=False)
     def thr(n, p, z, th):

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping
 
 from . import __version__
-from .io._hashing import file_sha256
+from .io.hashing import file_sha256
 from .io.atomic import write_json_atomic
 
 __all__ = ["write_manifest", "build_manifest", "input_hashes", "git_sha", "MANIFEST_SCHEMA"]

@@ -43,7 +43,7 @@ AUTO_PARALLEL_MIN_RUNS = 64
 
 
 def _summary_frame(rows: list[dict], rig: RigConfig) -> pd.DataFrame:
-    from .filters import apply_filters
+    from .signals.filters import apply_filters
 
     if not rows:
         return pd.DataFrame()
@@ -68,7 +68,7 @@ def summarize_runs(runs, rig: RigConfig, *, method: str = "steady") -> tuple[pd.
     A run whose summary fails (e.g. no cam hold in a flow step) is dropped and
     reported in the returned error list; the others go on.
     """
-    from .derive import summarize_run
+    from .signals.derive import summarize_run
 
     rows, errors = [], []
     for run in runs:
@@ -86,7 +86,7 @@ def _summarize_read(run, *, method: str, keep_kinds: frozenset[str], derive_all:
     the others. ``derive_all``: derive position-control runs too (their
     summary does not need it), so a run whose streams cannot be aligned is
     reported."""
-    from .derive import derive_samples, summarize_run
+    from .signals.derive import derive_samples, summarize_run
     from .io.reader import RunError
 
     if isinstance(run, RunError):
@@ -162,7 +162,7 @@ def _collect(path, *, rig: RigConfig, method: str, keep_runs, workers: int | Non
     """(summary rows, errors, kept runs) of a data set: the work of
     :func:`summarize_dataset` before the filters. Errors: runs that could not
     be read (sorted by path), then runs that could not be summarised."""
-    from .io._hashing import remember_sha256
+    from .io.hashing import remember_sha256
     from .io.reader import RunError, dataset_plan, read_runs
 
     metas, read_errors, base = dataset_plan(path, rig=rig)

@@ -1,4 +1,4 @@
-"""Tests of seanv_analysis.derive: velocity, derived samples, per-run flow.
+"""Tests of seanv_analysis.signals.derive: velocity, derived samples, per-run flow.
 
 Synthetic flow-step runs are built here with a known true flow: the
 actuator velocity follows a chosen profile (ringing step response,
@@ -18,7 +18,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from seanv_analysis.config import load_rig
-from seanv_analysis.derive import (FLOW_METHODS, DerivativeInfo, FlowEstimate, derive_samples,
+from seanv_analysis.signals.derive import (FLOW_METHODS, DerivativeInfo, FlowEstimate, derive_samples,
                                    estimate_flow, step_window, summarize_run, velocity_mm_s)
 from seanv_analysis.errors import ConfigError, DataError
 from seanv_analysis.io.run import SUMMARY_COLUMNS, Run, RunMeta
@@ -454,7 +454,7 @@ def test_summarize_run_from_reader(tmp_path, make_run, side, cam):
 def test_derivative_beside_alignment_gives_the_same_frame(monkeypatch):
     """Long records compute the derivative on a helper thread while the
     streams are aligned: the frame is identical to the serial one."""
-    import seanv_analysis.derive as derive_mod
+    import seanv_analysis.signals.derive as derive_mod
 
     run = make_run(constant(2000.0 / AREA))
     monkeypatch.setattr(derive_mod, "_OVERLAP_MIN_SAMPLES", 10**9)
@@ -466,7 +466,7 @@ def test_derivative_beside_alignment_gives_the_same_frame(monkeypatch):
 
 
 def test_derivative_beside_alignment_keeps_the_alignment_error_first(monkeypatch):
-    import seanv_analysis.derive as derive_mod
+    import seanv_analysis.signals.derive as derive_mod
 
     run = make_run(constant(5.0))
     late = run.tables["pressure"].assign(t_s=run.tables["pressure"]["t_s"] + 100.0)

@@ -1,4 +1,4 @@
-"""Tests of seanv_analysis.filters: the paper's exclusion filters."""
+"""Tests of seanv_analysis.signals.filters: the paper's exclusion filters."""
 from __future__ import annotations
 
 import math
@@ -9,7 +9,7 @@ import pytest
 
 from seanv_analysis.config import load_rig
 from seanv_analysis.errors import ConfigError, DataError
-from seanv_analysis.filters import EXCLUSION_REASONS, apply_filters, exclusion_counts
+from seanv_analysis.signals.filters import EXCLUSION_REASONS, apply_filters, exclusion_counts
 
 RIG = load_rig()
 TH = RIG.analysis
@@ -146,7 +146,7 @@ def test_errors():
 
 
 def test_filters_on_summaries_of_runs(tmp_path, make_dataset):
-    from seanv_analysis.derive import summarize_run
+    from seanv_analysis.signals.derive import summarize_run
     from seanv_analysis.io.reader import read_dataset
     root = make_dataset(tmp_path, n_flow=3, duration_s=0.6)
     rows = [summarize_run(r) for r in read_dataset(root).runs]

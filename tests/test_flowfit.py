@@ -123,7 +123,7 @@ def test_invalid_rows_counted_and_skipped(rig, paper_summary):
     s = paper_summary.copy()
     idx = s.index[(s["excluded"] == "") & (s["side"] == "supply")][:3]
     s.loc[idx, "q_mm3_s"] = np.nan
-    from seanv_analysis.filters import apply_filters
+    from seanv_analysis.signals.filters import apply_filters
     fit = fit_flow(apply_filters(s, rig), rig, n_boot=0)
     assert fit.excluded["invalid"] == 3
     assert fit.sides["supply"].n_runs == (paper_summary["excluded"][

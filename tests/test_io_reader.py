@@ -372,7 +372,7 @@ def test_default_tank_pressure_is_a_constant_view(tmp_path, make_run):
 def test_return_large_blocks_to_os_is_idempotent():
     import sys
 
-    from seanv_analysis._process import return_large_blocks_to_os
+    from seanv_analysis.batch.process_setup import return_large_blocks_to_os
 
     first = return_large_blocks_to_os()
     assert return_large_blocks_to_os() is first

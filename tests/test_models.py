@@ -117,7 +117,7 @@ def test_rig_overrides_and_unknown_key():
 
 def test_compiled_threshold_inverse_equals_numpy_interp():
     """models._jit.angle_for_height (scalar binary search) == np.interp, ends clipped."""
-    from seanv_analysis.models import _jit as J
+    from seanv_analysis.sim import jit as J
 
     model = ValveModel.from_rig(load_rig())
     for side in (model.supply, model.drain):

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from seanv_analysis import load_rig
-from seanv_analysis.control import CamController, FlowModelController
-from seanv_analysis.derive import derive_samples, summarize_run
+from seanv_analysis.sim.control import CamController, FlowModelController
+from seanv_analysis.signals.derive import derive_samples, summarize_run
 from seanv_analysis.errors import ConfigError
 from seanv_analysis.models import ValveModel
 from seanv_analysis.sim import (Plant, simulate_flow_step, simulate_position_control,

@@ -13,7 +13,7 @@ from seanv_analysis.analysis.validate import (Validation, build_controller, fit_
                                               load_steps, reference_steps, step_metrics,
                                               validate_runs)
 from seanv_analysis.config import load_rig
-from seanv_analysis.control import CamController, FlowModelController
+from seanv_analysis.sim.control import CamController, FlowModelController
 from seanv_analysis.errors import ConfigError, DataError
 from seanv_analysis.io import Run, read_run
 from seanv_analysis.models import ValveModel

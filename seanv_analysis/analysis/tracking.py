@@ -3,7 +3,7 @@
 For each position_control run:
 
 - actual flow Q [mm^3/s] from the encoder with the same derivative as ingest
-  (:func:`seanv_analysis.derive.derive_samples`, Q = v A);
+  (:func:`seanv_analysis.signals.derive.derive_samples`, Q = v A);
 - target flow Q_ref [mm^3/s] from controller.csv (``q_ref_mm3_s``, held
   between controller samples). When Q_ref is empty: with the flow model,
   Q_ref = Kp (x_ref - x) at the controller instants (run.json
@@ -32,7 +32,7 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from ..derive import derive_samples
+from ..signals.derive import derive_samples
 from ..errors import ConfigError, DataError
 from ..io.run import Run
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments

@@ -2,13 +2,13 @@
 simulated plant and compare (issue 6, paper Sec. III-C).
 
 For every position_control run the same controller is rebuilt from run.json
-(``controller.kp``, ``controller.flow_model``: :class:`~seanv_analysis.control.FlowModelController`
-with the identified valve model, or :class:`~seanv_analysis.control.CamController`),
+(``controller.kp``, ``controller.flow_model``: :class:`~seanv_analysis.sim.control.FlowModelController`
+with the identified valve model, or :class:`~seanv_analysis.sim.control.CamController`),
 driven by the run's own reference sequence (controller.csv ``x_ref_mm``,
 as steps) and load sequence (pressure.csv ``p_load_mpag`` reduced to
 steps), and simulated with :func:`seanv_analysis.sim.simulate_position_control`
 on the plant with the identified valve. Simulated and measured position
-[mm], flow [mm^3/s] (same derivative, :func:`seanv_analysis.derive.derive_samples`)
+[mm], flow [mm^3/s] (same derivative, :func:`seanv_analysis.signals.derive.derive_samples`)
 and cam angle [deg] are compared on the measured time base:
 
 - fit % = 100 (1 - ||y - y_sim|| / ||y - mean(y)||) (100: perfect; 0: no
@@ -32,7 +32,7 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from ..derive import derive_samples
+from ..signals.derive import derive_samples
 from ..errors import ConfigError, DataError
 from ..io.run import Run
 from .tracking import load_levels_mpag
@@ -181,7 +181,7 @@ def build_controller(run: Run, model, rig=None):
     kp_mm3_s_per_mm=kp)``; false: ``CamController.from_rig(rig, kp_deg_per_mm=kp)``.
     Missing ``kp`` takes the rig's value; ``rate_hz`` is kept.
     """
-    from ..control import CamController, FlowModelController
+    from ..sim.control import CamController, FlowModelController
 
     rig = run.rig if rig is None else rig
     c = dict(run.meta.controller or {})

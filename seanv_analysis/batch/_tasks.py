@@ -42,7 +42,7 @@ def ingest_task(run_dir: str, *, rig, method: str, entries: str, use_cache: bool
     Returns {'row': summary row dict, 'meta': {...}, 'hashes', 'stats',
     'computed': bool (False when the result came from the cache)}.
     """
-    from .. import derive
+    from ..signals import derive
     from ..io.reader import read_run
 
     run = read_run(run_dir, rig=rig)

@@ -233,7 +233,7 @@ def _worker_init() -> None:
     measured on 2 cores, 200 runs, 1.87 s vs 2.68 s with multi-threaded Arrow)."""
     from threadpoolctl import threadpool_limits
 
-    from .._process import return_large_blocks_to_os
+    from .process_setup import return_large_blocks_to_os
 
     return_large_blocks_to_os()  # as the CLI process does
     threadpool_limits(limits=1, user_api="blas")

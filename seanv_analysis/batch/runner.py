@@ -48,7 +48,7 @@ __all__ = ["PipelineResult", "FailedRun", "run_pipeline", "STAGE_REQUIREMENTS"]
 
 #: What each stage needs from the package: (module, attribute) pairs.
 STAGE_REQUIREMENTS: dict[str, tuple[tuple[str, str], ...]] = {
-    "ingest": (("derive", "summarize_run"), ("filters", "apply_filters")),
+    "ingest": (("signals.derive", "summarize_run"), ("signals.filters", "apply_filters")),
     "flowfit": (("fit", "fit_flow"),),
     "tracking": (("analysis.tracking", "tracking_runs"),),
     "validate": (("analysis.validate", "validate_run"),),
@@ -265,7 +265,7 @@ def _summary_frame(rows: list[dict[str, Any]], rig: RigConfig) -> pd.DataFrame:
     :func:`seanv_analysis.summary.summarize_dataset` does for one data set:
     data sets recorded separately each start at use 0.
     """
-    from ..filters import apply_filters
+    from ..signals.filters import apply_filters
 
     frame = pd.DataFrame(rows)
     frame["started_at"] = pd.to_datetime(frame["started_at"], utc=True)
@@ -471,7 +471,7 @@ class _Context:
     # stages ---------------------------------------------------------------------
     def stage_ingest(self, opts: dict[str, Any]) -> None:
         from ._tasks import ingest_task
-        from ..filters import exclusion_counts
+        from ..signals.filters import exclusion_counts
         from ..io.writer import write_table_parquet
 
         method = opts["method"]

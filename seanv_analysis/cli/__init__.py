@@ -80,7 +80,7 @@ _register()
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point."""
-    from .._process import return_large_blocks_to_os
+    from ..batch.process_setup import return_large_blocks_to_os
 
     return_large_blocks_to_os()
     cli.main(args=argv, prog_name="seanv-analyze")

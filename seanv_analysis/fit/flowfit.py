@@ -551,7 +551,7 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
     if procedure not in PROCEDURES:
         raise ConfigError(f"procedure: expected one of {PROCEDURES}, got {procedure!r}")
     _check_summary(summary)
-    from ..filters import exclusion_counts
+    from ..signals.filters import exclusion_counts
 
     base = model or ValveModel.from_rig(rig)
     steps = summary[summary["kind"] == "flow_step"]

@@ -5,7 +5,7 @@ The flow of each run is eq. (5) of ``model`` at the run's cam angle and
 pressures, plus Gaussian noise of ``noise_floor_mm3_s + noise_rel |Q|``;
 sealed runs get leakage-level flow (|Q| well under 50 mm^3/s). Rows carry
 the summary columns flowfit needs (``io.run.SUMMARY_COLUMNS``) and are
-passed through :func:`seanv_analysis.filters.apply_filters`.
+passed through :func:`seanv_analysis.signals.filters.apply_filters`.
 """
 from __future__ import annotations
 
@@ -52,7 +52,7 @@ def synthetic_flow_summary(model: ValveModel, rig: Any, *, seed: int = 0,
     cam_deg, cam_measured_deg, q_mm3_s, dp_mpa, p1_mpa, flow_method,
     excluded, excluded_detail (and ``q_true_mm3_s``).
     """
-    from ..filters import apply_filters
+    from ..signals.filters import apply_filters
 
     rng = np.random.default_rng(seed)
     rows = []

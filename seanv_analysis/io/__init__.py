@@ -13,7 +13,7 @@ from .calibrate import calibrate
 from .reader import (DatasetRead, RunError, contract_columns, dataset_plan, find_runs,
                      is_run_dir, iter_dataset, read_dataset, read_run, read_run_tables,
                      read_runs)
-from ._hashing import file_sha256
+from .hashing import file_sha256
 
 __all__ = ["atomic_path", "write_json_atomic", "write_text_atomic", "write_bytes_atomic",
            "TABLE_NAMES", "units_from_columns", "write_run", "write_table_parquet",

@@ -31,7 +31,7 @@ import pyarrow.parquet as pq
 
 from ..config import RigConfig, load_rig
 from ..errors import DataError, SeanvError
-from ._hashing import remember_sha256, sha256_bytes
+from .hashing import remember_sha256, sha256_bytes
 from .calibrate import calibrate, raw_unit
 from .run import Run, RunMeta
 from .validate import (_contract, _one_line, check_finite, check_increasing, check_pressure,

@@ -29,7 +29,7 @@ MIN_DP_MPA = 0.05
 
 # Scalar/array cores ---------------------------------------------------------
 # Plain arithmetic on floats or numpy arrays: the numpy API below and the
-# numba-compiled simulator/controllers (``models._jit``) share this source.
+# numba-compiled simulator/controllers (``sim.jit``) share this source.
 
 def signed_power_core(x, exponent, smooth_mpa):
     """sign(x) |x|^n, linear (slope smooth^(n-1)) for |x| < ``smooth_mpa`` (> 0),

@@ -9,7 +9,7 @@ same compiled plant physics (:func:`.rosenbrock.plant_f`), and
 
 Same physics as the kernel, from the same packed parameter vector
 (:class:`.kernel.PP`) and the same compiled valve functions
-(:mod:`seanv_analysis.models._jit`): supply with pump ripple, valve eq. (3)-(5)
+(:mod:`seanv_analysis.sim.jit`): supply with pump ripple, valve eq. (3)-(5)
 per side with the smoothed dp law and the leakage conductance, the tube as
 ``n_seg`` lumped R-I segments with C at the nodes (last node grows with the
 chamber), first-order load regulator, piston with Coulomb + Stribeck +
@@ -44,7 +44,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..models import _jit as J
+from . import jit as J
 from . import rosenbrock as RB
 from .kernel import PP
 from ._pp import (_DT, _P_SUPPLY, _RIPPLE_AMP, _RIPPLE_HZ, _P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_TAU, _SERVO_RATE, _SERVO_RES)  # noqa: F401

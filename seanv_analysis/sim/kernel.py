@@ -3,7 +3,7 @@
 One fixed-step loop integrates the whole rig (see :mod:`.plant` for the
 physics and the packed parameter layout):
 
-- valve (eq. 3-5 through :mod:`seanv_analysis.models._jit`, sealing
+- valve (eq. 3-5 through :mod:`seanv_analysis.sim.jit`, sealing
   thresholds refreshed at every step) feeding node 0 of the tube,
 - 20 m tube as ``n_seg`` lumped segments (laminar resistance R and fluid
   inertance I per segment, compliance C = V / B at the nodes),
@@ -39,8 +39,8 @@ import math
 import numpy as np
 from numba import njit
 
-from ..control import KIND_CAM, KIND_FLOW_MODEL, controller_step
-from ..models import _jit as J  # noqa: F401  (imported first: configures the numba cache)
+from .control import KIND_CAM, KIND_FLOW_MODEL, controller_step
+from . import jit as J  # noqa: F401  (imported first: configures the numba cache)
 from . import rosenbrock as RB
 from ._pp import PP, PP_SIZE
 from ._pp import (_DT, _SUBSTEPS, _CTRL_EVERY, _P_SUPPLY, _RIPPLE_AMP, _RIPPLE_HZ, _P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _STROKE, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_DEAD_TICKS, _SERVO_TAU, _SERVO_RATE, _SERVO_RES, _BACKLASH, _DELAY_STEPS, _ENC_RES, _GAIN_X, _GAIN_PS, _GAIN_PH, _GAIN_PL, _P_CAV, _NEUTRAL, _X_STOP_LO, _X_STOP_HI)  # noqa: F401
@@ -77,9 +77,9 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     Parameters
     ----------
     pp : packed plant parameters (:class:`PP`)
-    sup..dr_th : plant valve, packed (``models._jit.pack_side``)
+    sup..dr_th : plant valve, packed (``sim.jit.pack_side``)
     ctrl_kind : MODE_SCHEDULE (cam from ``cmd_t/cmd_v`` with end-of-stroke
-        release), or the controller kinds of :mod:`seanv_analysis.control`
+        release), or the controller kinds of :mod:`seanv_analysis.sim.control`
     cp, csup..cdr_th : controller parameters and its valve model, packed
     ref_t, ref_v : position reference step sequence [s], [mm]
     load_t, load_v : load pressure set-point step sequence [s], [MPaG]

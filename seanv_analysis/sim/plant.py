@@ -27,7 +27,7 @@ import numpy as np
 from ..config import RigConfig
 from ..errors import ConfigError
 from ..models import ValveModel
-from ..models import _jit as J
+from . import jit as J
 from ..models.effects import (Backlash, Delay, Drift, Effect, PressureLaw, Saturation,
                               SensorGain, ThresholdShift, parse_effects)
 from .kernel import PP, PP_SIZE

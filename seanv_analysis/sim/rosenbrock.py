@@ -50,7 +50,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ..models import _jit as J
+from . import jit as J
 from ._pp import (_P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_TAU, _SERVO_RATE)  # noqa: F401
 
 __all__ = ["GAMMA", "FR_SMOOTH", "FR_SLIDE", "FR_STUCK", "plant_f", "plant_step", "servo_step",
@@ -256,7 +256,7 @@ def _solve(r, o, tmp, wl, wu, cp, den, nseg, d_pl):
 
 @njit(cache=True, nogil=True, inline='always')
 def _threshold_lin(params, z_table, theta_table, p1_mpa, dp_mpa, hint):
-    """:func:`seanv_analysis.models._jit.threshold_deg` (same arithmetic,
+    """:func:`seanv_analysis.sim.jit.threshold_deg` (same arithmetic,
     same value) and its partial derivatives d/dp1, d/d(dp) [deg/MPa]: eq. (1)
     and (3) are linear in the pressures, the inverse of eq. (4) is the
     height table interpolated linearly (slope of the segment, 0 beyond the

@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 
 from ..config import RigConfig, load_rig
-from ..control import CamController, FlowModelController
+from .control import CamController, FlowModelController
 from ..errors import ConfigError
 from ..io.run import Run, RunMeta
 from ..models import ValveModel
@@ -166,8 +166,8 @@ def simulate_position_control(rig: RigConfig | None = None, *,
     ----------
     rig : rig config (default: the shipped one)
     controller : the paper's controller with its valve model
-        (:class:`~seanv_analysis.control.FlowModelController`) or without
-        (:class:`~seanv_analysis.control.CamController`)
+        (:class:`~seanv_analysis.sim.control.FlowModelController`) or without
+        (:class:`~seanv_analysis.sim.control.CamController`)
     x_ref : position reference, a number or (t_s, x_ref_mm) steps
     load : load pressure set point, a number or (t_s, p_mpag) steps
     duration_s : length of the run [s]

@@ -30,7 +30,7 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from ..config import RigConfig, load_rig
-from ..control import CamController, FlowModelController
+from .control import CamController, FlowModelController
 from ..errors import ConfigError
 from ..io import Run, write_json_atomic, write_run
 from ..models import ValveModel

@@ -17,13 +17,13 @@ import math
 import numpy as np
 from numba import njit
 
-from .._numba_cache import configure_numba_cache
+from .numba_cache import configure_numba_cache
 
 configure_numba_cache()  # before any cached njit: cache keyed by the compiled sources
 
-from . import effects as _effects  # noqa: E402
-from . import sealing as _sealing  # noqa: E402
-from . import valve as _valve  # noqa: E402
+from ..models import effects as _effects  # noqa: E402
+from ..models import sealing as _sealing  # noqa: E402
+from ..models import valve as _valve  # noqa: E402
 
 __all__ = ["SP_Z0", "SP_C", "SP_EXPONENT", "SP_DN", "SP_DO", "SP_K", "SP_UP", "SP_QMAX",
            "SP_SHARP", "SP_SIZE", "pack_side", "pack_model",

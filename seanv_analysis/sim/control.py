@@ -24,7 +24,7 @@ function.
 Examples
 --------
 >>> from seanv_analysis import load_rig, ValveModel
->>> from seanv_analysis.control import FlowModelController
+>>> from seanv_analysis.sim.control import FlowModelController
 >>> ctrl = FlowModelController.from_rig(load_rig())
 >>> state = ctrl.initial_state()
 >>> out, state = ctrl.step(state, x_ref_mm=30.0, x_mm=29.0, p_supply_mpag=3.3, p_head_mpag=1.6)
@@ -40,10 +40,10 @@ from typing import Any
 import numpy as np
 from numba import njit
 
-from .errors import ConfigError
-from .models import ValveModel
-from .models import _jit as J
-from .models.valve import MIN_DP_MPA
+from ..errors import ConfigError
+from ..models import ValveModel
+from . import jit as J
+from ..models.valve import MIN_DP_MPA
 
 __all__ = ["ControllerState", "ControllerOutput", "FlowModelController", "CamController",
            "controller_step", "KIND_FLOW_MODEL", "KIND_CAM", "CP_SIZE"]

@@ -12,7 +12,7 @@ from typing import Collection, Mapping
 import numpy as np
 import pandas as pd
 
-from .errors import DataError
+from ..errors import DataError
 
 __all__ = ["align_streams", "interp_sorted", "same_clock", "HOLD_COLUMNS"]
 

@@ -18,15 +18,15 @@ from pathlib import Path
 
 __all__ = ["configure_numba_cache"]
 
-_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "models/_jit.py",
-            "control.py", "sim/_pp.py", "sim/kernel.py", "sim/_rhs.py", "sim/rosenbrock.py")
+_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "sim/jit.py",
+            "sim/control.py", "sim/_pp.py", "sim/kernel.py", "sim/_rhs.py", "sim/rosenbrock.py")
 _DONE = False
 
 
 def configure_numba_cache() -> Path | None:
     """Point numba's cache at a folder keyed by the compiled sources; returns it.
 
-    Call before the first ``@njit(cache=True)`` decoration (``models._jit``
+    Call before the first ``@njit(cache=True)`` decoration (``sim.jit``
     does). Does nothing when ``NUMBA_CACHE_DIR`` is set by the user.
     """
     global _DONE
@@ -36,7 +36,7 @@ def configure_numba_cache() -> Path | None:
     if _DONE or os.environ.get("NUMBA_CACHE_DIR"):
         _DONE = True
         return Path(config.CACHE_DIR) if config.CACHE_DIR else None
-    pkg = Path(__file__).resolve().parent
+    pkg = Path(__file__).resolve().parents[1]
     h = hashlib.sha256(numba.__version__.encode())
     for rel in _SOURCES:
         p = pkg / rel

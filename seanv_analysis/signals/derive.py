@@ -26,10 +26,10 @@ import pandas as pd
 from scipy.ndimage import uniform_filter1d
 from scipy.signal import savgol_filter
 
-from .errors import ConfigError, DataError
-from .io.run import Run
-from .models import flow_from_velocity, side_pressures
-from .signals import interp_sorted
+from ..errors import ConfigError, DataError
+from ..io.run import Run
+from ..models import flow_from_velocity, side_pressures
+from .align import interp_sorted
 
 __all__ = [
     "FLOW_METHODS", "DEFAULT_MAX_JITTER", "DEFAULT_SETTLE_BAND",
@@ -711,7 +711,7 @@ def summarize_run(run: Run, *, method: str = "steady",
     dict
         Every ``SUMMARY_COLUMNS`` key except ``run_index``, ``excluded`` and
         ``excluded_detail`` (set by the data-set stage and
-        :func:`seanv_analysis.filters.apply_filters`). Flow-step runs get
+        :func:`seanv_analysis.signals.filters.apply_filters`). Flow-step runs get
         ``q_peak_mm3_s`` and ``q_steady_mm3_s`` (:func:`estimate_flow`),
         ``q_mm3_s`` = the chosen one, ``dp_mpa``/``p1_mpa`` over the chosen
         method's window, ``cam_measured_deg`` and ``cam_approach``
