@@ -6,7 +6,7 @@
    held-out RMSE drops by >= 30 % (for ``delay``: the closed-loop flow RMSE of
    ``validate``, base vs augmented model); 20 clean seeds: share of ``none``.
    Runs in a process pool (all cores).
-2. Runtime: ``discover_dataset`` on a data set holding one hour of 1 kHz
+2. Runtime: the ingest and discover stages on a data set holding one hour of 1 kHz
    logs (flow steps written to disk as Parquet), wall time.
 
 ``SEANV_BENCH_QUICK=1`` runs one seed per case (a smoke run).
@@ -40,9 +40,9 @@ CASES = {
 def _one(args):
     name, spec, side, seed = args
     from seanv_analysis import load_rig
-    from seanv_analysis.discover.dataset import discover_runs
+    from seanv_analysis.stages.dataset import summarize_runs
+    from seanv_analysis.stages.discover import discover_runs
     from seanv_analysis.sim.scenarios import iter_scenario_runs
-    from seanv_analysis.summary import summarize_runs
 
     rig = load_rig()
     scenario = "paper-position" if name == "delay" else "paper-flowsteps"
@@ -123,13 +123,13 @@ def main() -> dict:
     out["clean_cases"] = len(c)
     out["clean_misses"] = [(x["seed"], x["verdict"], x["found"]) for x in c if x["verdict"] != "none"]
 
-    from seanv_analysis.discover.dataset import discover_dataset
+    from seanv_analysis.stages import run_stages
 
     with tempfile.TemporaryDirectory() as tmp:
         data = _hour_of_logs(Path(tmp) / "hour")
         n_runs = sum(1 for _ in data.rglob("run.json"))
         t0 = time.perf_counter()
-        res, ds = discover_dataset(data)
+        res = run_stages(data, ["ingest", "discover"]).result("discover").discovery
         out["hour_of_logs"] = {"runs": n_runs, "discover_wall_s": round(time.perf_counter() - t0, 2),
                                "target_s": 10.0, "verdict": res.verdict}
     results = Path(__file__).resolve().parent / "results"

@@ -30,6 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import tests_module
+
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "flowfit.json"
 N_SEEDS = 12
@@ -64,7 +66,7 @@ def _measure(fn):
 
 def bench_summary(rig) -> dict:
     from seanv_analysis.fit import fit_flow
-    from seanv_analysis.fit.synthetic import synthetic_flow_summary
+    synthetic_flow_summary = tests_module("synthetic_flow").synthetic_flow_summary
 
     summary = synthetic_flow_summary(_model(rig, "paper"), rig, seed=0, loads_mpag=LOADS_500,
                                      cams_deg=CAMS_500, repeats=2)
@@ -89,7 +91,7 @@ def _conftest_writer():
 def bench_disk(rig) -> dict:
     from seanv_analysis.fit import fit_flow
     from seanv_analysis.models import ValveModel, side_pressures
-    from seanv_analysis.summary import summarize_dataset
+    from seanv_analysis.stages import run_stages
     from seanv_analysis.plots.fig4 import plot_fig4
 
     write = _conftest_writer()
@@ -121,7 +123,7 @@ def bench_disk(rig) -> dict:
             stages: dict = {}
             calls.append(stages)
             t = time.perf_counter()
-            ds = summarize_dataset(root, rig=rig)
+            ds = run_stages(root, ["ingest"], rig=rig).result("ingest")
             stages["read_derive_filter_s"] = round(time.perf_counter() - t, 2)
             t = time.perf_counter()
             fit = fit_flow(ds.summary, rig, cam="commanded", n_boot=200)
@@ -142,7 +144,7 @@ def bench_disk(rig) -> dict:
 
 def bench_recovery(rig) -> dict:
     from seanv_analysis.fit import fit_flow
-    from seanv_analysis.fit.synthetic import synthetic_flow_summary
+    synthetic_flow_summary = tests_module("synthetic_flow").synthetic_flow_summary
 
     out = {}
     for procedure in ("joint", "two_step"):
@@ -174,7 +176,7 @@ def bench_recovery(rig) -> dict:
 
 def bench_outlier(rig) -> dict:
     from seanv_analysis.fit import fit_flow
-    from seanv_analysis.fit.synthetic import synthetic_flow_summary
+    synthetic_flow_summary = tests_module("synthetic_flow").synthetic_flow_summary
 
     out = {}
     summary = synthetic_flow_summary(_model(rig, "paper"), rig, seed=3)

@@ -6,7 +6,7 @@ usual shape of a flow-step data set) and as one 60-minute run (a long
 position-control style log; worst case for per-run memory). For each:
 
 - ``bare``: ``pyarrow.csv.read_csv`` of every CSV file (default options);
-- ``ingest``: read + validate + calibrate + align (``Run.aligned``);
+- ``ingest``: read + validate + calibrate + align (``signals.align.align_run``);
 - ``ingest_hash``: the same plus the SHA-256 of every file (for the manifest);
 - ``ingest_derive``: plus ``derive.derive_samples`` + ``derive.summarize_run``
   (when ``seanv_analysis.signals.derive`` exists; another engineer's stage);
@@ -116,6 +116,7 @@ def _derive():
 def ingest(root: Path, *, hash_files: bool = False, derive: bool = False) -> int:
     """Read + validate + calibrate + align every run (+ hash, + derive)."""
     from seanv_analysis.io.reader import RunError, iter_dataset
+    from seanv_analysis.signals.align import align_run
 
     mod = _derive() if derive else None
     if derive and mod is None:
@@ -128,7 +129,7 @@ def ingest(root: Path, *, hash_files: bool = False, derive: bool = False) -> int
             samples = mod.derive_samples(item)
             mod.summarize_run(item, derived=samples)
         else:
-            samples = item.aligned()
+            samples = align_run(item)
         rows += len(samples)
     return rows
 

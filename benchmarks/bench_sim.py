@@ -13,7 +13,7 @@ right-hand side at matched accuracy, in one run.
 
 2. Ratio against LSODA. The kernel's stiction (Karnopp velocity reset) and
    servo quantisation are not an ODE, so the comparison runs on
-   :mod:`seanv_analysis.sim._rhs`: f(t, y) of the same plant (same packed
+   ``tests/sim_rhs.py`` (the ODE twin): f(t, y) of the same plant (same packed
    parameters, the same compiled plant physics
    :func:`seanv_analysis.sim.rosenbrock.plant_f` the kernel steps; friction
    ``(Fc + (Fs-Fc) exp(-(v/vs)^2)) tanh(v/eps_v) + b v``, ``eps_v = EPS_V``;
@@ -24,7 +24,7 @@ right-hand side at matched accuracy, in one run.
 
    - reference: LSODA at rtol 1e-10 (atol 1e-12 x state scale), checked
      against Radau at the same tolerances;
-   - ours: :func:`seanv_analysis.sim._rhs.fixed_step`, the SIMULATOR'S OWN
+   - ours: ``sim_rhs.fixed_step``, the SIMULATOR'S OWN
      integrator: the ROS2 (2nd-order Rosenbrock-W) step of
      :mod:`seanv_analysis.sim.rosenbrock` that the kernel calls, at the
      kernel's step ``sim.time_step_s`` (1 ms, 3000 steps), on the same
@@ -69,6 +69,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from . import tests_module
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "sim.json"
@@ -177,7 +179,7 @@ def _ode_compare(plant, *, eps_v: float, quantise: bool, radau_check: bool,
                  restart_every_s: float | None = None, full_scan: bool = True) -> dict:
     """Reference, our fixed step, the LSODA rtol scan, the matched timing.
     ``full_scan=False`` stops the scan at the first matched rtol (variants)."""
-    from seanv_analysis.sim import _rhs as R
+    R = tests_module("sim_rhs")
 
     case = R.open_loop_step(plant, eps_v_mm_s=eps_v, quantise=quantise, **CASE)
     area = case.pp[R.PP.AREA]
@@ -256,7 +258,7 @@ def _ode_compare(plant, *, eps_v: float, quantise: bool, radau_check: bool,
 
 def _kernel_on_case(plant, ref_case_result) -> dict:
     """The kernel itself on the same flow step (its own physics), for information."""
-    from seanv_analysis.sim import _rhs as R
+    R = tests_module("sim_rhs")
     from seanv_analysis.sim import simulate_flow_step
 
     kw = dict(side="supply", cam_deg=CASE["cam_deg"], load_mpag=CASE["load_mpag"], plant=plant,
@@ -354,7 +356,7 @@ def main() -> dict:
     }
     out["notes"] = (
         "lsoda_ratio: open-loop flow step, continuous servo, friction tanh-regularised "
-        f"(eps_v {EPS_V} mm/s) in BOTH integrators; ours = _rhs.fixed_step = the simulator's "
+        f"(eps_v {EPS_V} mm/s) in BOTH integrators; ours = sim_rhs.fixed_step = the simulator's "
         "own integrator (sim.rosenbrock ROS2 step, the one the kernel calls, at the kernel's "
         "1 ms step, 2 RHS evaluations + one tridiagonal factorisation + 2 solves per step) on "
         "the same compiled plant physics LSODA calls; the kernel adds only non-ODE parts "

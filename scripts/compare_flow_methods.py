@@ -14,7 +14,7 @@ from seanv_analysis import load_rig
 from seanv_analysis.fit import fit_flow
 from seanv_analysis.models import ValveModel
 from seanv_analysis.sim.scenarios import iter_scenario_runs
-from seanv_analysis.summary import summarize_runs
+from seanv_analysis.stages.dataset import summarize_runs
 
 
 def main() -> None:

@@ -86,15 +86,6 @@ def test_pipeline_file_errors(tmp_path):
         load_pipeline(bad)
 
 
-def test_missing_stage_module_is_config_error(dataset, tmp_path, monkeypatch):
-    real = runner_mod._optional
-    monkeypatch.setattr(runner_mod, "_optional",
-                        lambda module, name: None if module == "fit" else real(module, name))
-    with pytest.raises(ConfigError, match=r"stage 'flowfit' needs seanv_analysis\.fit\.fit_flow"):
-        run_pipeline(FIT, dataset, out_dir=tmp_path / "out", workers=1, quiet=True)
-    assert not (tmp_path / "out").exists()  # nothing done before the check
-
-
 def test_out_dir_inside_data_refused(dataset):
     with pytest.raises(DataError, match=r"inside the data folder"):
         run_pipeline(INGEST_ONLY, dataset, out_dir=dataset / "out", workers=1, quiet=True)
@@ -232,7 +223,7 @@ def test_workers_must_be_positive():
 @pytest.fixture
 def counted(monkeypatch):
     """Count derive.summarize_run calls (serial runs call it in this process)."""
-    from seanv_analysis import derive
+    from seanv_analysis.signals import derive
 
     calls = []
     real = derive.summarize_run
@@ -347,7 +338,7 @@ def test_resume_after_partial_cache(dataset, tmp_path, counted):
 
 SLOW_RUN = textwrap.dedent("""
     import sys, time
-    from seanv_analysis import derive
+    from seanv_analysis.signals import derive
     real = derive.summarize_run
     def slow(run, **kw):
         time.sleep(0.3)

@@ -11,6 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from conftest import write_synthetic_run
+from seanv_analysis.io.model_file import read_model
 from seanv_analysis.cli import cli
 from seanv_analysis.config import load_rig
 from seanv_analysis.models import ValveModel, side_pressures
@@ -71,7 +72,7 @@ def test_json_outputs_and_manifest(dataset, tmp_path):
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["extra"]["flowfit"]["side"] == "both"
     assert len(manifest["inputs"]) >= 4 * 2 * sum(map(len, CAMS.values()))
-    m = ValveModel.load(out / "model.toml")
+    m = read_model(out / "model.toml", rig=load_rig())
     assert m.supply.c_flow == pytest.approx(doc["supply"]["C"])
 
 
@@ -105,23 +106,6 @@ def test_bad_input_exit_2(tmp_path):
     res = invoke(tmp_path / "missing", "--out", tmp_path / "o")
     assert res.exit_code == 2
     assert res.stderr.startswith("error: ") and "not found" in res.stderr
-
-
-def test_no_data_without_simulator(monkeypatch, tmp_path):
-    import builtins
-
-    real_import = builtins.__import__
-
-    def no_sim(name, *a, **k):
-        if name == "seanv_analysis.sim" or name.startswith("seanv_analysis.sim."):
-            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
-        return real_import(name, *a, **k)
-
-    monkeypatch.delitem(sys.modules, "seanv_analysis.sim", raising=False)
-    monkeypatch.setattr(builtins, "__import__", no_sim)
-    res = invoke("--out", tmp_path)
-    assert res.exit_code == 2
-    assert "simulator" in res.stderr and "pass a data set folder" in res.stderr
 
 
 def test_no_data_uses_builtin(monkeypatch, dataset, tmp_path):

@@ -9,7 +9,7 @@ import pytest
 from click.testing import CliRunner
 from numpy.testing import assert_allclose
 
-from seanv_analysis.analysis.tracking import tracking_dataset
+from seanv_analysis.stages import run_stages
 from seanv_analysis.cli import cli
 
 from test_tracking import write_delayed_run
@@ -30,7 +30,8 @@ def test_tracking_json_shift(dataset, tmp_path):
                                    "--out", str(out), "--no-figures"])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)  # nothing else on stdout
-    expected, _ = tracking_dataset(dataset, shift_s=0.25)
+    expected = run_stages(dataset, ["ingest", "tracking"],
+                          options={"tracking": {"shift_s": 0.25}}).result("tracking")
     assert doc["lag_source"] == "given" and doc["lag_s"] == 0.25
     assert_allclose(doc["rmse_mm3_s"], expected.rmse_mm3_s, rtol=1e-12)
     assert doc["n_samples"] == expected.n_samples
@@ -109,8 +110,8 @@ def test_tracking_on_simulated_paper_position(sim_sets, tmp_path):
     # the run without flow model has no q_ref: skipped (no --model), listed in the details
     details = json.loads((tmp_path / "t" / "tracking_details.json").read_text())
     assert list(details["skipped"]) == ["position-without-flow-model"]
-    # Fig. 6 shows both runs ((a) without, (b) with the flow model), Fig. 7 the tracked one
-    for name in ("fig6.png", "fig6.svg", "fig7.png", "fig7.svg",
+    # Fig. 6 one per run, Fig. 7 the tracked one
+    for name in ("fig7.png", "fig7.svg",
                  "fig6_position-without-flow-model.png", "fig7_position-with-flow-model.svg"):
         assert (out / name).stat().st_size > 1000
 

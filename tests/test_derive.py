@@ -22,6 +22,7 @@ from seanv_analysis.signals.derive import (FLOW_METHODS, DerivativeInfo, FlowEst
                                    estimate_flow, step_window, summarize_run, velocity_mm_s)
 from seanv_analysis.errors import ConfigError, DataError
 from seanv_analysis.io.run import SUMMARY_COLUMNS, Run, RunMeta
+from seanv_analysis.signals.align import align_run
 
 RIG = load_rig()
 AREA = RIG.piston_area_mm2
@@ -254,7 +255,7 @@ def test_derive_samples_columns_and_values():
 
 def test_derive_samples_tank_column_and_aligned_argument():
     run = make_run(constant(5.0), p_tank=True)
-    aligned = run.aligned().iloc[100:900].reset_index(drop=True)
+    aligned = align_run(run).iloc[100:900].reset_index(drop=True)
     d = derive_samples(run, aligned=aligned)
     assert len(d) == 800 and d["t_s"].iloc[0] == aligned["t_s"].iloc[0]
     assert_allclose(d["dp_drain_mpa"], d["p_head_mpag"] - 0.05)
@@ -266,7 +267,7 @@ def test_derive_samples_tank_column_and_aligned_argument():
 def test_derive_samples_missing_column():
     run = make_run(constant(5.0))
     with pytest.raises(DataError, match="p_head_mpag"):
-        derive_samples(run, aligned=run.aligned().drop(columns="p_head_mpag"))
+        derive_samples(run, aligned=align_run(run).drop(columns="p_head_mpag"))
 
 
 # --------------------------------------------------------------------------

@@ -10,9 +10,9 @@ import pytest
 
 from seanv_analysis import ValveModel, load_rig
 from seanv_analysis.discover import chrono_split, discover_flow_steps
-from seanv_analysis.models import effects as fx
 from seanv_analysis.errors import FitError
 from seanv_analysis.models import ValveSide, side_pressures
+from seanv_analysis.models import effects as fx
 
 MODEL = ValveModel.from_rig(load_rig())
 

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 
 from seanv_analysis import load_rig
-from seanv_analysis.discover.dataset import discover_runs
 from seanv_analysis.sim.scenarios import iter_scenario_runs
-from seanv_analysis.summary import summarize_runs
+from seanv_analysis.stages.dataset import summarize_runs
+from seanv_analysis.stages.discover import discover_runs
 
 RIG = load_rig()
 

@@ -11,10 +11,12 @@ import pyarrow.parquet as pq
 import pytest
 from numpy.testing import assert_allclose
 
+from seanv_analysis.config import load_rig
+from seanv_analysis.io.model_file import read_model
 from seanv_analysis.errors import ConfigError, DataError, FitError
 from seanv_analysis.fit import fit_flow
 from seanv_analysis.fit._perload import _stderr, group_loads
-from seanv_analysis.fit.synthetic import synthetic_flow_summary
+from synthetic_flow import synthetic_flow_summary
 from seanv_analysis.models import ValveModel
 
 #: truth sets {side: (z0_mm, C)}: the paper's and two others
@@ -227,12 +229,14 @@ def test_one_side_missing_still_fits_the_other(rig, paper_summary):
 # outputs ---------------------------------------------------------------------------
 
 def test_write_outputs_and_model_file_roundtrip(tmp_path, paper_fit):
-    paths = paper_fit.write(tmp_path)
-    names = {p.name for p in paths.values()}
+    from seanv_analysis.stages import flowfit as flowfit_stage
+
+    paths = flowfit_stage.write(paper_fit, tmp_path)
+    names = {p.name for p in paths}
     assert {"flowfit.json", "model.toml", "model.json", "per_run.parquet"} <= names
     assert json.loads((tmp_path / "flowfit.json").read_text()) == paper_fit.to_json()
     for fname in ("model.toml", "model.json"):
-        m = ValveModel.load(tmp_path / fname)
+        m = read_model(tmp_path / fname, rig=load_rig())
         for side in ("supply", "drain"):
             assert_allclose(m.side(side).z0_mm, paper_fit.sides[side].z0_mm)
             assert_allclose(m.side(side).c_flow, paper_fit.sides[side].c_flow)
@@ -244,7 +248,9 @@ def test_write_outputs_and_model_file_roundtrip(tmp_path, paper_fit):
 
 
 def test_fig4_png_and_svg(tmp_path, paper_fit):
-    paths = paper_fit.plot(tmp_path)
+    from seanv_analysis.plots import fig4
+
+    paths = fig4.plot_fig4(paper_fit, tmp_path)
     assert [p.suffix for p in paths] == [".png", ".svg"]
     assert paths[0].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     svg = paths[1].read_text()
@@ -257,7 +263,7 @@ def test_fig4_png_and_svg(tmp_path, paper_fit):
 def test_paper_flowsteps_simulated_recovers_truth(tmp_path, rig, name):
     """The simulator's flow-step data set (written to disk, read, derived, filtered)."""
     sim = pytest.importorskip("seanv_analysis.sim")
-    from seanv_analysis.fit import flowfit_dataset
+    from seanv_analysis.stages import run_stages
 
     scenario = ("paper-flowsteps-small" if "paper-flowsteps-small" in sim.SCENARIOS
                 else "paper-flowsteps")
@@ -265,8 +271,9 @@ def test_paper_flowsteps_simulated_recovers_truth(tmp_path, rig, name):
     path = sim.simulate_scenario(scenario, tmp_path / "ds", seed=0, rig=rig, valve=truth)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        fit, ds = flowfit_dataset(path, rig=rig, n_boot=60)
-    assert not ds.errors
+        ctx = run_stages(path, rig=rig, options={"flowfit": {"n_boot": 60}})
+        fit, ds = ctx.result("flowfit"), ctx.result("ingest")
+    assert not ds.failed
     for side in ("supply", "drain"):
         sf, t = fit.sides[side], truth.side(side)
         assert abs(sf.z0_mm - t.z0_mm) <= 0.01

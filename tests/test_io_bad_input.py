@@ -12,11 +12,10 @@ from typing import Callable
 
 import numpy as np
 import pytest
+from conftest import DROP, synthetic_tables, write_synthetic_run
 
 from seanv_analysis.errors import DataError
 from seanv_analysis.io import read_run
-
-from conftest import DROP, synthetic_tables, write_synthetic_run
 
 DURATION_S = 0.2  # small runs: 201 encoder rows, 20 servo rows
 

@@ -3,24 +3,21 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+from conftest import synthetic_tables
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
 from seanv_analysis.errors import DataError
-from seanv_analysis.io import (DatasetRead, RunError, find_runs, read_dataset, read_run,
-                               write_run)
-from seanv_analysis.io import _hashing
-from seanv_analysis.manifest import build_manifest, write_manifest
+from seanv_analysis.io import DatasetRead, RunError, find_runs, read_dataset, read_run, write_run
+from seanv_analysis.io import hashing as _hashing
+from seanv_analysis.io.manifest import build_manifest, write_manifest
 from seanv_analysis.signals import align_streams
-
-from conftest import synthetic_tables
+from seanv_analysis.signals.align import align_run
 
 
 def _csv_rounded(values) -> np.ndarray:
@@ -73,7 +70,7 @@ def test_extra_columns_and_fields_are_kept(tmp_path, make_run):
                             meta={"operator": "sk", "valve_serial": 7}))
     assert list(run.tables["encoder"].columns) == ["t_s", "position_mm", "note", "temperature_c"]
     assert run.meta.extra == {"operator": "sk", "valve_serial": 7}
-    assert "note" not in run.aligned().columns  # extras are ignored by the analysis
+    assert "note" not in align_run(run).columns  # extras are ignored by the analysis
 
 
 def test_nullable_columns_may_be_entirely_empty(tmp_path, make_run):
@@ -84,7 +81,7 @@ def test_nullable_columns_may_be_entirely_empty(tmp_path, make_run):
                             controller={"kp": 15, "flow_model": False},
                             tables={"servo": servo, "controller": ctrl}))
     assert run.tables["servo"]["cam_deg"].isna().all()
-    aligned = run.aligned()
+    aligned = align_run(run)
     assert aligned["q_ref_mm3_s"].isna().all() and aligned["cam_deg"].isna().all()
     assert aligned["x_ref_mm"].notna().all()
 
@@ -252,7 +249,7 @@ def test_align_errors():
 
 def test_run_aligned_position_control_holds_commands(tmp_path, make_run):
     run = read_run(make_run(tmp_path, "position_control", duration_s=0.5, noise=False))
-    a = run.aligned()
+    a = align_run(run)
     assert list(a.columns) == ["t_s", "position_mm", "p_supply_mpag", "p_head_mpag",
                                "p_load_mpag", "p_tank_mpag", "cam_cmd_deg", "cam_deg",
                                "x_ref_mm", "q_ref_mm3_s"]
@@ -332,12 +329,12 @@ def _tables_equal(a, b):
 
 @pytest.mark.parametrize("fmt", ["csv", "parquet"])
 def test_concurrent_and_purging_pool_read_the_same(tmp_path, make_run, monkeypatch, fmt):
-    from seanv_analysis.io import reader
+    from seanv_analysis.io import reader, scan
 
     run_dir = make_run(tmp_path, fmt=fmt, duration_s=2.0, seed=5)
     plain = read_run(run_dir)
     monkeypatch.setattr(reader, "_CONCURRENT_MIN_BYTES", 0)   # tables on threads
-    monkeypatch.setattr(reader, "_LARGE_FILE", 0)             # every file in the purging pool
+    monkeypatch.setattr(scan, "_LARGE_FILE", 0)               # every file in the purging pool
     fast = read_run(run_dir)
     _tables_equal(plain, fast)
     assert fast.file_sha256 == plain.file_sha256
@@ -365,7 +362,7 @@ def test_default_tank_pressure_is_a_constant_view(tmp_path, make_run):
     run = read_run(make_run(tmp_path, duration_s=0.2))
     tank = run.tables["pressure"]["p_tank_mpag"].to_numpy()
     assert tank.strides == (0,) and (tank == 0.0).all()
-    aligned = run.aligned()
+    aligned = align_run(run)
     assert aligned["p_tank_mpag"].to_numpy().strides == (0,)
 
 

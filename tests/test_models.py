@@ -1,16 +1,24 @@
 """Physics of models/: eq. (1)-(6) against hand computations and each other."""
+import json
 import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numpy.testing import assert_allclose
 
 from seanv_analysis import ValveModel, load_rig
 from seanv_analysis.errors import ConfigError
-from seanv_analysis.models import (NeedleGeometry, fluid_force_n, needle_height_mm,
-                                   side_pressures, spring_force_n,
-                                   threshold_displacement_mm)
+from seanv_analysis.io.model_file import read_model
+from seanv_analysis.models import (
+    NeedleGeometry,
+    fluid_force_n,
+    needle_height_mm,
+    side_pressures,
+    spring_force_n,
+    threshold_displacement_mm,
+)
 
 RIG = load_rig()
 MODEL = ValveModel.from_rig(RIG)
@@ -88,24 +96,52 @@ def test_smoothed_sqrt_matches_exact_away_from_zero():
 
 
 def test_model_roundtrip_json_toml(tmp_path):
-    import json
     m = MODEL.with_side("drain", c_flow=-20.0, z0_mm=-0.03)
     p = tmp_path / "model.json"
     p.write_text(json.dumps(m.to_dict()))
-    assert ValveModel.load(p) == m
+    assert read_model(p, rig=load_rig()) == m
     t = tmp_path / "model.toml"
     t.write_text('[supply]\nz0_mm = -0.155\nC = 17.435\n[drain]\nz0_mm = -0.026\nC = -22.636\n')
-    m2 = ValveModel.load(t)
+    m2 = read_model(t, rig=load_rig())
     assert m2.supply.c_flow == 17.435 and m2.drain.geometry == MODEL.drain.geometry
 
 
 def test_model_load_errors(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
-        ValveModel.load(tmp_path / "nope.json")
+        read_model(tmp_path / "nope.json", rig=load_rig())
     bad = tmp_path / "bad.json"
     bad.write_text('{"supply": {}}')
     with pytest.raises(ConfigError, match="not a valve model file"):
-        ValveModel.load(bad)
+        read_model(bad, rig=load_rig())
+
+
+def test_model_file_with_bad_geometry_names_the_file(tmp_path):
+    d = MODEL.to_dict()
+    d["supply"]["geometry"].update(needle_x_c_mm=0.0, needle_y_c_mm=0.0)
+    p = tmp_path / "model.json"
+    p.write_text(json.dumps(d))
+    with pytest.raises(ConfigError, match=f"{p}: not a valve model file .*not monotonic"):
+        read_model(p, rig=RIG)
+
+
+def test_models_take_any_rig_like_object_and_raise_valueerror():
+    """models read no files and know no project errors: a duck-typed rig
+    works, and a model dict missing what only a rig gives is a ValueError."""
+    class Rig:
+        cam_range_deg = (-40.0, 10.0)
+
+        def __getitem__(self, key):
+            return RIG[key]
+
+    assert ValveModel.from_rig(Rig()) == MODEL
+    d = MODEL.to_dict()
+    assert ValveModel.from_dict(d) == MODEL            # complete: no rig needed
+    del d["supply"]["geometry"]
+    with pytest.raises(ValueError, match="rig"):
+        ValveModel.from_dict(d)
+    assert ValveModel.from_dict(d, rig=Rig()) == MODEL
+    with pytest.raises(ValueError, match="side"):
+        MODEL.side("tank")
 
 
 def test_rig_overrides_and_unknown_key():
@@ -116,7 +152,7 @@ def test_rig_overrides_and_unknown_key():
 
 
 def test_compiled_threshold_inverse_equals_numpy_interp():
-    """models._jit.angle_for_height (scalar binary search) == np.interp, ends clipped."""
+    """sim.jit.angle_for_height (scalar binary search) == np.interp, ends clipped."""
     from seanv_analysis.sim import jit as J
 
     model = ValveModel.from_rig(load_rig())

@@ -1,7 +1,6 @@
 """report.html: self-contained, expected sections, embedded figures, provenance."""
 from __future__ import annotations
 
-import math
 import re
 from pathlib import Path
 
@@ -49,6 +48,20 @@ def test_report_is_self_contained(report_run):
     assert "<script" not in html and "<link" not in html
 
 
+def test_report_figures_follow_the_registry(report_run):
+    from seanv_analysis.plots import FIGURES
+
+    html = report_run.report_path.read_text()
+    drawn = [f for f in FIGURES.values() if report_run.figures.get(f.name)]
+    assert {f.name for f in drawn} >= {"fig6", "fig7"}
+    positions = [html.index(f"id='fig-{f.name}'") for f in drawn]
+    assert positions == sorted(positions)                   # registry order
+    for f in drawn:
+        assert f.title in html                              # title as heading and caption
+    assert FIGURES["fig4"].title not in html                # not drawn: not shown
+    assert "href='#fig-fig7'" in html                       # linked from the tracking section
+
+
 def test_report_lists_failed_and_provenance(report_run):
     html = report_run.report_path.read_text()
     assert "bad-run" in html and "servo" in html          # the failed run and why
@@ -93,6 +106,7 @@ def test_report_fit_without_error_bars_says_so(tmp_path, rig):
     assert "bootstrap over runs" in html                      # interval method named
     assert "measured &minus; model" in html                   # residual sign
     assert "<svg" in html                                     # SVG-only figure inlined
+    assert "Fig. 4: flow characterisation" in html            # with its registered title
     assert "leakage: |Q| = 42.0" in html                      # why a run was excluded
     assert "/d/c/encoder.csv: not found" in html
 

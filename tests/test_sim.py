@@ -7,12 +7,18 @@ import numpy as np
 import pytest
 
 from seanv_analysis import load_rig
-from seanv_analysis.sim.control import CamController, FlowModelController
-from seanv_analysis.signals.derive import derive_samples, summarize_run
 from seanv_analysis.errors import ConfigError
 from seanv_analysis.models import ValveModel
-from seanv_analysis.sim import (Plant, simulate_flow_step, simulate_position_control,
-                                simulate_scenario, tube_constants)
+from seanv_analysis.signals.align import align_run
+from seanv_analysis.signals.derive import derive_samples, summarize_run
+from seanv_analysis.sim import (
+    Plant,
+    simulate_flow_step,
+    simulate_position_control,
+    simulate_scenario,
+    tube_constants,
+)
+from seanv_analysis.sim.control import CamController, FlowModelController
 from seanv_analysis.sim.scenarios import paper_position_profile
 
 
@@ -57,7 +63,7 @@ def test_tube_constants_match_hagen_poiseuille(rig):
 
 def test_paper_position_delay_convergence_rmse(with_model):
     run, _ = with_model
-    d, a = derive_samples(run), run.aligned()
+    d, a = derive_samples(run), align_run(run)
     t, q = d["t_s"].to_numpy(), d["q_mm3_s"].to_numpy()
     q_ref, x, x_ref = a["q_ref_mm3_s"].to_numpy(), d["position_mm"].to_numpy(), a["x_ref_mm"].to_numpy()
     lag = _xcorr_lag(t, q_ref, q)
@@ -74,8 +80,8 @@ def test_paper_position_delay_convergence_rmse(with_model):
 
 def test_overshoot_larger_without_flow_model(with_model, without_model):
     def overshoot(run):
-        d, a = derive_samples(run), run.aligned()
-        t, x, xr = d["t_s"].to_numpy(), d["position_mm"].to_numpy(), a["x_ref_mm"].to_numpy()
+        d = derive_samples(run)
+        t, x = d["t_s"].to_numpy(), d["position_mm"].to_numpy()
         m = (t > 5.0) & (t < 20.0)                       # 0 -> 30 mm step
         return float(x[m].max() - 30.0)
     assert overshoot(without_model[0]) > overshoot(with_model[0]) + 0.5
@@ -173,7 +179,7 @@ def test_effect_delay_adds_lag(rig, with_model):
     delayed, _ = _position_run(rig, model=True, effects=["delay:delay_s=0.1"])
     lags = []
     for run in (with_model[0], delayed):
-        d, a = derive_samples(run), run.aligned()
+        d, a = derive_samples(run), align_run(run)
         lags.append(_xcorr_lag(d["t_s"].to_numpy(), a["q_ref_mm3_s"].to_numpy(), d["q_mm3_s"].to_numpy()))
     assert lags[1] - lags[0] == pytest.approx(0.1, abs=0.02)
 
@@ -228,3 +234,29 @@ def test_simulate_cli(tmp_path):
                                    "--effect", "delay:bogus=1"])
     assert res.exit_code == 2
     assert "unknown parameter 'bogus'" in res.output
+
+
+#: a rig whose supply needle centre makes eq. (4) non-monotonic (no threshold inverse)
+BAD_GEOMETRY = "[valve.supply]\nneedle_x_c_mm = 0.0\nneedle_y_c_mm = 0.0\n"
+
+
+def test_bad_rig_geometry_is_a_config_error(tmp_path):
+    """The models raise ValueError for a bad geometry; the simulator, where a
+    rig value of the user meets them, raises ConfigError with the same text,
+    and the command line prints it on one line with exit code 2."""
+    from click.testing import CliRunner
+
+    from seanv_analysis.cli import cli
+
+    rig = load_rig(overrides={"valve": {"supply": {"needle_x_c_mm": 0.0, "needle_y_c_mm": 0.0}}})
+    with pytest.raises(ValueError, match="not monotonic"):
+        ValveModel.from_rig(rig).supply.threshold_deg(3.3, 1.6)
+    with pytest.raises(ConfigError, match="eq. \\(4\\) is not monotonic"):
+        simulate_flow_step(rig, side="supply", cam_deg=0.0, load_mpag=0.3, hold_max_s=0.1)
+    with pytest.raises(ConfigError, match="not monotonic"):
+        FlowModelController.from_rig(rig)
+    (tmp_path / "rig.toml").write_text(BAD_GEOMETRY)
+    res = CliRunner().invoke(cli, ["simulate", "paper-position-model", "--out", str(tmp_path / "d"),
+                                   "--rig", str(tmp_path / "rig.toml"), "--quiet"])
+    assert res.exit_code == 2
+    assert res.output.count("\n") == 1 and "not monotonic" in res.output

@@ -1,5 +1,5 @@
-"""The continuous right-hand side of the plant (sim/_rhs.py, used by the
-solver benchmark) is the kernel's physics, and the simulator's integrator
+"""The continuous right-hand side of the plant (tests/sim_rhs.py, also used
+by the solver benchmark) is the kernel's physics, and the simulator's integrator
 (the ROS2 step of sim/rosenbrock.py, which the kernel calls) is accurate and
 2nd order on it: its fixed-step run matches the kernel's true trajectory and
 a tight LSODA solution of the same RHS."""
@@ -9,10 +9,10 @@ import math
 
 import numpy as np
 import pytest
+import sim_rhs as R
 
 from seanv_analysis import load_rig
 from seanv_analysis.sim import Plant, simulate_flow_step
-from seanv_analysis.sim import _rhs as R
 from seanv_analysis.sim import rosenbrock as RB
 from seanv_analysis.sim.kernel import PP
 

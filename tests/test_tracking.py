@@ -8,8 +8,10 @@ import pandas as pd
 import pytest
 from numpy.testing import assert_allclose
 
-from seanv_analysis.analysis.tracking import run_flows, tracking_dataset, tracking_runs
+from seanv_analysis.analysis.tracking import run_flows, tracking_runs
+from seanv_analysis.stages import run_stages
 from seanv_analysis.config import load_rig
+from seanv_analysis.signals.align import align_run
 from seanv_analysis.signals.derive import derive_samples
 from seanv_analysis.errors import ConfigError, DataError
 from seanv_analysis.io import read_dataset, read_run, write_run
@@ -145,7 +147,7 @@ def test_target_from_kp_error_and_model(tmp_path):
     model = ValveModel.from_rig(load_rig())
     df, source = run_flows(nomodel, model=model)
     assert source == "model"
-    a = nomodel.aligned()
+    a = align_run(nomodel)
     assert_allclose(df.q_ref_mm3_s, model.net_flow(a.cam_cmd_deg, a.p_supply_mpag,
                                                    a.p_head_mpag, a.p_tank_mpag))
 
@@ -163,9 +165,12 @@ def test_write_and_figures(delayed_runs, delayed_dataset, tmp_path):
     from seanv_analysis.plots.fig6 import plot_fig6
     from seanv_analysis.plots.fig7 import plot_fig7
 
-    tr, errors = tracking_dataset(delayed_dataset, shift_s=0.25)
-    assert errors == []
-    paths = tr.write(tmp_path / "out")
+    ctx = run_stages(delayed_dataset, ["ingest", "tracking"], options={"tracking": {"shift_s": 0.25}})
+    tr, errors = ctx.result("tracking"), ctx.result("ingest").failed
+    assert not errors
+    from seanv_analysis.stages import tracking as tracking_stage
+
+    paths = tracking_stage.write(tr, tmp_path / "out")
     names = {p.name for p in paths}
     assert {"tracking.json", "tracking_runs.parquet", "tracking_pos0.parquet"} <= names
     back = pd.read_parquet(tmp_path / "out" / "tracking_pos0.parquet")

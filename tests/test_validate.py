@@ -100,7 +100,9 @@ def test_identical_plant_fits_perfectly(measured, tmp_path):
     doc = json.loads(json.dumps(v.to_json()))
     assert doc["flagged"] == [] and len(doc["runs"]) == 2
     assert set(doc["by_controller"]) == {"flow_model", "cam"}
-    paths = v.write(tmp_path / "out")
+    from seanv_analysis.stages import validate as validate_stage
+
+    paths = validate_stage.write(validate_stage.ValidateResult(v), tmp_path / "out")
     assert (tmp_path / "out" / "validate.json").exists() and len(paths) == 6
     assert set(v.steps().source) == {"measured", "simulated"}
     from seanv_analysis.plots.validate import plot_overlay

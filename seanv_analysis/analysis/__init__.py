@@ -3,15 +3,14 @@
 - :mod:`.lag`: delay of the actual behind the target flow (cross-correlation):
   :func:`estimate_lag`, :func:`estimate_lag_segments`, :class:`LagEstimate`.
 - :mod:`.tracking`: flow tracking, delay compensation and RMSE (Fig. 7):
-  :func:`tracking_runs`, :func:`tracking_dataset`, :class:`Tracking`.
+  :func:`tracking_runs`, :class:`Tracking`.
 - :mod:`.validate`: re-running the controllers on the simulated plant and
-  comparing with the measured runs: :func:`validate_runs`,
-  :func:`validate_dataset`, :class:`Validation`.
+  comparing with the measured runs: :func:`validate_runs`, :class:`Validation`.
 """
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments
-from .tracking import RunTracking, Tracking, run_flows, tracking_dataset, tracking_runs
-from .validate import RunValidation, Validation, fit_percent, validate_dataset, validate_runs
+from .tracking import RunTracking, Tracking, run_flows, tracking_runs
+from .validate import RunValidation, Validation, fit_percent, validate_runs
 
 __all__ = ["LagEstimate", "estimate_lag", "estimate_lag_segments", "RunTracking", "Tracking",
-           "run_flows", "tracking_dataset", "tracking_runs", "RunValidation", "Validation",
-           "fit_percent", "validate_dataset", "validate_runs"]
+           "run_flows", "tracking_runs", "RunValidation", "Validation",
+           "fit_percent", "validate_runs"]

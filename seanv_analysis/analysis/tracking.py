@@ -26,7 +26,6 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Iterable, Sequence
 
 import numpy as np
@@ -38,7 +37,7 @@ from ..io.run import Run
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments
 
 __all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "RunTracking", "Tracking",
-           "run_flows", "tracking_runs", "tracking_dataset", "load_levels_mpag"]
+           "run_flows", "tracking_runs", "load_levels_mpag"]
 
 #: The paper's fitting range of the target flow [mm^3/s] (Sec. III-C.2).
 DEFAULT_Q_RANGE_MM3_S = (-2.5e3, 8e3)
@@ -329,26 +328,6 @@ class Tracking:
             lines.append(f"  warning: {w}")
         return "\n".join(lines)
 
-    def write(self, out_dir: str | Path) -> list[Path]:
-        """tracking.json (:meth:`to_json`), tracking_details.json,
-        tracking_runs.parquet and ``tracking_<run_id>.parquet`` (aligned
-        target/actual per run), all atomically. Returns the paths."""
-        from ..io import write_json_atomic, write_table_parquet
-
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = [write_json_atomic(out / "tracking.json", self.to_json()),
-                 write_json_atomic(out / "tracking_details.json", self.details())]
-        if self.runs:
-            paths.append(write_table_parquet(self.per_run, out / "tracking_runs.parquet"))
-        for r in self.runs:
-            paths.append(write_table_parquet(
-                r.data, out / f"tracking_{r.run_id}.parquet",
-                metadata={"run_id": r.run_id, "lag_applied_s": r.lag_applied_s,
-                          "target_source": r.target_source}))
-        return paths
-
-
 def _summary(resid: np.ndarray, target: np.ndarray, load: np.ndarray):
     sup = target >= 0
     by_load = {}
@@ -458,20 +437,3 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
     return Tracking(lag_s, source, pooled if pooled.success else None, rmse, bias, rs, rd,
                     by_load, (lo, hi), int(resid.size), results, skipped, notes)
 
-
-def tracking_dataset(path: str | Path, *, rig=None, shift_s: float | None = None,
-                     q_range: Sequence[float] = DEFAULT_Q_RANGE_MM3_S, model=None,
-                     max_lag_s: float = 1.0, seed: int = 0):
-    """:func:`tracking_runs` on a data set folder.
-
-    Returns
-    -------
-    (Tracking, errors)
-        ``errors``: the reader's bad runs (:class:`seanv_analysis.io.RunError`).
-    """
-    from ..io import read_dataset
-
-    ds = read_dataset(path, rig=rig)
-    result = tracking_runs(ds.runs, shift_s=shift_s, q_range=q_range, model=model,
-                           max_lag_s=max_lag_s, seed=seed)
-    return result, ds.errors

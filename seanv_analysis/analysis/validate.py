@@ -26,7 +26,6 @@ from __future__ import annotations
 import math
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
@@ -38,8 +37,7 @@ from ..io.run import Run
 from .tracking import load_levels_mpag
 
 __all__ = ["DEFAULT_THRESHOLD_PCT", "fit_percent", "reference_steps", "load_steps",
-           "step_metrics", "build_controller", "RunValidation", "Validation", "validate_runs",
-           "validate_dataset"]
+           "step_metrics", "build_controller", "RunValidation", "Validation", "validate_runs"]
 
 #: Position fit % below which a run is flagged.
 DEFAULT_THRESHOLD_PCT = 80.0
@@ -320,28 +318,8 @@ class Validation:
             lines.append(f"  warning: {w}")
         return "\n".join(lines)
 
-    def write(self, out_dir: str | Path) -> list[Path]:
-        """validate.json, validate.txt, validate_table.parquet, validate_steps.parquet and
-        ``validate_<run_id>.parquet`` (overlay data), atomically."""
-        from ..io import write_json_atomic, write_table_parquet, write_text_atomic
-        from ..plots._style import safe_name
-
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        paths = [write_json_atomic(out / "validate.json", self.to_json()),
-                 write_text_atomic(out / "validate.txt", self.report() + "\n")]
-        if not self.table.empty:
-            paths.append(write_table_parquet(self.table, out / "validate_table.parquet"))
-        steps = self.steps()
-        if not steps.empty:
-            paths.append(write_table_parquet(steps, out / "validate_steps.parquet"))
-        for r in self.runs:
-            paths.append(write_table_parquet(r.overlay, out / f"validate_{safe_name(r.run_id)}.parquet"))
-        return paths
-
-
 def _default_simulate():
-    from ..sim import simulate_position_control
+    from ..sim.run import simulate_position_control
     return simulate_position_control
 
 
@@ -524,13 +502,3 @@ def validate_runs(runs: Iterable[Run], model=None, *, rig=None,
     return Validation(table, flagged, float(threshold_pct), results, skipped, notes,
                       controller_model if isinstance(controller_model, str) else "given")
 
-
-def validate_dataset(path: str | Path, model=None, *, rig=None,
-                     threshold_pct: float = DEFAULT_THRESHOLD_PCT, seed: int = 0,
-                     controller_model="rig"):
-    """:func:`validate_runs` on a data set folder; returns (Validation, reader errors)."""
-    from ..io import read_dataset
-
-    ds = read_dataset(path, rig=rig)
-    return validate_runs(ds.runs, model, rig=rig, threshold_pct=threshold_pct, seed=seed,
-                         controller_model=controller_model), ds.errors

@@ -8,7 +8,6 @@ exit code 2, with no traceback. A command may return an int exit code
 """
 from __future__ import annotations
 
-import importlib
 import sys
 
 import click
@@ -17,10 +16,6 @@ from .. import __version__
 from ..errors import SeanvError
 
 __all__ = ["cli", "main"]
-
-_SUBCOMMAND_MODULES = ("ingest_cmd", "simulate_cmd", "flowfit_cmd", "tracking_cmd",
-                       "validate_cmd", "discover_cmd", "run_cmd", "plots_cmd")
-
 
 class _SeanvGroup(click.Group):
     """Group that turns SeanvError into 'error: ...' + exit 2 and int returns into exit codes."""
@@ -66,16 +61,9 @@ def cli() -> None:
     """
 
 
-def _register() -> None:
-    for modname in _SUBCOMMAND_MODULES:
-        try:
-            importlib.import_module(f"{__name__}.{modname}")
-        except ModuleNotFoundError as exc:  # subcommand not built yet
-            if exc.name != f"{__name__}.{modname}":
-                raise
-
-
-_register()
+# the subcommands register themselves on ``cli`` when imported
+from . import (discover_cmd, flowfit_cmd, ingest_cmd, plots_cmd, run_cmd,  # noqa: E402,F401
+               simulate_cmd, tracking_cmd, validate_cmd)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import hashlib
 import json
+from contextlib import contextmanager
 from pathlib import Path
 
 import click
 
-__all__ = ["default_out_dir", "check_out_dir", "echo_bad_runs", "explain_unusable",
-           "sim_default_dataset", "OUTPUTS_ROOT"]
+__all__ = ["default_out_dir", "check_out_dir", "echo_bad_runs", "unusable", "stage_context",
+           "sim_default_dataset", "write_command_manifest", "OUTPUTS_ROOT"]
 
 OUTPUTS_ROOT = Path("outputs")
 
@@ -39,34 +40,56 @@ def check_out_dir(data: str | Path | None, out: str | Path) -> None:
                         "the current folder)", path=data)
 
 
-def explain_unusable(data: str | Path | None, rig, exc: Exception) -> int:
-    """After a command's library call refused DATA (``exc``, e.g. "no valid
+#: data sets with at least this many runs are read on all cores by a single
+#: command (below it a process pool costs more than it saves)
+AUTO_PARALLEL_MIN_RUNS = 64
+
+
+@contextmanager
+def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True):
+    """The :class:`~seanv_analysis.stages.Context` of a single command: per-run
+    work in this process, or on all cores for large data sets (no cache)."""
+    import multiprocessing as mp
+    import os
+
+    from ..batch import CachedMapper, make_executor
+    from ..stages import Context
+
+    ctx = Context.for_data(data, rig=rig, out_dir=out_dir, model=model,
+                           model_source="--model" if model is not None else None, quiet=quiet)
+    big = len(ctx.run_dirs) >= AUTO_PARALLEL_MIN_RUNS and mp.parent_process() is None
+    if not big or (os.cpu_count() or 1) < 2:
+        yield ctx
+        return
+    with make_executor(workers=os.cpu_count()) as ex:
+        ctx.map_runs = CachedMapper(ex, None, quiet=quiet)
+        yield ctx
+
+
+def unusable(data, failed, exc: Exception | None = None) -> int:
+    """After a command found nothing usable in DATA (``exc``, e.g. "no valid
     runs"), say which runs were bad and why.
 
     A single run folder that is bad: its own one-line DataError is raised
     (exit 2). A data set with bad runs: ``exc``'s line, then the bad runs
-    listed; returns 1. Otherwise (or without DATA) ``exc`` is raised again.
+    listed; returns 1. Otherwise ``exc`` is raised again.
     """
     from ..errors import DataError
     from ..io.reader import is_run_dir
 
-    if data is None or not Path(data).is_dir():
-        raise exc
-    if rig is None or isinstance(rig, (str, Path)):
-        from ..config import load_rig
-        rig = load_rig(rig)
-    from ..summary import dataset_errors
-
-    errors = [e.message for e in dataset_errors(data, rig=rig)]
-    single = is_run_dir(data)
+    errors = [getattr(f, "message", str(f)) for f in failed]
+    single = data is not None and is_run_dir(data)
     if not errors:
+        if exc is None:
+            raise DataError("no valid runs in the data set", path=data)
         msg = " ".join(str(exc).split())
         if single and isinstance(exc, DataError) and str(data) not in msg:
             raise DataError(msg, path=data) from None  # name the run folder at least
         raise exc
     if single:
         raise DataError(errors[0]) from None
-    click.echo(f"error: {' '.join(str(exc).split())}", err=True)
+    line = " ".join(str(exc).split()) if exc is not None else f"{data}: no valid runs in the data set"
+    click.echo(f"error: {line}", err=True)
     return echo_bad_runs(errors)
 
 
@@ -95,3 +118,17 @@ def sim_default_dataset(scenario: str, *, seed: int = 0, effects: tuple[str, ...
         simulate_scenario(scenario, path, seed=seed, effects=list(effects))
         done.write_text("ok\n")
     return path
+
+
+def write_command_manifest(out: Path, ctx, *, extra: dict) -> Path:
+    """manifest.json of a command's output folder: version, rig, the SHA-256
+    of every input file read, the command line and the command's options."""
+    import sys
+
+    from ..io.manifest import write_manifest
+
+    ds = ctx.result("ingest")
+    inputs = dict(ds.input_hashes) if ds is not None else [str(d) for d in ctx.data]
+    bad = [f.message for f in ds.failed] if ds is not None else []
+    return write_manifest(out, config=ctx.rig, inputs=inputs, command=sys.argv,
+                          extra={**extra, "bad_runs": bad})

@@ -2,14 +2,13 @@
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
 import click
 
 from . import cli
-from ._common import (check_out_dir, default_out_dir, echo_bad_runs, explain_unusable,
-                      sim_default_dataset)
+from ._common import (check_out_dir, default_out_dir, echo_bad_runs, sim_default_dataset,
+                      stage_context, unusable, write_command_manifest)
 
 __all__ = ["discover_cmd"]
 
@@ -46,11 +45,9 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
     Example: seanv-analyze discover data/flow --json
     """
     from ..config import load_rig
-    from ..discover.dataset import discover_dataset
-    from ..errors import DataError
-    from ..io.atomic import write_json_atomic, write_text_atomic
-    from ..models import ValveModel
-    from ..plots.residuals import plot_discovery_residuals
+    from ..errors import DataError, FitError
+    from ..io.model_file import read_model
+    from ..stages import dataset, discover, figures
 
     rig = load_rig(rig_file)
     if data is None:
@@ -60,38 +57,28 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, as_json):
                    err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
     check_out_dir(data, out)
-    model = ValveModel.load(model_file, rig=rig) if model_file else ValveModel.from_rig(rig)
-    try:
-        result, ds = discover_dataset(data, model=model, rig=rig, holdout=holdout, seed=seed)
-    except DataError as exc:  # nothing usable: say which runs were bad and why
-        return explain_unusable(data, rig, exc)
-    if result.effects and ds.runs:  # position-control runs: closed-loop check via validate
-        result.validation = _closed_loop(result, ds.runs, model, rig)
-        result.use_closed_loop_heldout()
-    write_json_atomic(out / "discover.json", result.to_json())
-    write_json_atomic(out / "model_augmented.json", result.augmented_model_dict())
-    write_text_atomic(out / "discover.txt", result.report() + "\n")
-    plot_discovery_residuals(result, out_dir=out)
-    try:
-        from ..manifest import write_manifest
-        write_manifest(out, config=rig.to_dict(), inputs=[data], command=sys.argv)
-    except ImportError:  # pragma: no cover - manifest module not present
-        pass
+    model = read_model(model_file, rig=rig) if model_file else None
+    with stage_context(data, rig=rig, out_dir=out, model=model) as ctx:
+        ds = dataset.collect(ctx, {})
+        if ds.runs_read == 0:
+            return unusable(data, ds.failed)
+        ctx.add("ingest", ds)
+        try:
+            result = discover.run(ctx, {"holdout": holdout, "seed": seed})
+        except (DataError, FitError) as exc:  # nothing usable: say which runs were bad and why
+            if not ds.failed:
+                raise
+            return unusable(data, ds.failed, exc)
+    ctx.add("discover", result)
+    discover.write(result, out)
+    figures.draw_figures(ctx, figures.figures_of("discovery"), out)
+    write_command_manifest(out, ctx, extra={"holdout": holdout, "seed": seed,
+                                            "model": str(model_file) if model_file else None})
     if as_json:
         click.echo(json.dumps(result.to_json()))
     else:
         click.echo(result.report())
+        if result.note:
+            click.echo(f"note: {result.note}")
         click.echo(f"outputs: {out}")
-    return echo_bad_runs(ds.errors)
-
-
-def _closed_loop(result, runs, model, rig) -> dict:
-    """Closed-loop fit (validate) of the position-control runs with the base
-    and with the augmented model: {"before": {controller: numbers}, "after": ...}."""
-    from ..analysis.validate import validate_runs
-    from ..batch.runner import _validation_numbers
-
-    augmented, specs = result.augmented_model_and_effects(rig)
-    before = validate_runs(runs, model, rig=rig)
-    after = validate_runs(runs, augmented, rig=rig, effects=specs)
-    return {"before": _validation_numbers(before), "after": _validation_numbers(after)}
+    return echo_bad_runs([*ds.failed, *result.failed])

@@ -3,34 +3,19 @@ with 95 % intervals; write the model file, tables and Fig. 4."""
 from __future__ import annotations
 
 import json
-import sys
 import warnings
 from pathlib import Path
 
 import click
 
 from . import cli
-from ._common import (check_out_dir, default_out_dir, echo_bad_runs, explain_unusable,
-                      sim_default_dataset)
+from ._common import (check_out_dir, default_out_dir, echo_bad_runs, sim_default_dataset,
+                      stage_context, unusable, write_command_manifest)
 
 __all__ = ["flowfit_cmd", "BUILTIN_SCENARIO"]
 
 #: Built-in simulated data set used when DATA is not given.
 BUILTIN_SCENARIO = "paper-flowsteps"
-
-
-def _builtin_dataset() -> Path:
-    from ..errors import ConfigError
-
-    try:
-        import seanv_analysis.sim  # noqa: F401
-    except ModuleNotFoundError as exc:
-        if exc.name and exc.name.startswith("seanv_analysis.sim"):
-            raise ConfigError("DATA: not given and the simulator (seanv_analysis.sim) is not "
-                              "installed, so the built-in data set cannot be made; pass a data "
-                              "set folder") from None
-        raise
-    return sim_default_dataset(BUILTIN_SCENARIO)
 
 
 @cli.command("flowfit", short_help="Fit z0 and C per valve side (eq. 3-5) with 95 % intervals; Fig. 4.")
@@ -88,39 +73,36 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
     """
     from ..config import load_rig
     from ..errors import DataError
-    from ..fit import flowfit_dataset
-    from ..io.reader import find_runs
-    from ..manifest import input_hashes, write_manifest
-    from ..plots.fig4 import plot_fig4
+    from ..stages import dataset, figures, flowfit
 
     rig = load_rig(rig_file)
     if data is None:
-        data = _builtin_dataset()
+        data = sim_default_dataset(BUILTIN_SCENARIO)
         click.echo(f"no DATA given: using the built-in simulated data set "
                    f"'{BUILTIN_SCENARIO}' ({data})", err=as_json)
     out = Path(out_dir) if out_dir else default_out_dir(data, "flowfit")
     check_out_dir(data, out)
-    sides = ("supply", "drain") if side == "both" else (side,)
-    with warnings.catch_warnings(record=True):
+    sides = ["supply", "drain"] if side == "both" else [side]
+    options = {"sides": sides, "procedure": procedure, "cam": cam, "n_boot": n_boot, "seed": seed}
+    with stage_context(data, rig=rig, out_dir=out) as ctx, warnings.catch_warnings(record=True):
         warnings.simplefilter("always")
+        ds = dataset.collect(ctx, {"method": method})
+        if ds.runs_read == 0:
+            return unusable(data, ds.failed)
+        ctx.add("ingest", ds)
         try:
-            fit, ds = flowfit_dataset(data, rig=rig, method=method, sides=sides,
-                                      procedure=procedure, cam=cam, n_boot=n_boot, seed=seed)
+            fit = flowfit.run(ctx, options)
         except DataError as exc:  # nothing usable: say which runs were bad and why
-            return explain_unusable(data, rig, exc)
-    paths = fit.write(out)
-    figures = plot_fig4(fit, out)
-    runs = [Path(p) for p in find_runs(data)] if Path(data).is_dir() else [Path(data)]
-    write_manifest(out, config=rig, inputs=input_hashes(runs), command=sys.argv,
-                   extra={"flowfit": {"data": str(data), "side": side, "method": method,
-                                      "procedure": procedure, "cam": cam, "n_boot": n_boot,
-                                      "seed": seed,
-                                      "outputs": [str(p) for p in [*paths.values(), *figures]],
-                                      "bad_runs": [getattr(e, "message", str(e))
-                                                   for e in ds.errors]}})
+            return unusable(data, ds.failed, exc)
+    ctx.add("flowfit", fit)
+    paths = flowfit.write(fit, out)
+    drawn = figures.draw_figures(ctx, ["fig4"], out)
+    write_command_manifest(out, ctx, extra={"flowfit": {
+        "data": str(data), "side": side, "method": method, **options,
+        "outputs": [str(p) for p in [*paths, *drawn.all_paths()]]}})
     if as_json:
         click.echo(json.dumps(fit.to_json()))
     else:
         click.echo(fit.report())
         click.echo(f"outputs: {out}")
-    return echo_bad_runs(ds.errors)
+    return echo_bad_runs(ds.failed)

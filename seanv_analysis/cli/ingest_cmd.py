@@ -2,15 +2,13 @@
 Parquet tables, a per-run summary and a manifest."""
 from __future__ import annotations
 
-import importlib
-import inspect
 import json
 import math
 import os
 import sys
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import click
 
@@ -20,40 +18,9 @@ from ._common import default_out_dir, echo_bad_runs
 __all__ = ["ingest_cmd", "ingest"]
 
 
-def _optional(module: str, name: str) -> Callable | None:
-    """``seanv_analysis.<module>.<name>`` if that module exists, else None."""
-    try:
-        mod = importlib.import_module(f"seanv_analysis.{module}")
-    except ModuleNotFoundError as exc:
-        if exc.name == f"seanv_analysis.{module}":
-            return None
-        raise
-    return getattr(mod, name, None)
-
-
 def _inside(child: Path, parent: Path) -> bool:
     child, parent = child.resolve(), parent.resolve()
     return child == parent or parent in child.parents
-
-
-def _metadata_summary(run, samples) -> dict[str, Any]:
-    """Summary row from metadata only (used when the derive stage is absent)."""
-    import numpy as np
-    import pandas as pd
-
-    meta = run.meta
-    load = meta.load_mpag
-    if load is None and "p_load_mpag" in samples:
-        load = float(np.nanmedian(samples["p_load_mpag"].to_numpy()))
-    return {
-        "run_id": meta.run_id, "kind": meta.kind, "side": meta.side or "",
-        "started_at": pd.Timestamp(meta.started_at),
-        "load_mpag": math.nan if load is None else float(load),
-        "cam_deg": math.nan if meta.cam_deg is None else float(meta.cam_deg),
-        "cam_measured_deg": math.nan, "cam_approach": 0.0,
-        "q_mm3_s": math.nan, "q_peak_mm3_s": math.nan, "q_steady_mm3_s": math.nan,
-        "dp_mpa": math.nan, "p1_mpa": math.nan, "flow_method": "",
-    }
 
 
 def _summary_frame(rows: list[dict[str, Any]]):
@@ -119,100 +86,67 @@ class _SampleWriter:
 
 
 def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[str, Any]:
-    """Library side of the command: read, align, derive, summarise, write.
+    """Library side of the command: the ``ingest`` stage
+    (:mod:`seanv_analysis.stages.dataset`), each run's aligned, derived
+    samples also written to ``<kind>.parquet`` as it is read.
 
     Returns a result dict (also the ``--json`` document); raises
     :class:`~seanv_analysis.errors.DataError` for a single bad run folder.
     """
-    from ..errors import DataError, SeanvError
-    from ..io.reader import RunError, find_runs, is_run_dir, iter_dataset, read_run
+    from ..errors import DataError
+    from ..io.manifest import write_manifest
+    from ..io.reader import is_run_dir
     from ..io.writer import write_table_parquet
-    from ..manifest import write_manifest
-
-    derive_samples = _optional("derive", "derive_samples")
-    summarize_run = _optional("derive", "summarize_run")
-    apply_filters = _optional("filters", "apply_filters")
+    from ..signals.derive import derive_samples, summarize_run
+    from ..stages import Context, dataset
 
     root = Path(data)
-    find_runs(root)  # missing / not a folder -> DataError
+    ctx = Context.for_data(root, rig=rig)  # missing / not a folder / no run -> DataError
     if _inside(out_dir, root):
         raise DataError(f"--out: {out_dir} is inside the data folder; outputs never go into raw "
-                        "data: choose another --out (default: outputs/<dataset>/ingest/ under "
+                        "data: choose another --out (default: outputs/<dataset-name>/ingest/ under "
                         "the current folder)", path=root)
-    single = is_run_dir(root)
-    if single:
-        items: Any = [read_run(root, rig=rig)]
-        total = 1
-    else:
-        items = iter_dataset(root, rig=rig)
-        total = len(find_runs(root))
-
-    reuse = summarize_run is not None and derive_samples is not None and \
-        "derived" in inspect.signature(summarize_run).parameters
-
-    def process(run):
-        samples = derive_samples(run) if derive_samples else run.aligned()
-        if summarize_run is None:
-            row = _metadata_summary(run, samples)
-        elif reuse:  # the derived table is computed once
-            row = summarize_run(run, derived=samples)
-        else:
-            row = summarize_run(run)
-        return samples, row
-
-    rows: list[dict[str, Any]] = []
-    errors: list[RunError] = []
-    hashes: dict[str, str] = {}
-    by_kind: dict[str, int] = {}
     meta = {"rig_source": rig.source, "data": str(root)}
+    by_kind: dict[str, int] = {}
     with ExitStack() as stack:
         writer = _SampleWriter(out_dir, stack, meta)
-        if progress and total > 1:
+        bar = None
+        if progress and len(ctx.run_dirs) > 1:
             from tqdm import tqdm
-            items = stack.enter_context(tqdm(items, total=total, unit="run", file=sys.stderr,
-                                             desc="ingest", leave=False,
-                                             disable=None))
-        for item in items:
-            if isinstance(item, RunError):
-                errors.append(item)
-                continue
+            bar = stack.enter_context(tqdm(total=len(ctx.run_dirs), unit="run", file=sys.stderr,
+                                           desc="ingest", leave=False, disable=None))
+
+        def summarize_and_write(run, *, method):
+            samples = derive_samples(run)  # the derived table is computed once
             try:
-                samples, row = process(item)
-            except SeanvError as exc:
-                msg = " ".join(str(exc).split())
-                if str(item.meta.path) not in msg:  # e.g. alignment: name the run folder
-                    msg = f"{item.meta.path}: {msg}"
-                if single:
-                    raise DataError(msg) from None
-                errors.append(RunError(item.meta.path, msg))
-                continue
-            row = dict(row)
-            row["run_index"] = len(rows)
-            rows.append(row)
-            writer.write(item.kind, item.run_id, samples)
-            by_kind[item.kind] = by_kind.get(item.kind, 0) + 1
-            hashes.update(item.file_sha256)
-            del samples, item
-        if not rows:  # no writer was opened: nothing is written
-            return _result(root, out_dir, by_kind, errors, {}, None, derive_samples is not None,
-                           apply_filters is not None, excluded={})
-        summary = _summary_frame(rows)
-        if apply_filters:
-            summary = _summary_frame(apply_filters(summary, rig).to_dict("records"))
+                value = {"row": summarize_run(run, method=method, derived=samples),
+                         "meta": {"controller": dict(run.meta.controller or {})}}
+                writer.write(run.kind, run.run_id, samples)
+                by_kind[run.kind] = by_kind.get(run.kind, 0) + 1
+            finally:
+                if bar is not None:
+                    bar.update()
+            return value
+
+        ds = dataset.collect(ctx, {}, func=summarize_and_write)
+        errors = list(ds.failed)
+        if is_run_dir(root) and errors:
+            raise DataError(errors[0].message)
+        if ds.runs_read == 0:  # no writer was opened: nothing is written
+            return _result(root, out_dir, by_kind, errors, {}, None, excluded={})
+        summary = _summary_frame(ds.summary.to_dict("records"))
     tables = {kind: str(writer.path(kind)) for kind in writer.rows}
     summary_path = write_table_parquet(summary, out_dir / "summary.parquet", metadata=meta)
-    excluded = {k: int(v) for k, v in summary["excluded"][summary["excluded"] != ""]
-                .value_counts().items()}
     result = _result(root, out_dir, by_kind, errors, tables, summary_path,
-                     derive_samples is not None, apply_filters is not None, excluded=excluded)
+                     excluded={k: v for k, v in ds.excluded.items() if v})
     result["rows"] = dict(writer.rows)
-    manifest = write_manifest(out_dir, config=rig, inputs=hashes, command=sys.argv,
+    manifest = write_manifest(out_dir, config=rig, inputs=ds.input_hashes, command=sys.argv,
                               extra={"ingest": {k: v for k, v in result.items() if k != "manifest"}})
     result["manifest"] = str(manifest)
     return result
 
 
-def _result(root, out_dir, by_kind, errors, tables, summary_path, derived, filtered, *, excluded):
+def _result(root, out_dir, by_kind, errors, tables, summary_path, *, excluded):
     return {
         "data": str(root),
         "out": str(out_dir),
@@ -222,8 +156,8 @@ def _result(root, out_dir, by_kind, errors, tables, summary_path, derived, filte
         "tables": tables,
         "summary": None if summary_path is None else str(summary_path),
         "excluded": excluded,
-        "derived": derived,
-        "filtered": filtered,
+        "derived": True,
+        "filtered": True,
         "manifest": None,
     }
 
@@ -250,8 +184,7 @@ def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, as_json:
     columns (encoder_counts, p_*_v, p_*_kpag, *_pulse) are converted with the
     rig's [calibration]; missing p_tank_mpag is 0 MPaG. Streams are put on the
     encoder's time base inside the span all streams cover (measurements
-    interpolated linearly, commands held), and flow is derived when the
-    derive stage is installed.
+    interpolated linearly, commands held), and flow is derived.
 
     \b
     Writes (under --out, default outputs/<dataset-name>/ingest/):
@@ -289,8 +222,6 @@ def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, as_json:
         if result["excluded"]:
             ex = ", ".join(f"{k}: {n}" for k, n in sorted(result["excluded"].items()))
             click.echo(f"excluded by the filters: {ex}")
-        if not result["derived"]:
-            click.echo("note: derive stage not installed: flow columns of summary.parquet are NaN")
         if result["summary"]:
             click.echo(f"outputs: {out}")
     return echo_bad_runs([e["message"] for e in result["bad_runs"]])

@@ -8,31 +8,43 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, explain_unusable
+from ._common import check_out_dir, default_out_dir, unusable
 
 __all__ = ["plots_cmd", "plots_pipeline"]
 
 
-def plots_pipeline(figs: list[int]) -> dict:
-    """The pipeline document behind ``plots``: ingest, the stages the figures
-    need (flowfit for Fig. 4, tracking for Fig. 7) and figures."""
-    stages: list[dict] = [{"name": "ingest"}]
-    if 4 in figs:
-        stages.append({"name": "flowfit"})
-    if 7 in figs:
-        stages.append({"name": "tracking"})
-    stages.append({"name": "figures", "figs": sorted(figs)})
+#: the stage that makes each result a figure can need
+_STAGE_OF = {"flowfit": "flowfit", "tracking": "tracking", "validation": "validate",
+             "discovery": "discover"}
+
+
+def plots_pipeline(figs: list[int | str]) -> dict:
+    """The pipeline document behind ``plots``: ingest, the stages the chosen
+    figures need (read from the figures registry) and figures."""
+    from ..stages.figures import selected_figures
+
+    needed = {_STAGE_OF[n] for f in selected_figures(figs) for n in f.needs if n in _STAGE_OF}
+    order = ("flowfit", "tracking", "validate", "discover")
+    stages: list[dict] = [{"name": "ingest"}] + [{"name": s} for s in order if s in needed]
+    stages.append({"name": "figures", "figs": list(figs)})
     return {"pipeline": {"name": "plots", "description": f"figures {', '.join(map(str, figs))}"},
             "stages": stages}
 
 
+def _figure_choices() -> list[str]:
+    from ..plots import FIGURES
+
+    return [str(f.number) if f.number is not None else f.name for f in FIGURES.values()] + ["all"]
+
+
 @cli.command("plots")
 @click.argument("data", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--fig", "fig", type=click.Choice(["4", "6", "7", "all"]), multiple=True,
-              default=("all",), show_default=True,
-              help="Figure(s): 4 flow characterisation of the data set (fit + threshold), "
-                   "6 one per position-control run, 7 flow tracking (data set + one per run). "
-                   "Repeat for several.")
+@click.option("--fig", "fig", type=click.Choice(_figure_choices()), multiple=True,
+              default=("4", "6", "7"), show_default=True,
+              help="Figure(s) of the registry (seanv_analysis.plots.FIGURES): 4 flow "
+                   "characterisation of the data set (fit + threshold), 6 one per "
+                   "position-control run, 7 flow tracking (data set + one per run), others by "
+                   "name; 'all' for every one. Repeat for several.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder. Default: outputs/<dataset-name>/plots/.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
@@ -60,7 +72,10 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
     from ..batch import run_pipeline
     from ..errors import DataError
 
-    figs = [4, 6, 7] if "all" in fig else sorted({int(f) for f in fig})
+    from ..stages.figures import selected_figures
+
+    chosen = "all" if "all" in fig else [int(f) if f.isdigit() else f for f in fig]
+    figs = [f.number if f.number is not None else f.name for f in selected_figures(chosen)]
     out = Path(out_dir) if out_dir else default_out_dir(data, "plots")
     check_out_dir(data, out)
     interactive = sys.stderr.isatty() and not os.environ.get("CI")
@@ -69,7 +84,8 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
         result = run_pipeline(plots_pipeline(figs), data, out_dir=out, workers=workers,
                               quiet=quiet, rig=rig_file, log=log, command=sys.argv)
     except DataError as exc:  # no run could be read: say which runs were bad and why
-        return explain_unusable(data, rig_file, exc)
+        from .run_cmd import bad_runs
+        return unusable(data, bad_runs([data], rig_file, exc), exc)
     n = 0
     for name, paths in result.figures.items():
         for p in paths:

@@ -9,13 +9,13 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, explain_unusable
+from ._common import check_out_dir, default_out_dir, unusable
 
 __all__ = ["run_cmd"]
 
 
 @cli.command("run")
-@click.argument("pipeline")
+@click.argument("pipeline", required=False)
 @click.argument("data", required=False, type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder. Default: outputs/<dataset-name>/run-<pipeline>/.")
@@ -33,9 +33,12 @@ __all__ = ["run_cmd"]
               help="Rig config TOML with only the keys you change. Default: data_schema/rig/default.toml.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the result (numbers, paths) as one JSON document on stdout.")
-def run_cmd(pipeline: str, data: Path | None, out_dir: Path | None, workers: int | None,
+@click.option("--list-stages", is_flag=True,
+              help="List the stages a pipeline can hold: what each does, needs, takes as options "
+                   "and writes; then exit.")
+def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, workers: int | None,
             scheduler: str | None, force: bool, quiet: bool, rig_file: Path | None,
-            as_json: bool) -> int:
+            as_json: bool, list_stages: bool) -> int:
     """Run PIPELINE (a TOML file, or a shipped name: paper, flowfit, tracking) on DATA.
 
     DATA is a data set folder (run folders at any depth; flow-step and
@@ -66,11 +69,18 @@ def run_cmd(pipeline: str, data: Path | None, out_dir: Path | None, workers: int
       seanv-analyze run pipelines/flowfit.toml data/flow --workers 1
       dask scheduler &  dask worker tcp://127.0.0.1:8786 --nworkers 2 &
       seanv-analyze run paper data/ --scheduler tcp://127.0.0.1:8786
+      seanv-analyze run --list-stages
     """
-    from ..batch import run_pipeline
-    from ..batch.pipeline import load_pipeline
+    from ..batch import load_pipeline, run_pipeline
     from ..errors import DataError
 
+    if list_stages:
+        from ..stages import describe_stages
+        click.echo(describe_stages())
+        return 0
+    if pipeline is None:
+        raise click.UsageError("Missing argument 'PIPELINE' (a TOML file or a shipped name: "
+                               "paper, flowfit, tracking).")
     pipe = load_pipeline(pipeline)
     datas: list[Path]
     if data is None:
@@ -91,7 +101,7 @@ def run_cmd(pipeline: str, data: Path | None, out_dir: Path | None, workers: int
         result = run_pipeline(pipe, datas, out_dir=out, workers=workers, scheduler=scheduler,
                               force=force, quiet=quiet, rig=rig_file, log=log, command=sys.argv)
     except DataError as exc:  # no run could be read: say which runs were bad and why
-        return explain_unusable(data, rig_file, exc)
+        return unusable(data, bad_runs(datas, rig_file, exc), exc)
     if as_json:
         click.echo(json.dumps(result.to_json(), default=str))
         text = result.summary_text()
@@ -100,3 +110,16 @@ def run_cmd(pipeline: str, data: Path | None, out_dir: Path | None, workers: int
     else:
         click.echo(result.summary_text())
     return 0 if result.success else 1
+
+
+def bad_runs(datas: list[Path], rig_file: Path | None, exc: Exception) -> list:
+    """The runs of DATA that cannot be read or summarised (the failure path:
+    read again to list every one), or ``exc`` raised when DATA holds none."""
+    from ..errors import DataError
+    from ..stages import Context, dataset
+
+    try:
+        ctx = Context.for_data(datas, rig=rig_file)
+    except DataError:
+        raise exc from None
+    return list(dataset.collect(ctx, {}).failed)

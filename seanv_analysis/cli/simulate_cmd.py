@@ -51,11 +51,15 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
     from tqdm import tqdm
 
     from ..config import load_rig
+    from ..errors import ConfigError
     from ..models.effects import parse_effects
     from ..sim.scenarios import simulate_scenario
 
     rig = load_rig(rig_file)
-    parsed = parse_effects(effects)
+    try:
+        parsed = parse_effects(effects)
+    except ValueError as exc:  # the CLI's one-line error
+        raise ConfigError(str(exc)) from None
     bar = tqdm(desc=scenario, unit="run", disable=True if quiet else None, leave=False)
 
     def progress(done, total):

@@ -2,15 +2,14 @@
 from __future__ import annotations
 
 import json
-import sys
 import warnings
 from pathlib import Path
 
 import click
 
 from . import cli
-from ._common import (check_out_dir, default_out_dir, echo_bad_runs, explain_unusable,
-                      sim_default_dataset)
+from ._common import (check_out_dir, default_out_dir, echo_bad_runs, sim_default_dataset,
+                      stage_context, unusable, write_command_manifest)
 
 __all__ = ["tracking_cmd"]
 
@@ -46,12 +45,10 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
     manifest.json.
     Example: seanv-analyze tracking data/position --shift 0.25 --json
     """
-    from ..analysis.tracking import tracking_runs
-    from ..io import read_dataset
     from ..config import load_rig
     from ..errors import DataError
-    from ..io.atomic import write_text_atomic
-    from ..models import ValveModel
+    from ..io.model_file import read_model
+    from ..stages import dataset, figures, tracking
 
     rig = load_rig(rig_file)
     if data is None:
@@ -60,36 +57,30 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
                    f"set ({data})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "tracking")
     check_out_dir(data, out)
-    model = ValveModel.load(model_file, rig=rig) if model_file else None
-    with warnings.catch_warnings():
+    model = read_model(model_file, rig=rig) if model_file else None
+    options = {"shift_s": shift_s, "q_range": list(q_range)}
+    with stage_context(data, rig=rig, out_dir=out, model=model) as ctx, warnings.catch_warnings():
         warnings.simplefilter("ignore")  # collected in the result (skipped, warnings)
-        ds = read_dataset(data, rig=rig)
+        ds = dataset.collect(ctx, {}, func=dataset.summarize_derived)
+        if ds.runs_read == 0:
+            return unusable(data, ds.failed)
+        ctx.add("ingest", ds)
         try:
-            result = tracking_runs(ds.runs, shift_s=shift_s, q_range=q_range, model=model)
+            result = tracking.run(ctx, options)
+            if result is None:
+                raise DataError("no position_control run in the data set; expected runs with "
+                                "run.json kind = 'position_control'", path=data)
         except DataError as exc:  # nothing usable: say which runs were bad and why
-            return explain_unusable(data, rig, exc)
-    errors = ds.errors
-    result.write(out)
-    write_text_atomic(out / "tracking.txt", result.report() + "\n")
+            return unusable(data, ds.failed, exc)
+    ctx.add("tracking", result)
+    tracking.write(result, out)
     if not no_figures:
-        from ..plots.fig6 import plot_fig6, plot_fig6_dataset
-        from ..plots.fig7 import plot_fig7
-
-        runs = [r for r in ds.runs if r.kind == "position_control"]
-        # the paper's order: (a) without, (b) with the flow model
-        plot_fig6_dataset(sorted(runs, key=lambda r: bool((r.meta.controller or {})
-                                                          .get("flow_model", True))), out)
-        for run in runs:
-            plot_fig6(run, out)
-        plot_fig7(result, out)
-    from ..manifest import write_manifest
-    write_manifest(out, config=rig.to_dict(), inputs=[data], command=sys.argv,
-                   extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
-                          "model": str(model_file) if model_file else None,
-                          "bad_runs": [str(e) for e in errors]})
+        figures.draw_figures(ctx, [6, 7], out, per_run_folders=False)
+    write_command_manifest(out, ctx, extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
+                                            "model": str(model_file) if model_file else None})
     if as_json:
         click.echo(json.dumps(result.to_json()))
     else:
         click.echo(result.report())
         click.echo(f"outputs: {out}")
-    return echo_bad_runs(errors)
+    return echo_bad_runs(ds.failed)

@@ -3,15 +3,14 @@ the simulated plant with the identified valve model and compare."""
 from __future__ import annotations
 
 import json
-import sys
 import warnings
 from pathlib import Path
 
 import click
 
 from . import cli
-from ._common import (check_out_dir, default_out_dir, echo_bad_runs, explain_unusable,
-                      sim_default_dataset)
+from ._common import (check_out_dir, default_out_dir, echo_bad_runs, sim_default_dataset,
+                      stage_context, unusable, write_command_manifest)
 
 __all__ = ["validate_cmd"]
 
@@ -53,10 +52,10 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     validate_<run>.parquet/.png/.svg, validate_fit.png/.svg, manifest.json.
     Example: seanv-analyze validate data/position --model outputs/flow/flowfit/model.json
     """
-    from ..analysis.validate import validate_dataset
     from ..config import load_rig
-    from ..errors import DataError
-    from ..models import ValveModel
+    from ..errors import ConfigError, DataError
+    from ..io.model_file import read_model
+    from ..stages import dataset, figures, validate
 
     rig = load_rig(rig_file)
     if data is None:
@@ -65,26 +64,33 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
                    f"set ({data})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "validate")
     check_out_dir(data, out)
-    model = ValveModel.load(model_file, rig=rig) if model_file else None
-    with warnings.catch_warnings():
+    model = read_model(model_file, rig=rig) if model_file else None
+    options = {"threshold_pct": threshold_pct, "controller_model": controller_model}
+    with stage_context(data, rig=rig, out_dir=out, model=model) as ctx, warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        ds = dataset.collect(ctx, {}, func=dataset.summarize_derived)
+        if ds.runs_read == 0:
+            return unusable(data, ds.failed)
+        ctx.add("ingest", ds)
         try:
-            result, errors = validate_dataset(data, model, rig=rig, threshold_pct=threshold_pct,
-                                              controller_model=controller_model)
+            validate.check_option("threshold_pct", threshold_pct)
+            result = validate.run(ctx, options)
+            if result is None:
+                raise DataError("no position_control run could be validated", path=data)
+        except ValueError as exc:
+            raise ConfigError(f"threshold_pct: expected {exc}, got {threshold_pct!r}") from None
         except DataError as exc:  # nothing usable: say which runs were bad and why
-            return explain_unusable(data, rig, exc)
-    result.write(out)
+            return unusable(data, ds.failed, exc)
+    ctx.add("validate", result)
+    validate.write(result, out)
     if not no_figures:
-        from ..plots.validate import plot_overlay
-        plot_overlay(result, out)
-    from ..manifest import write_manifest
-    write_manifest(out, config=rig.to_dict(), inputs=[data], command=sys.argv,
-                   extra={"model": str(model_file) if model_file else None,
-                          "threshold_pct": threshold_pct, "controller_model": controller_model,
-                          "bad_runs": [str(e) for e in errors]})
+        figures.draw_figures(ctx, figures.figures_of("validation"), out)
+    write_command_manifest(out, ctx, extra={"model": str(model_file) if model_file else None,
+                                            "threshold_pct": threshold_pct,
+                                            "controller_model": controller_model})
     if as_json:
         click.echo(json.dumps(result.to_json()))
     else:
         click.echo(result.report())
         click.echo(f"outputs: {out}")
-    return echo_bad_runs(errors)
+    return echo_bad_runs([*ds.failed, *result.failed])

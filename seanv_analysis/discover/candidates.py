@@ -1,78 +1,67 @@
 """Candidate effects for the static (flow-step) model and their fitting.
 
-Each candidate is a small extension of eq. (5) with one continuous parameter
-(drift also has a grid-searched period and phase). Functional forms live in
-:mod:`seanv_analysis.models.effects`, shared with the simulator.
+The candidates are the registered effects with a static form
+(:func:`seanv_analysis.models.effects.static_effects`): each is a small
+extension of eq. (5) with one or a few continuous parameters (drift also has
+a grid-searched period and phase). Their functional forms, start values and
+bounds live in :mod:`seanv_analysis.models.effects`, shared with the
+simulator; this module only asks each effect class.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
-from .static import EffectSpec, FlowData, StaticFit, fit_static, predict_static
+from ..models import effects as fx
+from .static import EffectSpec, FlowData, StaticFit, _side_mask, fit_static, predict_static
 
-__all__ = ["candidate_specs", "fit_candidate", "DRIFT_MAX_EVERY"]
-
-DRIFT_MAX_EVERY = 12  # longest drift period searched [runs]
+__all__ = ["candidate_specs", "fit_candidate"]
 
 
 def candidate_specs(data: FlowData, base: StaticFit) -> list[EffectSpec]:
-    """All candidate effects that the data can identify.
+    """All candidate effects that the data can identify, in registry order:
+    the sided effects once per valve side present (supply first), then the
+    effects that act on both sides.
 
-    Drift needs a grid search over its period; its spec here carries
-    ``every``/``offset`` = None and :func:`fit_candidate` fills them.
+    A candidate with grid-searched parameters (drift's ``every``/``offset``)
+    carries them as None; :func:`fit_candidate` fills them.
+
+    Raises
+    ------
+    ValueError
+        An effect's static form reads a variable flow-step data does not carry.
     """
     sides = [s for s in ("supply", "drain") if np.any(data.side == s)]
+    static = fx.static_effects()
+    for cls in static:
+        missing = [v for v in cls.STATIC.needs if not hasattr(data, v)]
+        if missing:
+            raise ValueError(f"effect {cls.name!r}: its static form needs {', '.join(missing)}, "
+                             "which flow-step data does not carry")
     specs = []
-    for s in sides:
-        specs.append(EffectSpec("drift", s, ("step",), (0.02,), (-0.5,), (0.5,),
-                                {"every": None, "offset": None}))
-        specs.append(EffectSpec("threshold_shift", s, ("rate_mm_per_run",), (0.0,), (-0.01,), (0.01,)))
-        specs.append(EffectSpec("pressure_law", s, ("exponent",), (0.5,), (0.05,), (1.5,)))
-        qmax = float(np.nanmax(np.abs(data.q_mm3_s[data.side == s]))) if np.any(data.side == s) else 1e4
-        specs.append(EffectSpec("saturation", s, ("q_max_mm3_s",), (1.2 * qmax,), (0.1 * qmax,), (10 * qmax,)))
-    if np.unique(data.approach[data.approach != 0]).size == 2:
-        specs.append(EffectSpec("backlash", "both", ("width_deg",), (0.5,), (0.0,), (10.0,)))
-    specs.append(EffectSpec("sensor_gain", "both", ("gain",), (1.0,), (0.5,), (2.0,),
-                            {"sensor": "pressure"}))
+    for side in sides:
+        for cls in static:
+            if cls.sided():
+                form = cls.static_form(data, side)
+                if form is not None:
+                    specs.append(EffectSpec.from_form(cls.name, side, form))
+    for cls in static:
+        if not cls.sided():
+            form = cls.static_form(data, "both")
+            if form is not None:
+                specs.append(EffectSpec.from_form(cls.name, "both", form))
     return specs
-
-
-def _best_drift_grid(data: FlowData, base: StaticFit, sigma: np.ndarray, side: str):
-    """Profile the stepwise drift: best (every, offset, step) with z0, C at the
-    base fit and a free scale, by a vectorised grid over the step size."""
-    m = data.side == side
-    q = data.q_mm3_s[m]
-    q0 = predict_static(base.model, data)[m]
-    w = 1.0 / sigma[m]
-    idx = data.run_index[m]
-    steps = np.linspace(-0.3, 0.3, 241)
-    results = []
-    for every in range(1, DRIFT_MAX_EVERY + 1):
-        for offset in range(every):
-            k = np.floor((idx + offset) / every)
-            mult = (1.0 - steps[:, None]) ** k[None, :]          # (steps, runs)
-            g = mult * q0[None, :] * w[None, :]
-            y = q * w
-            a = (g @ y) / np.maximum(np.sum(g * g, axis=1), 1e-300)  # best scale per step
-            rss = np.sum((y[None, :] - a[:, None] * g) ** 2, axis=1)
-            j = int(np.argmin(rss))
-            results.append((float(rss[j]), every, offset, float(steps[j])))
-    # Periods alias (4 % every 3 runs ~ 7.8 % every 6): among fits within
-    # 2 units of weighted RSS of the best (indistinguishable), take the
-    # shortest period.
-    best_rss = min(r[0] for r in results)
-    close = [r for r in results if r[0] <= best_rss + 2.0]
-    return min(close, key=lambda r: (r[1], r[0]))
 
 
 def fit_candidate(model_base: StaticFit, data: FlowData, sigma: np.ndarray, spec: EffectSpec,
                   selected: list[EffectSpec]) -> tuple[StaticFit, EffectSpec]:
     """Fit base + ``selected`` + ``spec`` jointly; returns the fit and the
-    concrete spec (drift with its period and phase filled in)."""
-    if spec.name == "drift" and spec.fixed.get("every") is None:
-        _, every, offset, step = _best_drift_grid(data, model_base, sigma, spec.side)
-        spec = EffectSpec("drift", spec.side, ("step",), (step,), (-0.5,), (0.5,),
-                          {"every": every, "offset": offset})
+    concrete spec (grid-searched parameters, e.g. drift's period and phase,
+    filled in against ``model_base``'s model without effects)."""
+    if spec.needs_search:
+        q_base = predict_static(model_base.model, data)
+        x0, fixed = spec.effect.static_search(data, _side_mask(data, spec.side), q_base, sigma)
+        spec = replace(spec, x0=tuple(x0), fixed={**spec.fixed, **fixed})
     fit = fit_static(model_base.model, data, sigma, effects=[*selected, spec])
     return fit, spec
-

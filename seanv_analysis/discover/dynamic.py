@@ -31,7 +31,11 @@ from scipy import stats
 
 from .result import EffectFinding
 
-__all__ = ["DelayDiscovery", "discover_delay", "flow_signals"]
+__all__ = ["DelayDiscovery", "discover_delay", "flow_signals", "DELAY_EVIDENCE"]
+
+#: the report's clause on how a delay is backed: the normal p-value of the
+#: extra lag from the block-bootstrap interval
+DELAY_EVIDENCE = "p = {p_value:.2g} (lag vs nominal, from the block-bootstrap interval)"
 
 
 @dataclass
@@ -147,7 +151,7 @@ def discover_delay(runs, *, nominal_lag_s: float, q_range=(-2.5e3, 8e3), fractio
         p = float(2 * stats.norm.sf(abs(extra) / se)) if se > 0 else 0.0
         finding = EffectFinding("delay", "both", {"delay_s": extra},
                                 {"delay_s": (ci[0] - nominal_lag_s, ci[1] - nominal_lag_s)},
-                                p_value=p, f_p_value=p)
+                                p_value=p, f_p_value=p, evidence=DELAY_EVIDENCE)
     else:
         after = before   # nothing added: the model is unchanged
     msg = (f"flow lag {lag:.3f} s (95 % CI {ci[0]:.3f}..{ci[1]:.3f} s)" if ci else

@@ -1,6 +1,6 @@
 """Close the loop on flow-step data: residual -> missing effect -> refit.
 
-Procedure (issue 8):
+Procedure:
 
 1. chronological split of runs into fit / held-out, per valve side (the
    last ``fraction`` of each side's runs; never used for fitting or
@@ -9,7 +9,9 @@ Procedure (issue 8):
    from a flow-noise model sigma = a + b |Q|);
 3. residual diagnostics on the fit set against run order, dp, opening,
    load, cam approach direction, flow; Ljung-Box whiteness in run order;
-4. forward selection over candidate effects. A candidate is kept only when
+4. forward selection over the candidate effects (every registered effect
+   with a static form, :mod:`seanv_analysis.models.effects`, that the data
+   can identify; :func:`.candidates.candidate_specs`). A candidate is kept only when
    (a) its F-test against the current model has p < alpha / m (m candidates),
    (b) it lowers the error on an inner chronological validation split of
    the fit set by at least ``min_improvement``, and (c) a residual
@@ -31,11 +33,10 @@ from .candidates import candidate_specs, fit_candidate
 from .diagnostics import ljung_box, robust_scale, trend_tests
 from .result import Discovery, EffectFinding
 from .split import chrono_split, kfold_splits
-from .static import EffectSpec, FlowData, StaticFit, fit_static, predict_static
+from .static import FlowData, StaticFit, fit_static, predict_static
 
-__all__ = ["discover_flow_steps", "noise_model"]
-
-_DEBUG = False
+__all__ = ["discover_flow_steps", "noise_model", "residual_variables", "trend_amplitude",
+           "practical_floor_mm3_s"]
 
 
 def noise_model(q_hat: np.ndarray, residual: np.ndarray, *, floor_mm3_s: float = 10.0) -> np.ndarray:
@@ -94,13 +95,20 @@ def _opening(model: ValveModel, data: FlowData) -> np.ndarray:
     return out
 
 
-def _variables(model: ValveModel, data: FlowData, summary_fit: pd.DataFrame) -> dict[str, np.ndarray]:
+def residual_variables(model: ValveModel, data: FlowData,
+                       summary: pd.DataFrame | None = None) -> dict[str, np.ndarray]:
+    """The variables discovery tests the flow residual against, per run:
+    run_index (time order) [-], dp_mpa [MPa], opening_deg (cam angle past the
+    threshold theta_d of eq. 3+4 under ``model``) [deg], cam_approach [-],
+    q_mm3_s (|Q|) [mm^3/s], and load_mpag [MPaG] when ``summary`` (the rows
+    of ``data``) has it."""
+    summary = pd.DataFrame() if summary is None else summary
     dp = np.where(data.side == "supply", data.p_supply_mpag - data.p_head_mpag,
                   data.p_head_mpag - data.p_tank_mpag)
     v = {"run_index": data.run_index, "dp_mpa": dp, "opening_deg": _opening(model, data),
          "cam_approach": data.approach, "q_mm3_s": np.abs(data.q_mm3_s)}
-    if "load_mpag" in summary_fit:
-        v["load_mpag"] = summary_fit["load_mpag"].to_numpy(float)
+    if "load_mpag" in summary:
+        v["load_mpag"] = summary["load_mpag"].to_numpy(float)
     return v
 
 
@@ -195,7 +203,7 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
         # are not called "unexplained".
         floor = practical_floor_mm3_s(fit_data, leakage_mm3_s)
         raw = fit_data.q_mm3_s - predict_static(base.model, fit_data)
-        variables = _variables(base.model, fit_data, df[fit_m])
+        variables = residual_variables(base.model, fit_data, df[fit_m])
         alpha_trend = 1e-3 / max(len(trends), 1)
         structured = [t for t in trends if t.p_value < alpha_trend and abs(t.rho) > 0.2
                       and trend_amplitude(raw, variables[t.variable]) > floor]
@@ -220,7 +228,7 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
 def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improvement, n_perm,
             max_effects, seed, floor_mm3_s=0.0):
     base, sigma = _fit_base(model, data)
-    trends = trend_tests(base.weighted_residual, _variables(base.model, data, summary_fit))
+    trends = trend_tests(base.weighted_residual, residual_variables(base.model, data, summary_fit))
     order = np.argsort(data.run_index, kind="stable")
     lb = ljung_box(base.weighted_residual[order])
 
@@ -253,9 +261,6 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
                 improvement = min(improvement, 0.0)
             scored.append((f, p, improvement, spec_c, fit))
         m = len(scored)
-        if _DEBUG:
-            for sc in scored:
-                print(f'  {sc[3].label:28s} F={sc[0]:9.2f} p={sc[1]:.2e} impr={sc[2]:+.3f} {sc[3].fixed}')
         passing = [s for s in scored if s[1] < alpha / m and s[2] >= min_improvement]
         if not passing:
             break
@@ -289,11 +294,9 @@ def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected
         d_star = FlowData(data.side, data.theta_deg, data.p_supply_mpag, data.p_head_mpag,
                           data.p_tank_mpag, data.run_index, data.approach, q_star)
         cur = fit_static(current.model, d_star, sigma, effects=selected)
-        spec_free = spec
-        if spec.name == "drift":  # re-search period and phase on each replicate
-            spec_free = EffectSpec("drift", spec.side, ("step",), (0.0,), (-0.5,), (0.5,),
-                                   {"every": None, "offset": None})
-        new, _ = fit_candidate(cur, d_star, sigma, spec_free, selected)
+        # grid-searched parameters (drift's period and phase) are searched
+        # again on each replicate, as they were on the data
+        new, _ = fit_candidate(cur, d_star, sigma, spec.unsearched(), selected)
         f, _ = _f_test(cur.rss_weighted, cur.n_params, new.rss_weighted, new.n_params, len(data))
         exceed += f >= f_obs
     return (1 + exceed) / (1 + n_perm)

@@ -1,26 +1,26 @@
-"""Result of model discovery: verdict, effects found, error before/after."""
+"""Result of model discovery: verdict, effects found, error before/after.
+
+Results are frozen: a later step (the closed-loop check) makes a new one
+(:meth:`Discovery.with_closed_loop`). Each effect's sentence comes from its
+class in :mod:`seanv_analysis.models.effects`.
+"""
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
+from ..errors import ConfigError
 from ..models import ValveModel
+from ..models import effects as fx
 
-__all__ = ["EffectFinding", "Discovery"]
+__all__ = ["EffectFinding", "Discovery", "STATIC_EVIDENCE"]
 
-_EFFECT_TEXT = {
-    "drift": "the flow coefficient C of the {side} side {direction} by {abs_step:.2%} every {every} runs "
-             "(C (1 - step)^floor((i + offset)/every), step = {step:+.4f})",
-    "threshold_shift": "the {side} sealing threshold creeps with use (z0 changes {rate_mm_per_run:+.2e} mm per run)",
-    "backlash": "the cam has a direction-dependent dead band of {width_deg:.2f} deg (backlash)",
-    "pressure_law": "the {side} flow follows dp^{exponent:.2f}, not the orifice law dp^0.5",
-    "saturation": "the {side} flow saturates at about {q_max_mm3_s:.0f} mm^3/s at large openings",
-    "sensor_gain": "a {sensor} sensor reads {gain:.3f} x the true value",
-    "delay": "the flow lags Q_ref by an extra {delay_s:.3f} s beyond the nominal lag (transport delay)",
-}
+#: how the static selection backs an effect (:mod:`.engine`): the residual
+#: permutation check and the F-test against the model without it
+STATIC_EVIDENCE = "permutation p = {p_value:.3f}, F-test p = {f_p_value:.2g}"
 
 
 @dataclass(frozen=True)
@@ -29,8 +29,11 @@ class EffectFinding:
 
     ``params``: fitted values (units in the names); ``params_ci95``: Wald
     95 % intervals from the joint fit's covariance (NaN when singular);
-    ``p_value``: permutation-check p-value; ``f_p_value``: F-test p-value;
-    ``inner_improvement``: relative error drop on the inner validation split.
+    ``p_value``: the p-value of the check that kept it (the permutation
+    check for the static selection); ``f_p_value``: F-test p-value;
+    ``inner_improvement``: relative error drop on the inner validation split;
+    ``evidence``: the report's clause on the test, ``str.format``-ed with
+    ``p_value`` and ``f_p_value``.
     """
 
     name: str
@@ -40,16 +43,22 @@ class EffectFinding:
     p_value: float
     f_p_value: float = float("nan")
     inner_improvement: float = float("nan")
+    evidence: str = STATIC_EVIDENCE
 
     def sentence(self) -> str:
+        """What the effect means, in words (its class's sentence), or its
+        name and parameters when it has none."""
+        cls = fx.EFFECTS.get(self.name)
         try:
-            extra = {}
-            if self.name == "drift":
-                step = float(self.params["step"])
-                extra = {"direction": "falls" if step > 0 else "rises", "abs_step": abs(step)}
-            return _EFFECT_TEXT[self.name].format(side=self.side, **self.params, **extra)
+            if cls is None:
+                raise KeyError(self.name)
+            return cls.sentence(self.side, self.params)
         except (KeyError, ValueError):
             return f"{self.name} ({self.side}): {self.params}"
+
+    def evidence_text(self) -> str:
+        """The test behind the finding with its p-values."""
+        return self.evidence.format(p_value=self.p_value, f_p_value=self.f_p_value)
 
     def to_json(self) -> dict[str, Any]:
         return {"name": self.name, "side": self.side,
@@ -66,9 +75,13 @@ def _num(v):
     return v
 
 
-@dataclass
+@dataclass(frozen=True)
 class Discovery:
-    """What discovery found and how much it helps on held-out runs."""
+    """What discovery found and how much it helps on held-out runs.
+
+    Frozen: :meth:`with_closed_loop` (and ``dataclasses.replace``) return a
+    new result.
+    """
 
     verdict: str
     effects: list[EffectFinding]
@@ -88,7 +101,7 @@ class Discovery:
     base_fit: Any = None
     final_fit: Any = None
     holdout: str = "chrono"
-    validation: dict | None = None   # closed-loop fit % before/after, filled by the CLI/pipeline
+    validation: dict | None = None   # closed-loop fit % before/after (with_closed_loop)
     position_control: dict | None = None  # delay check on position-control runs (dynamic.py)
     #: where the held-out error comes from: "flow_step" (static model on held-out
     #: runs), "position_control_shift" (shifted-flow RMSE on held-out run tails,
@@ -110,7 +123,7 @@ class Discovery:
                            "rmse_before_mm3_s": _num(self.rmse_before_mm3_s),
                            "rmse_after_mm3_s": _num(self.rmse_after_mm3_s)},
                "trend_variable": self.trend_variable,
-               # additive to the issue-8 contract: where the held-out numbers come from
+               # where the held-out numbers come from
                "heldout_source": self.heldout_source}
         if self.position_control:
             out["position_control"] = self.position_control
@@ -124,41 +137,44 @@ class Discovery:
         d["effects"] = [e.to_json() for e in self.effects]
         return d
 
-    def use_closed_loop_heldout(self) -> None:
-        """Position-control-only data: take the before/after error from the
-        closed-loop check (``validation``, flow-model controller runs, else
-        all) instead of the shifted-flow RMSE, which a delay in the loop makes
-        a poor predictor (see :mod:`.dynamic`). Nothing changes when the
-        held-out error comes from flow-step runs."""
-        if self.heldout_source == "flow_step":
-            return
-        val = self.validation or {}
-        before, after = val.get("before") or {}, val.get("after") or {}
-        ctrl = "flow_model" if "flow_model" in before else next(iter(before), None)
-        try:
-            b = float(before[ctrl]["rmse_flow_mm3_s"])
-            a = float(after[ctrl]["rmse_flow_mm3_s"])
-        except (KeyError, TypeError, ValueError):
-            return
-        self.rmse_before_mm3_s, self.rmse_after_mm3_s = b, a
-        self.heldout_source = "closed_loop"
+    def with_closed_loop(self, before: dict | None, after: dict | None) -> "Discovery":
+        """A copy holding the closed-loop check (``validation``: mean fit per
+        controller with the base model ``before`` and the augmented one
+        ``after``). Position-control-only data also takes its before/after
+        error from it (flow-model controller runs, else all) instead of the
+        shifted-flow RMSE, which a delay in the loop makes a poor predictor
+        (see :mod:`.dynamic`); flow-step held-out numbers stay as they are."""
+        changes: dict[str, Any] = {"validation": {"before": before, "after": after}}
+        if self.heldout_source != "flow_step":
+            b_, a_ = before or {}, after or {}
+            ctrl = "flow_model" if "flow_model" in b_ else next(iter(b_), None)
+            try:
+                changes.update(rmse_before_mm3_s=float(b_[ctrl]["rmse_flow_mm3_s"]),
+                               rmse_after_mm3_s=float(a_[ctrl]["rmse_flow_mm3_s"]),
+                               heldout_source="closed_loop")
+            except (KeyError, TypeError, ValueError):
+                pass
+        return replace(self, **changes)
 
     def augmented_model_and_effects(self, rig=None) -> tuple[ValveModel, list[str]]:
         """The refitted valve and the effects found as ``models.effects``
-        specs (what the simulator's plant and ``validate`` take)."""
-        from dataclasses import fields
+        specs (what the simulator's plant and ``validate`` take).
 
-        from ..models.effects import EFFECTS, parse_effect
-
+        Raises
+        ------
+        ConfigError
+            A fitted value outside the effect's range (the simulator cannot
+            put it in).
+        """
         specs = []
         for e in self.effects:
-            cls = EFFECTS.get(e.name)
+            cls = fx.EFFECTS.get(e.name)
             if cls is None:
                 continue
-            known = {f.name for f in fields(cls)}
-            raw = {"side": e.side, **{k: v for k, v in e.params.items() if v is not None}}
-            specs.append(parse_effect({"name": e.name,
-                                       **{k: v for k, v in raw.items() if k in known}}).spec())
+            try:
+                specs.append(cls.from_fit(e.side, e.params).spec())
+            except ValueError as exc:
+                raise ConfigError(str(exc)) from None
         return self.model, specs
 
     def report(self) -> str:
@@ -168,12 +184,7 @@ class Discovery:
             names = ", ".join(f"{e.name} ({e.side})" for e in self.effects)
             lines.append(f"Discovery: the base model misses {names}.")
             for e in self.effects:
-                if e.name == "delay":
-                    lines.append(f"- {e.sentence()}; p = {e.p_value:.2g} (lag vs nominal, "
-                                 "from the block-bootstrap interval).")
-                else:
-                    lines.append(f"- {e.sentence()}; permutation p = {e.p_value:.3f}, "
-                                 f"F-test p = {e.f_p_value:.2g}.")
+                lines.append(f"- {e.sentence()}; {e.evidence_text()}.")
         elif self.verdict == "unexplained":
             lines.append("Discovery: the residual of the base flow model is structured "
                          f"(it trends with {self.trend_variable}), but no candidate effect "

@@ -2,13 +2,14 @@
 
 The base model is eq. (5) with the sealing threshold of eq. (3)+(4):
 Q = C (theta - theta_d(p1, dp; z0))^2 dp^0.5 per side. Each candidate effect
-adds a few parameters (its functional form comes from
-:mod:`seanv_analysis.models.effects`), and the whole thing is fitted jointly
-over both sides with ``scipy.optimize.least_squares``.
+adds a few parameters and changes the terms of that equation through its
+static form (:meth:`seanv_analysis.models.effects.Effect.apply_static` on
+:class:`~seanv_analysis.models.effects.FlowTerms`), and the whole thing is
+fitted jointly over both sides with ``scipy.optimize.least_squares``.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -16,8 +17,7 @@ from scipy.optimize import least_squares
 from ..models import ValveModel, side_pressures
 from ..models import effects as fx
 
-__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static",
-           "STATIC_EFFECTS"]
+__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static"]
 
 
 @dataclass(frozen=True)
@@ -71,8 +71,9 @@ class FlowData:
 @dataclass(frozen=True)
 class EffectSpec:
     """One candidate effect instance: name, side ('supply'/'drain'/'both'),
-    continuous parameter names with start values and bounds, and fixed
-    (grid-searched) parameters."""
+    continuous parameter names with start values and bounds, fixed
+    parameters, and which fixed ones are grid-searched (value None until
+    :meth:`~seanv_analysis.models.effects.Effect.static_search` sets them)."""
 
     name: str
     side: str
@@ -81,10 +82,37 @@ class EffectSpec:
     lower: tuple[float, ...]
     upper: tuple[float, ...]
     fixed: dict = field(default_factory=dict)
+    searched: tuple[str, ...] = ()
+
+    @classmethod
+    def from_form(cls, name: str, side: str, form: fx.StaticForm) -> "EffectSpec":
+        """The candidate of effect ``name`` on ``side`` with its static ``form``."""
+        return cls(name, side, tuple(form.params), tuple(form.x0), tuple(form.lower),
+                   tuple(form.upper), dict(form.fixed), form.searched)
 
     @property
     def label(self) -> str:
         return f"{self.name}[{self.side}]"
+
+    @property
+    def effect(self) -> type[fx.Effect]:
+        """The registered effect class (:data:`seanv_analysis.models.effects.EFFECTS`)."""
+        try:
+            return fx.EFFECTS[self.name]
+        except KeyError:
+            raise ValueError(f"effect {self.name!r} is not registered") from None
+
+    @property
+    def needs_search(self) -> bool:
+        """True while a grid-searched parameter has no value yet."""
+        return any(self.fixed.get(k) is None for k in self.searched)
+
+    def unsearched(self) -> "EffectSpec":
+        """The same candidate with its grid-searched parameters cleared, so
+        the next fit searches them again."""
+        if not self.searched:
+            return self
+        return replace(self, fixed={**self.fixed, **{k: None for k in self.searched}})
 
 
 def _side_mask(data: FlowData, side: str) -> np.ndarray:
@@ -99,42 +127,30 @@ def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[E
     """
     effects = effects or {}
     n = len(data)
-    theta = data.theta_deg.astype(float).copy()
-    p_head = data.p_head_mpag.astype(float).copy()
-    z0_shift = np.zeros(n)
-    c_mult = np.ones(n)
     exponent = {s: model.side(s).dp_exponent for s in ("supply", "drain")}
-    exponent_rows = np.where(data.side == "supply", exponent["supply"], exponent["drain"])
-    caps = np.full(n, np.inf)
+    terms = fx.FlowTerms(
+        theta_deg=data.theta_deg.astype(float).copy(),
+        p_head_mpag=data.p_head_mpag.astype(float).copy(),
+        z0_offset_mm=np.zeros(n),
+        c_multiplier=np.ones(n),
+        dp_exponent=np.where(data.side == "supply", exponent["supply"], exponent["drain"]),
+        q_max_mm3_s=np.full(n, np.inf))
     for spec, values in effects.values():
         p = dict(zip(spec.params, values), **spec.fixed)
-        m = _side_mask(data, spec.side)
-        if spec.name == "drift":
-            c_mult[m] *= fx.drift_multiplier(data.run_index[m], **p)
-        elif spec.name == "threshold_shift":
-            z0_shift[m] += fx.threshold_shift_mm(data.run_index[m], **p)
-        elif spec.name == "backlash":
-            theta[m] = fx.backlash_cam_deg(theta[m], data.approach[m], **p)
-        elif spec.name == "pressure_law":
-            exponent_rows[m] = p["exponent"]
-        elif spec.name == "saturation":
-            caps[m] = p["q_max_mm3_s"]
-        elif spec.name == "sensor_gain":
-            p_head[m] = fx.true_from_measured(p_head[m], **p)
-        else:
-            raise ValueError(f"effect {spec.name!r} has no static form")
+        spec.effect.apply_static(terms, data, _side_mask(data, spec.side), p)
     q = np.zeros(n)
     for s in ("supply", "drain"):
         m = data.side == s
         if not m.any():
             continue
         vs = model.side(s)
-        p1, dp = side_pressures(s, data.p_supply_mpag[m], p_head[m], data.p_tank_mpag[m])
-        theta_d = vs.threshold_deg(p1, dp, z0_mm=vs.z0_mm + z0_shift[m])
-        d = theta[m] - theta_d
+        p1, dp = side_pressures(s, data.p_supply_mpag[m], terms.p_head_mpag[m], data.p_tank_mpag[m])
+        theta_d = vs.threshold_deg(p1, dp, z0_mm=vs.z0_mm + terms.z0_offset_mm[m])
+        d = terms.theta_deg[m] - theta_d
         opening = np.maximum(d if vs.opens_upward else -d, 0.0)
-        qs = vs.c_flow * c_mult[m] * opening ** 2 * np.sign(dp) * np.abs(dp) ** exponent_rows[m]
-        q[m] = fx.saturate_flow(qs, caps[m])
+        qs = (vs.c_flow * terms.c_multiplier[m] * opening ** 2 * np.sign(dp)
+              * np.abs(dp) ** terms.dp_exponent[m])
+        q[m] = fx.saturate_flow(qs, terms.q_max_mm3_s[m])
     return q
 
 
@@ -169,7 +185,7 @@ class StaticFit:
     def _values(self) -> list[float]:
         vals = [self.model.supply.z0_mm, self.model.supply.c_flow,
                 self.model.drain.z0_mm, self.model.drain.c_flow]
-        for spec, v in self.effects.values():
+        for _spec, v in self.effects.values():
             vals.extend(float(x) for x in v)
         return vals
 
@@ -234,6 +250,3 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
     return StaticFit(m, eff, wr * sigma, wr, float(np.sum(wr ** 2)), len(sol.x),
                      bool(sol.success), str(sol.message), cov, tuple(names))
 
-
-STATIC_EFFECTS = ("drift", "threshold_shift", "backlash", "pressure_law", "saturation",
-                  "sensor_gain")

@@ -46,7 +46,6 @@ import json
 import math
 import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
@@ -58,7 +57,7 @@ from ..models.valve import MIN_DP_MPA
 from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
 from ._perload import fit_load, fit_noise_model, group_loads, two_step
 
-__all__ = ["SideFit", "FlowFit", "fit_flow", "flowfit_dataset", "PROCEDURES", "UNITS",
+__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "UNITS",
            "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
 
 #: Fit procedures: 'joint' (default, eq. 5 on all runs) and the paper's 'two_step'.
@@ -234,42 +233,6 @@ class FlowFit:
             lines.append(f"warning: {w}")
         return "\n".join(lines)
 
-    def write(self, out_dir: str | Path) -> dict[str, Path]:
-        """Write the outputs (each atomically) and return their paths.
-
-        ``flowfit.json`` (the contract), ``flowfit_details.json`` (:meth:`to_dict`),
-        ``model.json`` and ``model.toml`` (:meth:`ValveModel.to_dict`, loadable with
-        :meth:`ValveModel.load`), ``per_run.parquet``, ``per_load.parquet``.
-        """
-        from ..io import write_json_atomic, write_table_parquet, write_text_atomic
-        from ._toml import dumps_toml
-
-        out = Path(out_dir)
-        out.mkdir(parents=True, exist_ok=True)
-        model_dict = self.model.to_dict()
-        paths = {
-            "flowfit": write_json_atomic(out / "flowfit.json", self.to_json()),
-            "details": write_json_atomic(out / "flowfit_details.json", self.to_dict()),
-            "model_json": write_json_atomic(out / "model.json", model_dict),
-            "model_toml": write_text_atomic(out / "model.toml", dumps_toml(
-                model_dict, header="SEANV valve model fitted by seanv-analyze flowfit "
-                                   "(paper eq. 3-5). Units: mm, deg, MPa, mm^3/s.")),
-            "per_run": write_table_parquet(self.per_run, out / "per_run.parquet",
-                                           units={"residual_mm3_s": "mm^3/s", "z_score": ""}),
-            "per_load": write_table_parquet(self.per_load, out / "per_load.parquet",
-                                            units={"alpha": "mm^3/(s deg^2)",
-                                                   "alpha_se": "mm^3/(s deg^2)",
-                                                   "alpha_model": "mm^3/(s deg^2)"}),
-        }
-        return paths
-
-    def plot(self, out_dir: str | Path) -> list[Path]:
-        """Fig. 4 (a, b) as PNG and SVG in ``out_dir``
-        (:func:`seanv_analysis.plots.fig4.plot_fig4`)."""
-        from ..plots.fig4 import plot_fig4
-        return plot_fig4(self, out_dir)
-
-
 # ---------------------------------------------------------------------------
 
 def _check_summary(summary: pd.DataFrame) -> None:
@@ -277,7 +240,7 @@ def _check_summary(summary: pd.DataFrame) -> None:
     missing = [c for c in need if c not in summary.columns]
     if missing:
         raise DataError(f"summary has no column(s) {', '.join(missing)}; expected the per-run "
-                        "summary (summary.summarize_dataset) with filters applied",
+                        "summary (seanv_analysis.stages.dataset) with filters applied",
                         column=missing[0])
 
 
@@ -495,7 +458,7 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
 
     Parameters
     ----------
-    summary : per-run summary with filters applied (``summary.summarize_dataset(...).summary``);
+    summary : per-run summary with filters applied (``stages.dataset.run(...).summary``);
         only ``kind == 'flow_step'`` rows with ``excluded == ''`` are fitted.
         Columns used: side, load_mpag [MPaG], cam_deg [deg], q_mm3_s [mm^3/s],
         p1_mpa and dp_mpa [MPa] (supply: p1 = p_supply, dp = p_supply - p_head;
@@ -536,7 +499,7 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
     Examples
     --------
     >>> from seanv_analysis.config import load_rig
-    >>> from seanv_analysis.fit.synthetic import synthetic_flow_summary
+    >>> from synthetic_flow import synthetic_flow_summary  # tests/synthetic_flow.py
     >>> rig = load_rig(); truth = ValveModel.from_rig(rig)
     >>> fit = fit_flow(synthetic_flow_summary(truth, rig, seed=1), rig, n_boot=0)
     >>> round(fit.sides["supply"].c_flow, 0), round(fit.sides["drain"].z0_mm, 2)
@@ -644,32 +607,3 @@ def _per_run(rows_all: pd.DataFrame, use: np.ndarray, sigma_used: np.ndarray, si
     df["z_score"] = df["residual_mm3_s"] / df["sigma_mm3_s"]
     return df[[c for c in _PER_RUN_COLUMNS if c in df]]
 
-
-def flowfit_dataset(path: str | Path, *, rig: Any = None, method: str = "steady",
-                    workers: int | None = None,
-                    sides: Sequence[str] = SIDES, **options: Any):
-    """Read, summarise and filter a data set, then :func:`fit_flow` it.
-
-    Parameters
-    ----------
-    path : data set folder (runs with run.json)
-    rig : rig config (default: the shipped one)
-    method : per-run flow estimate, 'steady' (default) or the paper's 'peak'
-    sides : sides to fit
-    workers : processes reading the runs (:func:`seanv_analysis.summary.summarize_dataset`;
-        None: all cores for large data sets)
-    **options : passed to :func:`fit_flow` (procedure, n_boot, seed, ...)
-
-    Returns
-    -------
-    (FlowFit, DatasetSummary)
-    """
-    from ..config import load_rig
-    from ..summary import summarize_dataset
-
-    rig = rig or load_rig()
-    ds = summarize_dataset(path, rig=rig, method=method, workers=workers)
-    if "kind" not in ds.summary or not (ds.summary["kind"] == "flow_step").any():
-        raise DataError("no flow_step runs in the data set; expected flow-step runs "
-                        "(run.json kind = 'flow_step')", path=path)
-    return fit_flow(ds.summary, rig, sides=sides, **options), ds

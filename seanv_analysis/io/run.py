@@ -79,6 +79,7 @@ class Run:
     position_control) to DataFrames whose first column is ``t_s``
     (strictly increasing) and whose other columns are the contract's names
     (position_mm, p_*_mpag, cam_cmd_deg, cam_deg, x_ref_mm, q_ref_mm3_s).
+    All streams on one time base: :func:`seanv_analysis.signals.align.align_run`.
     """
 
     meta: RunMeta
@@ -103,36 +104,3 @@ class Run:
         starts = [float(df["t_s"].iloc[0]) for df in self.tables.values() if len(df)]
         ends = [float(df["t_s"].iloc[-1]) for df in self.tables.values() if len(df)]
         return max(starts), min(ends)
-
-    def aligned(self, *, t_s=None) -> pd.DataFrame:
-        """All streams of the run on one time base.
-
-        Parameters
-        ----------
-        t_s : time base [s], optional. Default: the encoder's timestamps
-            inside the overlap of every table's time span.
-
-        Returns
-        -------
-        DataFrame: ``t_s`` [s], position_mm, p_supply/head/load/tank_mpag,
-        cam_cmd_deg, cam_deg (and x_ref_mm, q_ref_mm3_s for position_control).
-        Measurements are linearly interpolated; commands (cam_cmd_deg,
-        x_ref_mm, q_ref_mm3_s) hold their previous value; nothing is
-        extrapolated (instants outside the overlap are dropped). Extra and
-        raw columns of the files are not included.
-
-        See :func:`seanv_analysis.signals.align_streams`.
-        """
-        from ..signals import align_streams
-        from .reader import contract_columns
-
-        streams = {}
-        for name, df in self.tables.items():
-            try:
-                wanted = contract_columns(name)
-            except KeyError:
-                continue
-            cols = [c for c in wanted if c in df.columns]
-            streams[name] = df if list(df.columns) == cols else df[cols]  # CoW: no copy
-        base = "encoder" if "encoder" in streams else next(iter(streams))
-        return align_streams(streams, t_s=t_s, base=base)

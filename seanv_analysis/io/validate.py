@@ -9,7 +9,6 @@ only the first offending row is reported.
 """
 from __future__ import annotations
 
-import functools
 import json
 import math
 import re
@@ -19,12 +18,14 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from ..config import load_contract
+from ..config import RigConfig
 from ..errors import DataError
+from .contract import contract
 from .run import RunMeta
 
 __all__ = ["parse_run_json", "read_run_json", "check_finite", "check_increasing",
-           "check_pressure", "check_rig_overrides", "format_value"]
+           "check_pressure", "check_rig_overrides", "format_value", "one_line",
+           "max_pressure_mpag"]
 
 _SAFE_ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9._+=@-]*$")
 
@@ -45,7 +46,9 @@ def format_value(value: Any, *, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
 
 
-def _one_line(text: Any) -> str:
+def one_line(text: Any) -> str:
+    """``text`` (or an exception's message) on one line: runs of blanks and
+    line ends become one space, so every error fits one line of a report."""
     return " ".join(str(text).split())
 
 
@@ -64,10 +67,17 @@ def _is_finite_number(value: Any) -> bool:
         return False
 
 
-@functools.lru_cache(maxsize=1)
-def _contract() -> dict[str, Any]:
-    """The data contract (read once per process)."""
-    return load_contract()
+#: plausibility limit of pressures [MPa gauge] when the rig config has none
+_DEFAULT_MAX_PRESSURE_MPAG = 50.0
+
+
+def max_pressure_mpag(rig: RigConfig) -> float:
+    """The rig's ``analysis.max_plausible_pressure_mpag`` [MPa gauge]: larger
+    pressures are taken as kPa or Pa written as MPa (default 50)."""
+    try:
+        return float(rig.analysis.get("max_plausible_pressure_mpag", _DEFAULT_MAX_PRESSURE_MPAG))
+    except (KeyError, TypeError, ValueError):
+        return _DEFAULT_MAX_PRESSURE_MPAG
 
 
 # run.json -----------------------------------------------------------------
@@ -108,7 +118,7 @@ def read_run_json(run_dir: str | Path, *, max_pressure_mpag: float = math.inf) -
         raise DataError("not usable JSON (nested too deeply); expected a JSON object like "
                         '{"schema": "seanv-run/1", "run_id": ...}', path=path) from None
     except ValueError as exc:  # e.g. an integer literal of more than 4300 digits
-        raise DataError(f"not usable JSON ({_one_line(exc)[:120]}); expected a JSON object like "
+        raise DataError(f"not usable JSON ({one_line(exc)[:120]}); expected a JSON object like "
                         '{"schema": "seanv-run/1", "run_id": ...}', path=path) from None
     return parse_run_json(obj, path=path, max_pressure_mpag=max_pressure_mpag)
 
@@ -130,8 +140,8 @@ def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = mat
         controller, bad started_at, unsafe run_id.
     """
     path = Path(path)
-    contract = _contract()
-    spec = contract["run_json"]
+    terms = contract()
+    spec = terms["run_json"]
 
     def fail(field: str, message: str):
         raise DataError(f"field '{field}': {message}", path=path)
@@ -144,19 +154,19 @@ def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = mat
             fail(name, f"missing; required fields are {', '.join(spec['required'])}")
 
     schema = obj["schema"]
-    if schema != contract["schema"]:
+    if schema != terms["schema"]:
         fail("schema", f"{format_value(schema)} is not supported; expected "
-                       f"'{contract['schema']}' (data contract version 1)")
+                       f"'{terms['schema']}' (data contract version 1)")
 
     run_id = obj["run_id"]
     if not isinstance(run_id, str) or not _SAFE_ID.match(run_id) or len(run_id) > 200:
         fail("run_id", f"{format_value(run_id)} is not a safe file name; expected letters, "
                        "digits and . _ - + = @ (not starting with '.' or '-', no '/')")
 
-    kind = _enum_text(obj["kind"], contract["run_kinds"])
-    if kind not in contract["run_kinds"]:
+    kind = _enum_text(obj["kind"], terms["run_kinds"])
+    if kind not in terms["run_kinds"]:
         fail("kind", f"{format_value(kind)} is unknown; expected one of "
-                     f"{', '.join(contract['run_kinds'])}")
+                     f"{', '.join(terms['run_kinds'])}")
 
     started_at = _parse_started_at(obj["started_at"], fail)
 
@@ -171,22 +181,22 @@ def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = mat
                               "or Pa; expected MPa gauge")
         load = float(load)
 
-    for name in contract["run_json"]["required_by_kind"].get(kind, []):
+    for name in terms["run_json"]["required_by_kind"].get(kind, []):
         if name not in obj or obj[name] is None:
             fail(name, f"missing; required for kind '{kind}'")
 
-    side = _enum_text(obj.get("side"), contract["sides"])
+    side = _enum_text(obj.get("side"), terms["sides"])
     cam = obj.get("cam_deg")
     if kind == "flow_step":
-        if side not in contract["sides"]:
+        if side not in terms["sides"]:
             fail("side", f"{format_value(side)} is unknown; expected one of "
-                         f"{', '.join(contract['sides'])}")
+                         f"{', '.join(terms['sides'])}")
         if not _is_finite_number(cam):
             fail("cam_deg", f"{format_value(cam)} is not a finite number; expected the "
                             "commanded cam angle [deg]")
         cam = float(cam)
     else:
-        side = side if side in contract["sides"] else None
+        side = side if side in terms["sides"] else None
         cam = float(cam) if _is_finite_number(cam) else None
 
     controller = obj.get("controller")
@@ -247,7 +257,7 @@ def _parse_started_at(value: Any, fail) -> datetime:
 
 
 def _check_controller(controller: Any, fail) -> dict[str, Any]:
-    spec = _contract()["run_json"]["controller"]
+    spec = contract()["run_json"]["controller"]
     if not isinstance(controller, dict):
         fail("controller", f"{format_value(controller)} is not an object; expected "
                            '{"kp": 480, "flow_model": true, "rate_hz": 100}')

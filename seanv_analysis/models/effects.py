@@ -2,10 +2,25 @@
 
 These are the "undeclared effects" that the simulator can put into the plant
 (``seanv-analyze simulate --effect NAME:k=v,...``) and that
-:mod:`seanv_analysis.discover` later looks for in data. Each effect is a
-frozen dataclass with its parameters (units in the names or docstrings) and
-its functional form as a plain function below, so the simulator and the
-discovery fit use the same equations.
+:mod:`seanv_analysis.discover` later looks for in data. Each effect is one
+frozen dataclass here, and that class is the only place to extend: it
+carries
+
+- its parameters (dataclass fields with defaults; ``PARAMS`` gives units and
+  meaning) and their checks (``__post_init__``, :class:`ValueError`);
+- its **static form** (``STATIC`` + :meth:`Effect.apply_static`): how it
+  changes the flow-step prediction Q = C (theta - theta_d)^2 sqrt(dp) of
+  eq. (5), with the threshold theta_d of eq. (3)+(4), for discover's static
+  fit: the parameters fitted, their start values and bounds, the flow-step
+  variables it reads;
+- its **sentence** for the discovery report (``SENTENCE``);
+- where it has one, its **dynamic form** for the simulator
+  (:meth:`Effect.valve_terms`, :meth:`Effect.plant_terms`): what it adds to
+  the plant's valve at run i and to the rest of the plant.
+
+Subclassing :class:`Effect` registers the class in :data:`EFFECTS`; discover's
+candidates, its report and the simulator's plant all read the registry and
+call these methods, so a new effect is one class (and its test).
 
 "Use" is the 0-based index of a run in the data set's time order
 (``started_at``), written ``i`` below.
@@ -23,6 +38,9 @@ effect                    functional form
 ``sensor_gain``           measured = gain * true  (encoder or a pressure sensor)
 ========================  =====================================================
 
+This module uses numpy and the standard library only; bad parameters raise
+:class:`ValueError`, which the command line turns into its one-line error.
+
 Examples
 --------
 >>> from seanv_analysis.models.effects import parse_effect
@@ -33,16 +51,15 @@ Examples
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
-from typing import Any, ClassVar, Iterable
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, ClassVar, Iterable, Mapping
 
 import numpy as np
 
-from ..errors import ConfigError
-
 __all__ = [
     "Effect", "Drift", "ThresholdShift", "Backlash", "PressureLaw", "Saturation", "Delay",
-    "SensorGain", "EFFECTS", "SENSORS", "parse_effect", "parse_effects",
+    "SensorGain", "EFFECTS", "SENSORS", "StaticForm", "FlowTerms", "ValveTerms", "PlantTerms",
+    "static_effects", "dynamic_effects", "parse_effect", "parse_effects",
     "drift_multiplier", "threshold_shift_mm", "backlash_cam_deg", "backlash_play_deg",
     "saturate_flow", "saturate_flow_core", "measured_from_true", "true_from_measured",
 ]
@@ -50,6 +67,8 @@ __all__ = [
 _SIDES = ("supply", "drain")
 #: sensors a ``sensor_gain`` can act on; 'pressure' is the A/B-port (head) sensor
 SENSORS = ("encoder", "pressure", "p_head", "p_supply", "p_load")
+#: the simulator's sensor channels and their gain without a ``sensor_gain`` [-]
+_UNIT_GAINS = {"position_mm": 1.0, "p_supply_mpag": 1.0, "p_head_mpag": 1.0, "p_load_mpag": 1.0}
 
 
 # Functional forms -----------------------------------------------------------
@@ -122,18 +141,138 @@ def true_from_measured(measured, *, gain, sensor="pressure"):
     return np.asarray(measured, dtype=float) / gain
 
 
+# What an effect changes ---------------------------------------------------------
+
+@dataclass(frozen=True)
+class StaticForm:
+    """An effect's place in discover's static fit of the flow steps (eq. 5).
+
+    params : parameters fitted jointly with z0 and C of both sides
+    x0, lower, upper : start values and bounds of ``params`` (units of the
+        parameters)
+    fixed : parameters held during the fit: a value (``sensor='pressure'``),
+        or None for a discrete parameter that :meth:`Effect.static_search`
+        sets on a grid before every fit (drift's ``every``/``offset``)
+    needs : the per-run flow-step variables the form reads besides eq. (5)'s
+        own inputs (attribute names of discover's ``FlowData``: ``run_index``,
+        ``approach``, ``p_head_mpag``, ``q_mm3_s``, ...)
+    """
+
+    params: tuple[str, ...]
+    x0: tuple[float, ...]
+    lower: tuple[float, ...]
+    upper: tuple[float, ...]
+    fixed: Mapping[str, Any] = field(default_factory=dict)
+    needs: tuple[str, ...] = ()
+
+    @property
+    def searched(self) -> tuple[str, ...]:
+        """Names of the grid-searched parameters (``fixed`` value None)."""
+        return tuple(k for k, v in self.fixed.items() if v is None)
+
+
+@dataclass
+class FlowTerms:
+    """The per-run terms of the static flow model that effects change (one
+    entry per flow step; :meth:`Effect.apply_static` edits its rows in place).
+
+    Q = C c_multiplier (theta - theta_d(p1, dp; z0 + z0_offset))^2 dp^dp_exponent,
+    then capped smoothly at ``q_max`` (eq. 3-5, :func:`saturate_flow`).
+
+    theta_deg : cam angle at the needle [deg]
+    p_head_mpag : A/B-port pressure as the valve sees it [MPaG]
+    z0_offset_mm : added to the side's z0 [mm]
+    c_multiplier : multiplies the side's C [-]
+    dp_exponent : exponent of dp [-] (0.5: orifice law)
+    q_max_mm3_s : flow cap [mm^3/s] (inf: none)
+    """
+
+    theta_deg: np.ndarray
+    p_head_mpag: np.ndarray
+    z0_offset_mm: np.ndarray
+    c_multiplier: np.ndarray
+    dp_exponent: np.ndarray
+    q_max_mm3_s: np.ndarray
+
+
+@dataclass(frozen=True)
+class ValveTerms:
+    """How one side of the plant's valve differs from eq. (3)-(5) at one run
+    (what the simulator packs for its kernel).
+
+    c_multiplier : multiplies C [-]
+    z0_offset_mm : added to z0 [mm]
+    dp_exponent : exponent of dp [-]; None keeps the valve's own
+    q_max_mm3_s : smooth flow cap [mm^3/s] (inf: none); sharpness: its knee [-]
+    """
+
+    c_multiplier: float = 1.0
+    z0_offset_mm: float = 0.0
+    dp_exponent: float | None = None
+    q_max_mm3_s: float = math.inf
+    sharpness: float = 8.0
+
+
+@dataclass(frozen=True)
+class PlantTerms:
+    """What effects add to the plant outside the valve.
+
+    backlash_deg : total play between servo and cam [deg]
+    delay_s : extra dead time between servo and needle [s]
+    gains : measured/true of each sensor channel [-] (``position_mm``,
+        ``p_supply_mpag``, ``p_head_mpag``, ``p_load_mpag``)
+    """
+
+    backlash_deg: float = 0.0
+    delay_s: float = 0.0
+    gains: Mapping[str, float] = field(default_factory=lambda: dict(_UNIT_GAINS))
+
+
 # Effect classes ---------------------------------------------------------------
+
+#: registry: effect name -> class, in the order the classes were defined
+#: (discover tries its candidates in this order)
+EFFECTS: dict[str, type[Effect]] = {}
+
 
 @dataclass(frozen=True)
 class Effect:
-    """Base of the injectable effects: name, parameters, JSON form.
+    """Base of the injectable effects: name, parameters, JSON form, and the
+    hooks for discover (static form, sentence) and the simulator (dynamic form).
 
-    Subclasses set ``name`` and ``PARAMS`` ({parameter: "unit, meaning"}) and
-    validate their values in ``__post_init__`` (errors name the parameter).
+    A subclass sets ``name``, ``PARAMS`` ({parameter: "unit, meaning"}) and
+    ``SENTENCE``, declares its parameters as dataclass fields with defaults,
+    validates them in ``__post_init__`` (errors name the parameter), and
+    overrides the hooks it has. Defining the subclass registers it in
+    :data:`EFFECTS`; ``class Toy(Effect, register=False)`` does not (a test
+    then adds it for its own duration).
+
+    An effect with a ``side`` parameter is "sided": discover tries it once
+    per valve side, and at most one effect of its name acts on each side.
     """
 
     name: ClassVar[str] = ""
     PARAMS: ClassVar[dict[str, str]] = {}
+    #: one clause for the discovery report, ``str.format``-ed with ``side``
+    #: and the fitted parameters (see :meth:`sentence`)
+    SENTENCE: ClassVar[str] = ""
+    #: the static form for discover's flow-step fit; None: the effect has none
+    STATIC: ClassVar[StaticForm | None] = None
+
+    def __init_subclass__(cls, register: bool = True, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if not register:
+            return
+        if not cls.name:
+            raise ValueError(f"effect class {cls.__qualname__}: set a name")
+        known = EFFECTS.get(cls.name)
+        if known is not None and (known.__module__, known.__qualname__) != (cls.__module__,
+                                                                             cls.__qualname__):
+            raise ValueError(f"effect {cls.name!r}: registered twice ({known.__qualname__}, "
+                             f"{cls.__qualname__})")
+        EFFECTS[cls.name] = cls
+
+    # parameters and text -----------------------------------------------------
 
     def params(self) -> dict[str, Any]:
         """Parameter values by name."""
@@ -150,16 +289,104 @@ class Effect:
         """One line: name, parameters and the functional form."""
         return f"{self.spec()}  ({type(self).__doc__.strip().splitlines()[0]})"
 
-    # helpers for validation
+    def slot(self) -> str | None:
+        """What this effect acts on (a valve side, a sensor channel): two
+        effects of one name on the same slot are a duplicate."""
+        return getattr(self, "side", None)
+
+    @classmethod
+    def sided(cls) -> bool:
+        """True when the effect acts on one valve side (it has a ``side``)."""
+        return "side" in cls.PARAMS
+
+    @classmethod
+    def sentence(cls, side: str, params: Mapping[str, Any]) -> str:
+        """The report's clause for this effect found on ``side`` with ``params``.
+
+        Raises
+        ------
+        KeyError, ValueError
+            ``params`` lacks a value the sentence names, or one of the wrong kind.
+        """
+        if not cls.SENTENCE:
+            raise KeyError(cls.name)
+        return cls.SENTENCE.format(side=side, **params)
+
+    @classmethod
+    def from_fit(cls, side: str, params: Mapping[str, Any]) -> Effect:
+        """The effect as discover found it: ``side`` and the fitted ``params``
+        (keys the class does not take, and None values, are dropped).
+
+        Raises
+        ------
+        ValueError
+            A value out of the parameter's range.
+        """
+        known = {f.name for f in fields(cls)}
+        raw = {"side": side, **{k: v for k, v in params.items() if v is not None}}
+        return parse_effect({"name": cls.name, **{k: v for k, v in raw.items() if k in known}})
+
+    # static form (discover) ------------------------------------------------------
+
+    @classmethod
+    def static_form(cls, data: Any, side: str) -> StaticForm | None:
+        """The candidate on ``side`` ('supply'/'drain'; 'both' when not
+        sided) for flow-step ``data`` (discover's ``FlowData``), or None when
+        the data cannot identify the effect. Default: :attr:`STATIC`."""
+        return cls.STATIC
+
+    @classmethod
+    def apply_static(cls, terms: FlowTerms, data: Any, rows: np.ndarray,
+                     p: Mapping[str, Any]) -> None:
+        """Change the static model's ``terms`` on ``rows`` (boolean mask)
+        for parameter values ``p`` (fitted and fixed, by name).
+
+        ``data`` is the flow-step data (discover's ``FlowData``); read only
+        the variables named in ``STATIC.needs``.
+        """
+        raise ValueError(f"effect {cls.name!r} has no static form")
+
+    @classmethod
+    def static_search(cls, data: Any, rows: np.ndarray, q_base_mm3_s: np.ndarray,
+                      sigma_mm3_s: np.ndarray) -> tuple[tuple[float, ...], dict[str, Any]]:
+        """Grid search of the ``fixed`` parameters marked None in the static
+        form, on ``rows`` of ``data`` against the base model's flow
+        ``q_base_mm3_s`` with noise ``sigma_mm3_s``.
+
+        Returns (start values of the fitted parameters, fixed parameter values).
+        """
+        raise ValueError(f"effect {cls.name!r}: no grid search for its static form")
+
+    # dynamic form (simulator) ---------------------------------------------------------
+
+    def valve_terms(self, terms: ValveTerms, side: str, run_index: int) -> ValveTerms:
+        """``terms`` of the plant valve's ``side`` at run ``run_index`` with
+        this effect added. Default: unchanged."""
+        return terms
+
+    def plant_terms(self, terms: PlantTerms) -> PlantTerms:
+        """``terms`` of the rest of the plant with this effect added.
+        Default: unchanged."""
+        return terms
+
+    @classmethod
+    def has_dynamic_form(cls) -> bool:
+        """True when the simulator's plant puts the effect in (it overrides
+        :meth:`valve_terms` or :meth:`plant_terms`)."""
+        return (cls.valve_terms is not Effect.valve_terms
+                or cls.plant_terms is not Effect.plant_terms)
+
+    # validation helpers ------------------------------------------------------------
+
     def _check_side(self) -> None:
-        side = getattr(self, "side")
+        side = self.side  # only sided effects call this
         if side not in _SIDES:
-            raise ConfigError(f"{self.name}: side: expected 'supply' or 'drain', got {side!r}")
+            raise ValueError(f"{self.name}: side: expected 'supply' or 'drain', got {side!r}")
 
     def _check(self, ok: bool, param: str, expected: str) -> None:
         if not ok:
-            raise ConfigError(f"{self.name}: {param}: expected {expected}, "
-                              f"got {getattr(self, param)!r}")
+            raise ValueError(f"{self.name}: {param}: expected {expected}, "
+                             f"got {getattr(self, param)!r}")
 
 
 @dataclass(frozen=True)
@@ -173,6 +400,14 @@ class Drift(Effect):
         "every": "runs between steps [runs]",
         "offset": "phase: runs already counted at run 0 [runs]",
     }
+    SENTENCE: ClassVar[str] = (
+        "the flow coefficient C of the {side} side {direction} by {abs_step:.2%} every {every} runs "
+        "(C (1 - step)^floor((i + offset)/every), step = {step:+.4f})")
+    STATIC: ClassVar[StaticForm] = StaticForm(("step",), (0.02,), (-0.5,), (0.5,),
+                                              {"every": None, "offset": None}, ("run_index",))
+    #: longest drift period the static search tries [runs]
+    MAX_EVERY: ClassVar[int] = 12
+
     side: str = "drain"
     step: float = 0.05
     every: int = 3
@@ -189,6 +424,49 @@ class Drift(Effect):
         """Multiplier of the side's C at run ``run_index`` [-]."""
         return drift_multiplier(run_index, step=self.step, every=self.every, offset=self.offset)
 
+    @classmethod
+    def sentence(cls, side, params):
+        step = float(params["step"])
+        return cls.SENTENCE.format(side=side, **params, direction="falls" if step > 0 else "rises",
+                                   abs_step=abs(step))
+
+    @classmethod
+    def apply_static(cls, terms, data, rows, p):
+        terms.c_multiplier[rows] *= drift_multiplier(data.run_index[rows], **p)
+
+    @classmethod
+    def static_search(cls, data, rows, q_base_mm3_s, sigma_mm3_s):
+        """Profile the stepwise drift: best (every, offset, step) with z0, C
+        at the base fit and a free scale, by a vectorised grid over the step."""
+        q = data.q_mm3_s[rows]
+        q0 = q_base_mm3_s[rows]
+        w = 1.0 / sigma_mm3_s[rows]
+        idx = data.run_index[rows]
+        steps = np.linspace(-0.3, 0.3, 241)
+        results = []
+        for every in range(1, cls.MAX_EVERY + 1):
+            for offset in range(every):
+                k = np.floor((idx + offset) / every)
+                mult = (1.0 - steps[:, None]) ** k[None, :]          # (steps, runs)
+                g = mult * q0[None, :] * w[None, :]
+                y = q * w
+                a = (g @ y) / np.maximum(np.sum(g * g, axis=1), 1e-300)  # best scale per step
+                rss = np.sum((y[None, :] - a[:, None] * g) ** 2, axis=1)
+                j = int(np.argmin(rss))
+                results.append((float(rss[j]), every, offset, float(steps[j])))
+        # Periods alias (4 % every 3 runs ~ 7.8 % every 6): among fits within
+        # 2 units of weighted RSS of the best (indistinguishable), take the
+        # shortest period.
+        best_rss = min(r[0] for r in results)
+        close = [r for r in results if r[0] <= best_rss + 2.0]
+        _, every, offset, step = min(close, key=lambda r: (r[1], r[0]))
+        return (step,), {"every": every, "offset": offset}
+
+    def valve_terms(self, terms, side, run_index):
+        if side != self.side:
+            return terms
+        return replace(terms, c_multiplier=terms.c_multiplier * float(self.c_multiplier(run_index)))
+
 
 @dataclass(frozen=True)
 class ThresholdShift(Effect):
@@ -199,6 +477,11 @@ class ThresholdShift(Effect):
         "side": "'supply' | 'drain'",
         "rate_mm_per_run": "change of z0 per run [mm/run] (1e-5 mm ~ 0.002 deg of theta_d)",
     }
+    SENTENCE: ClassVar[str] = ("the {side} sealing threshold creeps with use "
+                               "(z0 changes {rate_mm_per_run:+.2e} mm per run)")
+    STATIC: ClassVar[StaticForm] = StaticForm(("rate_mm_per_run",), (0.0,), (-0.01,), (0.01,),
+                                              needs=("run_index",))
+
     side: str = "supply"
     rate_mm_per_run: float = 2.0e-5
 
@@ -210,6 +493,15 @@ class ThresholdShift(Effect):
         """Offset added to the side's z0 at run ``run_index`` [mm]."""
         return threshold_shift_mm(run_index, rate_mm_per_run=self.rate_mm_per_run)
 
+    @classmethod
+    def apply_static(cls, terms, data, rows, p):
+        terms.z0_offset_mm[rows] += threshold_shift_mm(data.run_index[rows], **p)
+
+    def valve_terms(self, terms, side, run_index):
+        if side != self.side:
+            return terms
+        return replace(terms, z0_offset_mm=terms.z0_offset_mm + float(self.z0_offset_mm(run_index)))
+
 
 @dataclass(frozen=True)
 class Backlash(Effect):
@@ -218,14 +510,29 @@ class Backlash(Effect):
 
     name: ClassVar[str] = "backlash"
     PARAMS: ClassVar[dict[str, str]] = {"width_deg": "total play between servo and cam [deg]"}
+    SENTENCE: ClassVar[str] = ("the cam has a direction-dependent dead band of {width_deg:.2f} deg "
+                               "(backlash)")
+    STATIC: ClassVar[StaticForm] = StaticForm(("width_deg",), (0.5,), (0.0,), (10.0,),
+                                              needs=("approach",))
+
     width_deg: float = 2.0
 
     def __post_init__(self):
         self._check(0.0 <= self.width_deg <= 20.0, "width_deg", "0..20 deg")
 
-    def cam_at_needle_deg(self, theta_deg, approach):
-        """Needle-side cam angle for a servo angle reached from ``approach`` (+1/-1) [deg]."""
-        return backlash_cam_deg(theta_deg, approach, width_deg=self.width_deg)
+    @classmethod
+    def static_form(cls, data, side):
+        # the play shows only as a difference between the two approach directions
+        if np.unique(data.approach[data.approach != 0]).size == 2:
+            return cls.STATIC
+        return None
+
+    @classmethod
+    def apply_static(cls, terms, data, rows, p):
+        terms.theta_deg[rows] = backlash_cam_deg(terms.theta_deg[rows], data.approach[rows], **p)
+
+    def plant_terms(self, terms):
+        return replace(terms, backlash_deg=terms.backlash_deg + self.width_deg)
 
 
 @dataclass(frozen=True)
@@ -235,12 +542,22 @@ class PressureLaw(Effect):
     name: ClassVar[str] = "pressure_law"
     PARAMS: ClassVar[dict[str, str]] = {"side": "'supply' | 'drain'",
                                         "exponent": "n in Q = C (theta - theta_d)^2 dp^n [-]"}
+    SENTENCE: ClassVar[str] = "the {side} flow follows dp^{exponent:.2f}, not the orifice law dp^0.5"
+    STATIC: ClassVar[StaticForm] = StaticForm(("exponent",), (0.5,), (0.05,), (1.5,))
+
     side: str = "supply"
     exponent: float = 0.7
 
     def __post_init__(self):
         self._check_side()
         self._check(0.05 <= self.exponent <= 2.0, "exponent", "0.05..2")
+
+    @classmethod
+    def apply_static(cls, terms, data, rows, p):
+        terms.dp_exponent[rows] = p["exponent"]
+
+    def valve_terms(self, terms, side, run_index):
+        return replace(terms, dp_exponent=self.exponent) if side == self.side else terms
 
 
 @dataclass(frozen=True)
@@ -252,6 +569,13 @@ class Saturation(Effect):
     PARAMS: ClassVar[dict[str, str]] = {"side": "'supply' | 'drain'",
                                         "q_max_mm3_s": "flow cap magnitude [mm^3/s]",
                                         "sharpness": "s, how sharp the knee is [-]"}
+    SENTENCE: ClassVar[str] = ("the {side} flow saturates at about {q_max_mm3_s:.0f} mm^3/s "
+                               "at large openings")
+    #: bounds for a side whose largest |Q| is 1e4 mm^3/s; :meth:`static_form`
+    #: scales them to the data's largest |Q|
+    STATIC: ClassVar[StaticForm] = StaticForm(("q_max_mm3_s",), (1.2e4,), (1e3,), (1e5,),
+                                              needs=("q_mm3_s",))
+
     side: str = "supply"
     q_max_mm3_s: float = 5000.0
     sharpness: float = 8.0
@@ -261,9 +585,24 @@ class Saturation(Effect):
         self._check(self.q_max_mm3_s > 0, "q_max_mm3_s", "a positive flow")
         self._check(1.0 <= self.sharpness <= 50.0, "sharpness", "1..50")
 
-    def cap(self, q_mm3_s):
-        """Capped flow [mm^3/s]."""
-        return saturate_flow(q_mm3_s, abs(self.q_max_mm3_s), self.sharpness)
+    @classmethod
+    def static_form(cls, data, side):
+        # a cap is only identifiable near the flows measured: start 20 % above
+        # the side's largest |Q|, search 0.1x..10x of it
+        on_side = data.side == side
+        if not np.any(on_side):
+            return cls.STATIC
+        qmax = float(np.nanmax(np.abs(data.q_mm3_s[on_side])))
+        return replace(cls.STATIC, x0=(1.2 * qmax,), lower=(0.1 * qmax,), upper=(10 * qmax,))
+
+    @classmethod
+    def apply_static(cls, terms, data, rows, p):
+        terms.q_max_mm3_s[rows] = p["q_max_mm3_s"]
+
+    def valve_terms(self, terms, side, run_index):
+        if side != self.side:
+            return terms
+        return replace(terms, q_max_mm3_s=abs(self.q_max_mm3_s), sharpness=self.sharpness)
 
 
 @dataclass(frozen=True)
@@ -273,10 +612,17 @@ class Delay(Effect):
 
     name: ClassVar[str] = "delay"
     PARAMS: ClassVar[dict[str, str]] = {"delay_s": "extra dead time [s]"}
+    # found on position-control runs (discover.dynamic), not by the static fit
+    SENTENCE: ClassVar[str] = ("the flow lags Q_ref by an extra {delay_s:.3f} s beyond the nominal "
+                               "lag (transport delay)")
+
     delay_s: float = 0.1
 
     def __post_init__(self):
         self._check(0.0 <= self.delay_s <= 2.0, "delay_s", "0..2 s")
+
+    def plant_terms(self, terms):
+        return replace(terms, delay_s=terms.delay_s + self.delay_s)
 
 
 @dataclass(frozen=True)
@@ -287,13 +633,18 @@ class SensorGain(Effect):
     PARAMS: ClassVar[dict[str, str]] = {
         "sensor": "'encoder' | 'pressure' (= 'p_head', the A/B-port sensor) | 'p_supply' | 'p_load'",
         "gain": "measured / true [-]"}
+    SENTENCE: ClassVar[str] = "a {sensor} sensor reads {gain:.3f} x the true value"
+    # the flow steps see the head sensor only through dp of both sides
+    STATIC: ClassVar[StaticForm] = StaticForm(("gain",), (1.0,), (0.5,), (2.0,),
+                                              {"sensor": "pressure"}, ("p_head_mpag",))
+
     sensor: str = "pressure"
     gain: float = 1.05
 
     def __post_init__(self):
         if self.sensor not in SENSORS:
-            raise ConfigError(f"{self.name}: sensor: expected one of {', '.join(SENSORS)}, "
-                              f"got {self.sensor!r}")
+            raise ValueError(f"{self.name}: sensor: expected one of {', '.join(SENSORS)}, "
+                             f"got {self.sensor!r}")
         self._check(0.2 <= self.gain <= 5.0, "gain", "0.2..5")
 
     @property
@@ -303,14 +654,33 @@ class SensorGain(Effect):
             return "position_mm"
         return "p_head_mpag" if self.sensor in ("pressure", "p_head") else f"{self.sensor}_mpag"
 
-    def measured(self, true):
-        return measured_from_true(true, gain=self.gain)
+    def slot(self) -> str | None:
+        return self.channel
+
+    @classmethod
+    def apply_static(cls, terms, data, rows, p):
+        terms.p_head_mpag[rows] = true_from_measured(terms.p_head_mpag[rows], **p)
+
+    def plant_terms(self, terms):
+        gains = dict(terms.gains)
+        gains[self.channel] *= self.gain
+        return replace(terms, gains=gains)
 
 
-#: registry: effect name -> class
-EFFECTS: dict[str, type[Effect]] = {cls.name: cls for cls in (
-    Drift, ThresholdShift, Backlash, PressureLaw, Saturation, Delay, SensorGain)}
+# Registry readers ---------------------------------------------------------------
 
+def static_effects() -> list[type[Effect]]:
+    """Registered effects with a static form (discover's candidates), in
+    registry order."""
+    return [cls for cls in EFFECTS.values() if cls.STATIC is not None]
+
+
+def dynamic_effects() -> list[type[Effect]]:
+    """Registered effects the simulator's plant can put in, in registry order."""
+    return [cls for cls in EFFECTS.values() if cls.has_dynamic_form()]
+
+
+# Parsing -------------------------------------------------------------------------
 
 def _convert(cls: type[Effect], key: str, text: str):
     ftype = {f.name: f.type for f in fields(cls)}[key]
@@ -327,8 +697,8 @@ def _convert(cls: type[Effect], key: str, text: str):
                 raise ValueError
             return value
     except ValueError:
-        raise ConfigError(f"{cls.name}: {key}: expected a{'n integer' if ftype == 'int' else ' number'}, "
-                          f"got {text!r}") from None
+        raise ValueError(f"{cls.name}: {key}: expected a{'n integer' if ftype == 'int' else ' number'}, "
+                         f"got {text!r}") from None
     return text
 
 
@@ -339,7 +709,7 @@ def parse_effect(spec: str | Effect | dict) -> Effect:
 
     Raises
     ------
-    ConfigError
+    ValueError
         Unknown effect or parameter, or a value of the wrong type or range.
     """
     if isinstance(spec, Effect):
@@ -348,28 +718,28 @@ def parse_effect(spec: str | Effect | dict) -> Effect:
         d = dict(spec)
         name = d.pop("name", None)
         if name not in EFFECTS:
-            raise ConfigError(f"effect: unknown effect {name!r}; expected one of {', '.join(EFFECTS)}")
+            raise ValueError(f"effect: unknown effect {name!r}; expected one of {', '.join(EFFECTS)}")
         cls = EFFECTS[name]
         unknown = set(d) - {f.name for f in fields(cls)}
         if unknown:
-            raise ConfigError(f"{name}: unknown parameter(s) {', '.join(sorted(unknown))}; "
-                              f"expected {', '.join(cls.PARAMS)}")
+            raise ValueError(f"{name}: unknown parameter(s) {', '.join(sorted(unknown))}; "
+                             f"expected {', '.join(cls.PARAMS)}")
         return cls(**{k: _convert(cls, k, str(v)) for k, v in d.items()})
     text = str(spec).strip()
     name, _, rest = text.partition(":")
     name = name.strip()
     if name not in EFFECTS:
-        raise ConfigError(f"effect: unknown effect {name!r} in {text!r}; "
-                          f"expected one of {', '.join(EFFECTS)}")
+        raise ValueError(f"effect: unknown effect {name!r} in {text!r}; "
+                         f"expected one of {', '.join(EFFECTS)}")
     cls = EFFECTS[name]
     kwargs: dict[str, Any] = {}
     for item in filter(None, (s.strip() for s in rest.split(","))):
         key, eq, value = item.partition("=")
         key = key.strip()
         if not eq or not value.strip():
-            raise ConfigError(f"{name}: expected param=value, got {item!r}")
+            raise ValueError(f"{name}: expected param=value, got {item!r}")
         if key not in cls.PARAMS:
-            raise ConfigError(f"{name}: unknown parameter {key!r}; expected {', '.join(cls.PARAMS)}")
+            raise ValueError(f"{name}: unknown parameter {key!r}; expected {', '.join(cls.PARAMS)}")
         kwargs[key] = _convert(cls, key, value.strip())
     return cls(**kwargs)
 
@@ -379,15 +749,14 @@ def parse_effects(specs: Iterable[str | Effect | dict] | None) -> tuple[Effect, 
 
     Raises
     ------
-    ConfigError
+    ValueError
         On a bad spec or a duplicate (same name and side/sensor).
     """
     out = tuple(parse_effect(s) for s in (specs or ()))
     seen = set()
     for e in out:
-        key = (e.name, e.channel if isinstance(e, SensorGain) else getattr(e, "side", None))
+        key = (e.name, e.slot())
         if key in seen:
-            raise ConfigError(f"effect: {e.name} given twice" + (f" for {key[1]}" if key[1] else ""))
+            raise ValueError(f"effect: {e.name} given twice" + (f" for {key[1]}" if key[1] else ""))
         seen.add(key)
     return out
-

@@ -10,7 +10,7 @@ so, as in the paper, it is inverted by interpolation over a monotonic table.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, asdict
+from dataclasses import asdict, dataclass
 from functools import cached_property
 from typing import Any
 
@@ -95,7 +95,8 @@ class NeedleGeometry:
 
     @classmethod
     def from_rig(cls, rig: Any, side: str) -> "NeedleGeometry":
-        """Geometry of ``side`` ('supply' or 'drain') from a :class:`RigConfig`."""
+        """Geometry of ``side`` ('supply' or 'drain') from ``rig['valve']`` (a
+        :class:`~seanv_analysis.config.RigConfig` or any mapping-like rig) [mm, deg, N/mm]."""
         v = rig["valve"]
         s = v[side]
         return cls(

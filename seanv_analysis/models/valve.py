@@ -8,10 +8,7 @@ Drain side:  p1 = p_head,   p2 = p_tank, opens for theta < theta_d, C < 0
 """
 from __future__ import annotations
 
-import json
-import tomllib
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -146,10 +143,11 @@ class ValveSide:
 
 @dataclass(frozen=True)
 class ValveModel:
-    """Both needles of the SEANV and the valid cam range.
+    """Both needles of the SEANV (eq. 3-6 per side) and the valid cam range [deg].
 
-    This is the model file that ``flowfit`` writes and ``tracking``,
-    ``validate`` and the controller read.
+    What ``flowfit`` identifies and ``tracking``, ``validate`` and the
+    controller use; :meth:`to_dict` / :meth:`from_dict` are the content of
+    the model file (:mod:`seanv_analysis.io.model_file` reads and writes it).
     """
 
     supply: ValveSide
@@ -160,7 +158,13 @@ class ValveModel:
 
     @classmethod
     def from_rig(cls, rig: Any) -> "ValveModel":
-        """The rig config's valve (the paper's fitted z0 and C by default)."""
+        """The rig config's valve (the paper's fitted z0 and C by default).
+
+        ``rig``: a :class:`~seanv_analysis.config.RigConfig`, or any object
+        with ``rig["valve"]`` (Table II entries and, per side, ``z0_mm``,
+        ``c_flow``, ``needle_x_c_mm``, ``needle_y_c_mm``) and
+        ``rig.cam_range_deg`` (min, max) [deg].
+        """
         sides = {}
         for side in SIDES:
             s = rig["valve"][side]
@@ -203,6 +207,8 @@ class ValveModel:
 
     # Serialisation ------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
+        """Plain-data form (schema ``seanv-valve-model/1``): cam range [deg],
+        per side z0 [mm], C, n and the needle geometry; ``extras`` if any."""
         out = {"schema": "seanv-valve-model/1",
                "cam_range_deg": [float(self.cam_min_deg), float(self.cam_max_deg)],
                "supply": self.supply.to_dict(), "drain": self.drain.to_dict()}
@@ -212,11 +218,19 @@ class ValveModel:
 
     @classmethod
     def from_dict(cls, d: dict[str, Any], *, rig: Any = None) -> "ValveModel":
-        """Build from :meth:`to_dict` output. A side without ``geometry`` takes it
-        from ``rig`` (default rig when None)."""
-        if rig is None:
-            from ..config import load_rig
-            rig = load_rig()
+        """Build from :meth:`to_dict` output (``C`` is accepted for ``c_flow``).
+        A side without ``geometry`` (and a dict without ``cam_range_deg``)
+        takes it from ``rig`` (as :meth:`from_rig` reads it).
+
+        Raises
+        ------
+        KeyError, TypeError, ValueError
+            a missing or malformed entry; ``ValueError`` also when something
+            only ``rig`` could give is missing and no rig was given.
+        """
+        if rig is None and (any("geometry" not in d[s] for s in SIDES) or "cam_range_deg" not in d):
+            raise ValueError("rig: the model lacks the needle geometry or cam range; pass the "
+                             "rig config it belongs to")
         sides = {}
         for side in SIDES:
             s = d[side]
@@ -225,24 +239,7 @@ class ValveModel:
             c = s.get("c_flow", s.get("C"))
             sides[side] = ValveSide(side, float(s["z0_mm"]), float(c), geom,
                                     float(s.get("dp_exponent", 0.5)))
-        lo, hi = d.get("cam_range_deg", rig.cam_range_deg)
+        lo, hi = d["cam_range_deg"] if "cam_range_deg" in d else rig.cam_range_deg
         return cls(sides["supply"], sides["drain"], float(lo), float(hi),
                    dict(d.get("extras", {})))
-
-    @classmethod
-    def load(cls, path: str | Path, *, rig: Any = None) -> "ValveModel":
-        """Read a model file (.json or .toml)."""
-        path = Path(path)
-        from ..errors import ConfigError
-        try:
-            if path.suffix == ".toml":
-                with open(path, "rb") as fh:
-                    d = tomllib.load(fh)
-            else:
-                d = json.loads(path.read_text())
-            return cls.from_dict(d, rig=rig)
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: model file not found") from None
-        except (KeyError, TypeError, ValueError, tomllib.TOMLDecodeError) as exc:
-            raise ConfigError(f"{path}: not a valve model file ({exc})") from None
 

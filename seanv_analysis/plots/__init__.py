@@ -1,8 +1,18 @@
-"""Figures (matplotlib, Agg-safe, PNG + SVG). Import the submodule you need;
-nothing is imported eagerly, so ``import seanv_analysis.plots`` stays light.
+"""Figures (matplotlib objects on an Agg canvas, written as PNG and/or SVG).
 
-- :mod:`.fig4`: :func:`~.fig4.plot_fig4`, flow characterisation (paper Fig. 4)
+:data:`FIGURES` is the registry of every figure the pipeline, the ``plots``
+command and the report know of (:mod:`.registry`); each figure module also
+offers plain functions for use from a script or a notebook:
+
+- :mod:`.fig4`: :func:`~.fig4.plot_fig4`, :func:`~.fig4.draw_fig4`, flow
+  characterisation (paper Fig. 4)
+- :mod:`.fig6`: :func:`~.fig6.plot_fig6`, position control per run (Fig. 6)
+- :mod:`.fig7`: :func:`~.fig7.plot_fig7`, flow tracking (Fig. 7)
+- :mod:`.validate`: :func:`~.validate.plot_overlay`, measured vs simulated
 - :mod:`.residuals`: discovery residual plots
-"""
 
-__all__: list[str] = []
+Importing this package does not import matplotlib; drawing a figure does.
+"""
+from .registry import FIGURES, RESULT_NAMES, Figure, describe_figures, register_figure
+
+__all__ = ["FIGURES", "RESULT_NAMES", "Figure", "describe_figures", "register_figure"]

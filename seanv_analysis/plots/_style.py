@@ -1,39 +1,66 @@
 """Shared look of the paper-style figures: rc settings, shading of load
-periods, saving as PNG + SVG atomically."""
+periods, new Agg figures and saving them atomically in the formats asked.
+
+matplotlib is imported inside the functions that draw, so importing the
+figure modules (and the registry) costs nothing until a figure is drawn.
+Figures are built with :class:`matplotlib.figure.Figure` on an Agg canvas,
+not through pyplot: no backend is selected, no GUI window can open, and
+figures drawn in worker threads do not share pyplot's global state.
+"""
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator
+from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+from ..io.atomic import atomic_path
 
-from ..io.atomic import atomic_path  # noqa: E402
-
-__all__ = ["paper_style", "thin", "shade_high_load", "high_load_spans", "save_figure", "safe_name",
+__all__ = ["paper_style", "thin", "shade_high_load", "high_load_spans", "new_figure",
+           "check_formats", "save_figure", "DEFAULT_FORMATS",
            "TARGET_COLOUR", "ACTUAL_COLOUR", "SIM_COLOUR", "SHADE_COLOUR"]
 
 TARGET_COLOUR = "tab:red"
 ACTUAL_COLOUR = "tab:blue"
 SIM_COLOUR = "tab:orange"
 SHADE_COLOUR = "0.88"
+#: file formats written when none are asked for
+DEFAULT_FORMATS: tuple[str, ...] = ("png", "svg")
 
 _RC = {"font.size": 8.5, "axes.titlesize": 9, "axes.labelsize": 8.5, "legend.fontsize": 7.5,
        "xtick.labelsize": 8, "ytick.labelsize": 8, "axes.grid": True, "grid.alpha": 0.3,
        "grid.linewidth": 0.5, "lines.linewidth": 1.0, "axes.linewidth": 0.7,
-       "xtick.direction": "in", "ytick.direction": "in", "legend.frameon": True, "legend.framealpha": 0.85, "legend.edgecolor": "0.8",
+       "xtick.direction": "in", "ytick.direction": "in", "legend.frameon": True,
+       "legend.framealpha": 0.85, "legend.edgecolor": "0.8",
        "svg.fonttype": "none", "savefig.dpi": 150}
 
 
 @contextmanager
 def paper_style() -> Iterator[None]:
-    """Context with the figures' rc settings (compact, serif-free, inward ticks)."""
-    with plt.rc_context(_RC):
+    """Context with the figures' rc settings (compact, serif-free, inward ticks).
+
+    Create, draw and save the figure inside it: rc settings are read when
+    artists are made and when the file is written.
+    """
+    import matplotlib
+
+    with matplotlib.rc_context(_RC):
         yield
+
+
+def new_figure(**kwargs: Any):
+    """A :class:`matplotlib.figure.Figure` attached to an Agg canvas.
+
+    ``kwargs`` go to ``Figure`` (``figsize`` [inch], ``layout``, ...).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
 
 
 def thin(n: int, *, max_points: int = 6000) -> slice:
@@ -42,8 +69,8 @@ def thin(n: int, *, max_points: int = 6000) -> slice:
 
 
 def high_load_spans(t_s, level_mpag, *, level: float | None = None) -> list[tuple[float, float]]:
-    """Time spans [s] where ``level_mpag`` equals ``level`` (default: the
-    highest level, when there are at least two levels)."""
+    """Time spans [s] where ``level_mpag`` [MPaG] equals ``level`` (default:
+    the highest level, when there are at least two levels)."""
     t = np.asarray(t_s, dtype=float)
     lv = np.asarray(level_mpag, dtype=float)
     finite = np.isfinite(lv)
@@ -61,28 +88,53 @@ def high_load_spans(t_s, level_mpag, *, level: float | None = None) -> list[tupl
 
 
 def shade_high_load(axes, spans, *, label: str | None = None) -> None:
-    """Grey bands over ``spans`` on every axis (label on the first only)."""
+    """Grey bands over ``spans`` (time [s]) on every axis (label on the first only)."""
     for i, ax in enumerate(np.atleast_1d(axes).ravel()):
         for j, (a, b) in enumerate(spans):
             ax.axvspan(a, b, color=SHADE_COLOUR, lw=0, zorder=0,
                        label=label if (i == 0 and j == 0) else None)
 
 
-def safe_name(text: str) -> str:
-    """``text`` reduced to characters safe in a file name."""
-    return "".join(c if (c.isalnum() or c in "-_.") else "_" for c in str(text))
+def check_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
+    """``formats`` as a tuple of file suffixes without dot ('png', 'svg', ...).
+
+    A single string is one format. Raises ValueError when none is given or
+    one is not a plain suffix.
+    """
+    out = (formats,) if isinstance(formats, str) else tuple(formats)
+    if not out:
+        raise ValueError("formats: expected at least one file format such as 'png' or 'svg', got none")
+    bad = [f for f in out if not isinstance(f, str) or not f.isalnum()]
+    if bad:
+        raise ValueError(f"formats: {bad[0]!r} is not a file format; expected e.g. 'png' or 'svg'")
+    return tuple(f.lower() for f in out)
 
 
-def save_figure(fig, out_dir: str | Path, stem: str, *, close: bool = True) -> list[Path]:
-    """Save ``fig`` as ``<out_dir>/<stem>.png`` and ``.svg`` atomically."""
+def save_figure(fig, out_dir: str | Path, stem: str, *, formats: str | Sequence[str] = DEFAULT_FORMATS,
+                dpi: float = 150, tight: bool = True) -> list[Path]:
+    """Write ``fig`` as ``<out_dir>/<stem>.<format>`` for each of ``formats``, atomically.
+
+    Parameters
+    ----------
+    fig : matplotlib Figure
+    out_dir : folder, created when missing
+    stem : file name without suffix
+    formats : file formats, exactly those are written (default PNG and SVG)
+    dpi : raster resolution [dots/inch] (PNG)
+    tight : crop to the drawn content (``bbox_inches="tight"``); off for
+        figures laid out by matplotlib's constrained layout
+
+    Returns
+    -------
+    the written paths, in the order of ``formats``
+    """
+    formats = check_formats(formats)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     paths = []
-    for ext in ("png", "svg"):
+    for ext in formats:
         path = out / f"{stem}.{ext}"
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, format=ext, dpi=150, bbox_inches="tight")
+            fig.savefig(tmp, format=ext, dpi=dpi, bbox_inches="tight" if tight else None)
         paths.append(path)
-    if close:
-        plt.close(fig)
     return paths

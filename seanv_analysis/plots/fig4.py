@@ -6,16 +6,19 @@ marker per reason. (b) sealing threshold angle vs pressure difference:
 per-load theta_d (quadratic fits at the load's median dp, +-1 standard
 error), the threshold each run implies (its angle minus the opening that
 gives its flow with the fitted C, eq. 6) and the fitted eq. (3)+(4)
-interpolant, both sides. Written as PNG and SVG.
+interpolant, both sides. Written in the formats asked (PNG and SVG by default).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-__all__ = ["plot_fig4"]
+from ._style import DEFAULT_FORMATS, new_figure, save_figure
+
+__all__ = ["plot_fig4", "draw_fig4", "draw"]
 
 _EXCLUDED_STYLE = {  # reason -> (marker, label)
     "leakage": ("x", "excluded: leakage"),
@@ -135,29 +138,21 @@ def _panel_b(axes, fit) -> None:
                       fontsize=10)
 
 
-def plot_fig4(fit: Any, out_dir: str | Path, *, stem: str = "fig4", dpi: int = 200
-              ) -> list[Path]:
-    """Draw Fig. 4 (a) and (b) of a :class:`~seanv_analysis.fit.FlowFit`; write PNG + SVG.
+def draw_fig4(fit: Any, fig=None):
+    """Draw Fig. 4 (a) and (b) of a :class:`~seanv_analysis.fit.FlowFit` into ``fig``.
 
     Parameters
     ----------
     fit : result of :func:`seanv_analysis.fit.fit_flow`
-    out_dir : folder for ``<stem>.png`` and ``<stem>.svg``
-    stem : file name without suffix
-    dpi : PNG resolution [dots/inch]
+    fig : matplotlib Figure to draw into (empty, with constrained layout);
+        default: a new 10.5 x 4.2 inch Agg figure
 
     Returns
     -------
-    list of the written paths (PNG, SVG). Uses matplotlib's object API with
-    the Agg canvas (no display needed); files are written atomically.
+    the matplotlib Figure, for showing in a notebook or saving
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    from ..io.atomic import atomic_path
-
-    fig = Figure(figsize=(10.5, 4.2), layout="constrained")
-    FigureCanvasAgg(fig)
+    if fig is None:
+        fig = new_figure(figsize=(10.5, 4.2), layout="constrained")
     grid = fig.add_gridspec(len(fit.sides), 2, width_ratios=[1.35, 1.0])
     ax_a = fig.add_subplot(grid[:, 0])
     axes_b = [fig.add_subplot(grid[i, 1]) for i in range(len(fit.sides))]
@@ -166,12 +161,31 @@ def plot_fig4(fit: Any, out_dir: str | Path, *, stem: str = "fig4", dpi: int = 2
     _panel_a(ax_a, fit)
     _panel_b(axes_b, fit)
     fig.suptitle("Flow characterisation of the SEANV (cf. paper Fig. 4)", fontsize=10)
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
-    for ext in ("png", "svg"):
-        path = out / f"{stem}.{ext}"
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format=ext, dpi=dpi)
-        paths.append(path)
-    return paths
+    return fig
+
+
+def plot_fig4(fit: Any, out_dir: str | Path, *, stem: str = "fig4", dpi: int = 200,
+              formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Draw Fig. 4 (a) and (b) of a :class:`~seanv_analysis.fit.FlowFit` and write it.
+
+    Parameters
+    ----------
+    fit : result of :func:`seanv_analysis.fit.fit_flow`
+    out_dir : folder for ``<stem>.<format>``
+    stem : file name without suffix
+    dpi : PNG resolution [dots/inch]
+    formats : file formats to write, exactly these (default PNG and SVG)
+
+    Returns
+    -------
+    list of the written paths, in the order of ``formats``. Uses matplotlib's
+    object API with the Agg canvas (no display needed); files are written
+    atomically.
+    """
+    return save_figure(draw_fig4(fit), out_dir, stem, formats=formats, dpi=dpi, tight=False)
+
+
+def draw(results: Mapping[str, Any], folder: Path, *,
+         formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Registry entry: Fig. 4 of ``results["flowfit"]`` as ``folder/fig4.<format>``."""
+    return plot_fig4(results["flowfit"], folder, formats=formats)

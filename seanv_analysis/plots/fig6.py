@@ -4,19 +4,33 @@ Stacked panels sharing the time axis: target and actual position [mm];
 measured pressures (supply, head, load) [MPaG]; cam angle (command and
 feedback, dashed black: servo neutral) [deg]; position error x_ref - x [mm]
 (with the +-0.5 mm convergence band). Periods at the higher load level
-(0.45 MPaG in the paper) are shaded.
+(0.45 MPaG in the paper) are shaded. The pipeline draws one figure per
+position-control run (:func:`draw_run`); :func:`plot_fig6_dataset` puts
+several runs side by side.
 """
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Sequence
+from typing import Any
 
 import numpy as np
 
-from ._style import (thin, ACTUAL_COLOUR, TARGET_COLOUR, high_load_spans, paper_style, safe_name,
-                     save_figure, shade_high_load)
+from ..io.names import safe_name
+from ..signals.align import align_run
+from ._style import (
+    ACTUAL_COLOUR,
+    DEFAULT_FORMATS,
+    TARGET_COLOUR,
+    high_load_spans,
+    new_figure,
+    paper_style,
+    save_figure,
+    shade_high_load,
+    thin,
+)
 
-__all__ = ["plot_fig6", "plot_fig6_dataset", "draw_fig6_column"]
+__all__ = ["plot_fig6", "plot_fig6_dataset", "draw_fig6_column", "draw_run"]
 
 _PANELS = 4
 
@@ -32,7 +46,7 @@ def draw_fig6_column(axes: Sequence, run, *, legend: bool = True) -> None:
     """Draw the four Fig. 6 panels of ``run`` on ``axes`` (4 axes, top to bottom)."""
     from ..analysis.tracking import load_levels_mpag
 
-    a = run.aligned()
+    a = align_run(run)
     a = a.iloc[thin(len(a))]
     t = a["t_s"].to_numpy(float)
     x = a["position_mm"].to_numpy(float)
@@ -74,45 +88,58 @@ def draw_fig6_column(axes: Sequence, run, *, legend: bool = True) -> None:
             ax.legend(loc="upper right", ncol=2)
 
 
-def plot_fig6(run, out_dir: str | Path, *, stem: str | None = None) -> list[Path]:
-    """Fig. 6 style figure of one position_control run. PNG + SVG.
+def plot_fig6(run, out_dir: str | Path, *, stem: str | None = None,
+              formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Fig. 6 style figure of one position_control run.
 
     Parameters
     ----------
-    run : a position_control :class:`~seanv_analysis.io.Run`
+    run : a position_control :class:`~seanv_analysis.io.Run`; the servo
+        neutral [deg] and convergence band [mm] come from its ``run.rig``
     out_dir : output folder
     stem : file name without extension (default ``fig6_<run_id>``)
+    formats : file formats to write, exactly these (default PNG and SVG)
 
     Returns
     -------
     list of the written paths
     """
-    import matplotlib.pyplot as plt
-
     with paper_style():
-        fig, axes = plt.subplots(_PANELS, 1, figsize=(6.4, 7.2), sharex=True)
+        fig = new_figure(figsize=(6.4, 7.2))
+        axes = fig.subplots(_PANELS, 1, sharex=True)
         draw_fig6_column(axes, run)
         axes[0].set_title(f"{run.run_id}: position control {_controller_label(run)}")
         fig.align_ylabels(axes)
         fig.tight_layout(h_pad=0.4)
-        return save_figure(fig, out_dir, stem or f"fig6_{safe_name(run.run_id)}")
+        return save_figure(fig, out_dir, stem or f"fig6_{safe_name(run.run_id)}", formats=formats)
 
 
 def plot_fig6_dataset(runs: Sequence, out_dir: str | Path, *, stem: str = "fig6",
-                      max_runs: int = 4) -> list[Path]:
+                      max_runs: int = 4, formats: str | Sequence[str] = DEFAULT_FORMATS
+                      ) -> list[Path]:
     """Fig. 6 style figure of several runs side by side (one column per run,
-    e.g. (a) without and (b) with the flow model). PNG + SVG."""
-    import matplotlib.pyplot as plt
-
+    e.g. (a) without and (b) with the flow model), in ``formats``; at most
+    ``max_runs`` position_control runs. None written when there is none."""
     runs = [r for r in runs if r.meta.kind == "position_control"][:max_runs]
     if not runs:
         return []
     with paper_style():
-        fig, axes = plt.subplots(_PANELS, len(runs), figsize=(4.6 * len(runs), 7.2),
-                                 sharex="col", squeeze=False)
+        fig = new_figure(figsize=(4.6 * len(runs), 7.2))
+        axes = fig.subplots(_PANELS, len(runs), sharex="col", squeeze=False)
         for j, run in enumerate(runs):
             draw_fig6_column(axes[:, j], run, legend=(j == len(runs) - 1))
             axes[0, j].set_title(f"({chr(97 + j)}) {run.run_id}\n{_controller_label(run)}")
         fig.align_ylabels(axes[:, 0])
         fig.tight_layout(h_pad=0.4)
-        return save_figure(fig, out_dir, stem)
+        return save_figure(fig, out_dir, stem, formats=formats)
+
+
+def draw_run(run, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS,
+             rig: Any = None) -> list[Path]:
+    """Registry entry: Fig. 6 of one position-control run as
+    ``folder/fig6_<run_id>.<format>``.
+
+    ``rig`` (the pipeline's rig config) is not needed: the run carries its
+    own, with the run's overrides applied, which is what the rig ran with.
+    """
+    return plot_fig6(run, folder, formats=formats)

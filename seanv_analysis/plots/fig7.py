@@ -3,18 +3,31 @@
 (a) target Q_ref and actual Q flow against time [mm^3/s] (higher-load
 periods shaded); (b) actual flow shifted earlier by the delay against the
 target, with the identity line (solid inside the fitting range, dashed
-outside), the range bounds and the RMSE in the title.
+outside), the range bounds and the RMSE in the title. One figure for the
+data set (``fig7``) and one per run (``fig7_<run_id>``).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from ._style import (thin, ACTUAL_COLOUR, TARGET_COLOUR, high_load_spans, paper_style, safe_name,
-                     save_figure, shade_high_load)
+from ..io.names import safe_name
+from ._style import (
+    ACTUAL_COLOUR,
+    DEFAULT_FORMATS,
+    TARGET_COLOUR,
+    high_load_spans,
+    new_figure,
+    paper_style,
+    save_figure,
+    shade_high_load,
+    thin,
+)
 
-__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter"]
+__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", "draw"]
 
 _K = 1e-3  # axes in 10^3 mm^3/s, as the paper
 
@@ -76,26 +89,26 @@ def draw_flow_scatter(ax, datas, *, q_range, lag_s: float, rmse_mm3_s: float) ->
     ax.legend(loc="upper left", markerscale=4)
 
 
-def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *,
-                  stem: str | None = None) -> list[Path]:
-    """Fig. 7 of one run: (a) flows against time, (b) shifted actual vs target."""
-    import matplotlib.pyplot as plt
-
+def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *, stem: str | None = None,
+                  formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Fig. 7 of one run: (a) flows against time, (b) shifted actual vs target,
+    written in ``formats`` as ``<stem>.<format>`` (default stem ``fig7_<run_id>``)."""
     with paper_style():
-        fig, (ax_a, ax_b) = plt.subplots(1, 2, figsize=(10.0, 3.8),
-                                         gridspec_kw={"width_ratios": [1.6, 1]})
+        fig = new_figure(figsize=(10.0, 3.8))
+        ax_a, ax_b = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.6, 1]})
         draw_flow_time(ax_a, run_tracking)
         ax_a.set_title(f"(a) {run_tracking.run_id}: target and actual flow rate")
         draw_flow_scatter(ax_b, [run_tracking.data], q_range=tracking.range_mm3_s,
                           lag_s=run_tracking.lag_applied_s, rmse_mm3_s=run_tracking.rmse_mm3_s)
         ax_b.set_title(f"(b) shifted {run_tracking.lag_applied_s:.3g} s; " + ax_b.get_title())
         fig.tight_layout()
-        return save_figure(fig, out_dir, stem or f"fig7_{safe_name(run_tracking.run_id)}")
+        return save_figure(fig, out_dir, stem or f"fig7_{safe_name(run_tracking.run_id)}",
+                           formats=formats)
 
 
 def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: bool = True,
-              max_runs: int = 4) -> list[Path]:
-    """Fig. 7 for a data set (PNG + SVG), and per run when ``per_run``.
+              max_runs: int = 4, formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Fig. 7 for a data set, and per run when ``per_run``.
 
     The data-set figure has (a) one time panel per run (up to ``max_runs``)
     and (b) the pooled scatter with the pooled RMSE.
@@ -105,21 +118,20 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
     tracking : :class:`~seanv_analysis.analysis.tracking.Tracking`
     out_dir : output folder
     stem : data-set figure's file name without extension
-    per_run : also write ``fig7_<run_id>.png/.svg`` per run
+    per_run : also write ``fig7_<run_id>.<format>`` per run
     max_runs : time panels in the data-set figure
+    formats : file formats to write, exactly these (default PNG and SVG)
 
     Returns
     -------
     list of the written paths
     """
-    import matplotlib.pyplot as plt
-
     paths: list[Path] = []
     if not tracking.runs:
         return paths
     shown = tracking.runs[:max_runs]
     with paper_style():
-        fig = plt.figure(figsize=(11.0, max(3.8, 2.2 * len(shown))))
+        fig = new_figure(figsize=(11.0, max(3.8, 2.2 * len(shown))))
         gs = fig.add_gridspec(len(shown), 2, width_ratios=[1.6, 1])
         for i, r in enumerate(shown):
             ax = fig.add_subplot(gs[i, 0])
@@ -133,8 +145,15 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
         ax_b.set_title(f"(b) all runs, shift {tracking.lag_s:.3g} s ({tracking.lag_source})\n"
                        + ax_b.get_title())
         fig.tight_layout()
-        paths += save_figure(fig, out_dir, stem)
+        paths += save_figure(fig, out_dir, stem, formats=formats)
     if per_run:
         for r in tracking.runs:
-            paths += plot_fig7_run(tracking, r, out_dir)
+            paths += plot_fig7_run(tracking, r, out_dir, formats=formats)
     return paths
+
+
+def draw(results: Mapping[str, Any], folder: Path, *,
+         formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Registry entry: Fig. 7 of ``results["tracking"]``, the data set
+    (``folder/fig7.<format>``) and each run (``folder/fig7_<run_id>.<format>``)."""
+    return plot_fig7(results["tracking"], folder, formats=formats)

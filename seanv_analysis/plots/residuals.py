@@ -28,16 +28,15 @@ def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "dis
     """
     if discovery.fit_data is None or discovery.base_fit is None:
         return []
-    from ..discover.engine import _variables  # variables as discovery saw them
-    from ..discover.static import predict_static
+    # the variables and predictions exactly as discovery saw them
+    from ..discover import predict_static, residual_variables
 
     fig, axes = plt.subplots(1, len(variables), figsize=(4.2 * len(variables), 3.6), sharey=True)
     axes = np.atleast_1d(axes)
     for part, data, marker in (("fit", discovery.fit_data, "o"), ("held-out", discovery.heldout_data, "s")):
         if data is None or len(data) == 0:
             continue
-        import pandas as pd
-        var = _variables(discovery.base_model, data, pd.DataFrame())
+        var = residual_variables(discovery.base_model, data)
         r_before = data.q_mm3_s - predict_static(discovery.base_fit.model, data)
         r_after = data.q_mm3_s - predict_static(discovery.final_fit.model, data, discovery.final_fit.effects)
         for ax, name in zip(axes, variables):

@@ -1,22 +1,36 @@
 """Overlay of measured and simulated position-control runs (``validate``):
-position [mm], flow [mm^3/s] and cam angle [deg] against time."""
+position [mm], flow [mm^3/s] and cam angle [deg] against time, and a bar
+chart of the fit % per run."""
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 
-from ._style import (thin, ACTUAL_COLOUR, SIM_COLOUR, TARGET_COLOUR, high_load_spans, paper_style,
-                     safe_name, save_figure, shade_high_load)
+from ..io.names import safe_name
+from ._style import (
+    ACTUAL_COLOUR,
+    DEFAULT_FORMATS,
+    SIM_COLOUR,
+    TARGET_COLOUR,
+    high_load_spans,
+    new_figure,
+    paper_style,
+    save_figure,
+    shade_high_load,
+    thin,
+)
 
 __all__ = ["plot_overlay", "plot_overlay_run"]
 
 
 def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = None,
-                     threshold_pct: float | None = None) -> list[Path]:
-    """Three stacked panels (position, flow, cam) of one run, measured vs simulated."""
-    import matplotlib.pyplot as plt
-
+                     threshold_pct: float | None = None,
+                     formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Three stacked panels (position, flow, cam) of one run, measured vs
+    simulated, written in ``formats`` as ``<stem>.<format>`` (default stem
+    ``validate_<run_id>``)."""
     from ..analysis.tracking import load_levels_mpag
 
     ov = run_validation.overlay
@@ -25,7 +39,8 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
     t = ov["t_s"].to_numpy(float)
     spans = high_load_spans(t, load_levels_mpag(t, ov["p_load_mpag"].to_numpy(float)))
     with paper_style():
-        fig, axes = plt.subplots(3, 1, figsize=(6.4, 6.0), sharex=True)
+        fig = new_figure(figsize=(6.4, 6.0))
+        axes = fig.subplots(3, 1, sharex=True)
         shade_high_load(axes, spans, label="higher load")
         ax_x, ax_q, ax_c = axes
         ax_x.plot(t, ov["x_ref_mm"], color=TARGET_COLOUR, ls="--", drawstyle="steps-post",
@@ -49,21 +64,23 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
             ax.legend(loc="upper right", ncol=4)
         fig.align_ylabels(axes)
         fig.tight_layout(h_pad=0.4)
-        return save_figure(fig, out_dir, stem or f"validate_{safe_name(run_validation.run_id)}")
+        return save_figure(fig, out_dir, stem or f"validate_{safe_name(run_validation.run_id)}",
+                           formats=formats)
 
 
-def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True) -> list[Path]:
-    """Overlay figure per run, plus a bar chart of the position/flow/cam fit %
-    per run with the flag threshold (``validate_fit.png``). PNG + SVG."""
-    import matplotlib.pyplot as plt
-
+def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True,
+                 formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Overlay figure per run, plus (``summary``) a bar chart of the
+    position/flow/cam fit [%] per run with the flag threshold
+    (``validate_fit.<format>``), in ``formats`` (default PNG and SVG)."""
     paths: list[Path] = []
     for r in validation.runs:
-        paths += plot_overlay_run(r, out_dir)
+        paths += plot_overlay_run(r, out_dir, formats=formats)
     if summary and not validation.table.empty:
         tab = validation.table
         with paper_style():
-            fig, ax = plt.subplots(figsize=(max(4.5, 1.6 * len(tab) + 2.0), 3.2))
+            fig = new_figure(figsize=(max(4.5, 1.6 * len(tab) + 2.0), 3.2))
+            ax = fig.subplots()
             x = np.arange(len(tab))
             for k, (col, label, colour) in enumerate(
                     (("fit_position_pct", "position", "tab:blue"),
@@ -82,5 +99,5 @@ def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True) -> li
             ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), ncol=1)
             ax.set_title("Measured vs simulated: fit % = 100 (1 - ||y - y_sim|| / ||y - mean y||)")
             fig.tight_layout()
-            paths += save_figure(fig, out_dir, "validate_fit")
+            paths += save_figure(fig, out_dir, "validate_fit", formats=formats)
     return paths

@@ -6,17 +6,21 @@ the file can be mailed or archived as is. Sections:
 
 1. overview: runs read / failed / excluded, the key numbers;
 2. identified flow model (eq. 5): z0 and C per side with 95 % intervals
-   (method named), next to the paper's values; Fig. 4;
-3. flow tracking during position control (Fig. 7): delay with its 95 %
-   interval, RMSE (residual = shifted actual - target); Fig. 6 per run;
+   (method named), next to the rig config's (the paper's) values;
+3. flow tracking during position control: delay with its 95 % interval,
+   RMSE (residual = shifted actual - target);
 4. closed-loop validation table (free-run simulation of each run), with the
    identified and, when discovery found an effect, the augmented model;
-5. discovery: verdict, effects, held-out error before/after, residuals;
-6. runs excluded by the paper's filters and why; runs that failed;
-7. provenance: version, git SHA, command line, pipeline, rig config, input
+5. discovery: verdict, effects, held-out error before/after;
+6. figures: every figure of the registry :data:`seanv_analysis.plots.FIGURES`
+   that was drawn, in registry order, its title as caption (the sections
+   above link to the figures drawn from their result);
+7. runs excluded by the paper's filters and why; runs that failed;
+8. provenance: version, git SHA, command line, pipeline, rig config, input
    file hashes, executor, timings.
 
-The report only formats results (``.to_json()``, tables); it computes nothing.
+The report only formats results (``.to_json()``, tables) and the figure files
+already written; it computes nothing.
 """
 from __future__ import annotations
 
@@ -32,6 +36,8 @@ import pandas as pd
 
 from .. import __version__
 from ..io.atomic import write_text_atomic
+from ..io.manifest import git_sha
+from ..plots import FIGURES, Figure
 
 __all__ = ["render_report", "write_report"]
 
@@ -137,6 +143,43 @@ def _figures(paths: Iterable[Path], caption: str = "") -> str:
     return "".join(out)
 
 
+def _drawn(r) -> list[tuple[Figure, list[Path]]]:
+    """(registered figure, its files) for every figure of ``r.figures``, in
+    registry order; figures not registered are not shown."""
+    out = []
+    for fig in FIGURES.values():
+        paths = [Path(p) for p in r.figures.get(fig.name, ())]
+        if paths:
+            out.append((fig, paths))
+    return out
+
+
+def _figure_block(fig: Figure, paths: list[Path]) -> str:
+    """One registered figure: its title as heading and caption. A data-set
+    figure's main file is ``<name>.<format>``; its other files (one per run,
+    as Fig. 7 writes) are folded away. A per-run figure is a grid, each file
+    captioned with its name."""
+    head = f"<h3 id='fig-{_e(fig.name)}'>{_e(fig.title)}</h3>"
+    if fig.per_run:
+        return head + f"<div class='grid'>{_figures(paths)}</div>"
+    main = [p for p in paths if p.stem == fig.name]
+    if not main:
+        return head + _figures(paths, fig.title)
+    rest = [p for p in paths if p.stem != fig.name]
+    out = head + _figures(main, fig.title)
+    if rest:
+        out += (f"<details><summary>{_e(fig.title)}: one figure per run</summary>"
+                f"<div class='grid'>{_figures(rest)}</div></details>")
+    return out
+
+
+def _figure_links(r, section: str) -> str:
+    """Links to the drawn figures whose first need is this section's result."""
+    links = [f"<a href='#fig-{_e(fig.name)}'>{_e(fig.title)}</a>"
+             for fig, _ in _drawn(r) if fig.needs[0] == section]
+    return f"<p>Figures: {'; '.join(links)}.</p>" if links else ""
+
+
 # sections ---------------------------------------------------------------------
 
 def _overview(r) -> str:
@@ -168,18 +211,15 @@ def _flowfit(r) -> str:
     if fit is None:
         why = r.stage_errors.get("flowfit", "stage not in this pipeline")
         return f"<p>No flow fit ({_e(why)}).</p>"
-    from ..models import ValveModel
-
-    paper = ValveModel.from_rig(r.rig) if r.rig is not None else None
     rows = []
     for side, f in fit.sides.items():
-        ref = paper.side(side) if paper is not None else None
-        status = "<span class='ok'>ok</span>" if f.success else f"<span class='bad'>failed</span>"
+        ref_z0, ref_c = _rig_side_values(r.rig, side)
+        status = "<span class='ok'>ok</span>" if f.success else "<span class='bad'>failed</span>"
         rows.append(
             f"<tr><td class='l'>{_e(side)}</td><td>{_fmt(f.z0_mm, 5)}</td><td>{_ci(f.z0_ci95, 5)}</td>"
-            f"<td>{_fmt(ref.z0_mm if ref else None, 5)}</td>"
+            f"<td>{_fmt(ref_z0, 5)}</td>"
             f"<td>{_fmt(f.c_flow, 4)}</td><td>{_ci(f.c_ci95)}</td>"
-            f"<td>{_fmt(ref.c_flow if ref else None, 4)}</td>"
+            f"<td>{_fmt(ref_c, 4)}</td>"
             f"<td>{_fmt(f.rmse_mm3_s, 4)}</td><td>{f.n_runs}</td><td class='l'>{status} "
             f"{_e(f.message)}</td></tr>")
     methods = sorted({f.ci_method for f in fit.sides.values() if f.ci_method})
@@ -194,8 +234,18 @@ def _flowfit(r) -> str:
     if per_load is not None and len(per_load):
         pl = "<details><summary>per load level (threshold angle and quadratic coefficient)</summary>" \
              + _table(per_load, left=("side",)) + "</details>"
-    figs = _figures(r.figures.get("fig4", []), "Fig. 4: flow characterisation")
-    return table + "".join(f"<p>{n}</p>" for n in notes) + pl + figs
+    return table + "".join(f"<p>{n}</p>" for n in notes) + pl + _figure_links(r, "flowfit")
+
+
+def _rig_side_values(rig: Any, side: str) -> tuple[Any, Any]:
+    """(z0 [mm], C [mm^3/(s deg^2 MPa^0.5)]) of ``side`` in the rig config
+    (the paper's fitted values unless the rig says otherwise); None when the
+    config has no such entry."""
+    try:
+        s = rig["valve"][side]
+        return s.get("z0_mm"), s.get("c_flow")
+    except (TypeError, KeyError, AttributeError):
+        return None, None
 
 
 def _tracking(r) -> str:
@@ -221,16 +271,7 @@ def _tracking(r) -> str:
         out.append("<h3>Per run</h3>" + _table(tr.per_run, left=("run_id", "target_source")))
         for rid, why in tr.skipped.items():
             out.append(f"<div class='note'>skipped {_e(rid)}: {_e(why)}</div>")
-    fig7 = [Path(p) for p in r.figures.get("fig7", [])]
-    main_fig = [p for p in fig7 if p.stem == "fig7"]
-    out.append(_figures(main_fig or fig7, "Fig. 7: flow tracking, all runs"))
-    per_run = [p for p in fig7 if p not in main_fig] if main_fig else []
-    if per_run:
-        out.append("<details><summary>Fig. 7 per run</summary>"
-                   + _figures(per_run, "Fig. 7: one run") + "</details>")
-    if r.figures.get("fig6"):
-        out.append("<h3>Position control runs (Fig. 6)</h3>")
-        out.append(f"<div class='grid'>{_figures(r.figures['fig6'])}</div>")
+    out.append(_figure_links(r, "tracking"))
     return "".join(out)
 
 
@@ -262,6 +303,7 @@ def _validation(r) -> str:
     if r.validation_augmented is not None:
         out += ["<h3>Augmented model (identified model + effects found by discovery)</h3>",
                 _validation_table(r.validation_augmented)]
+    out.append(_figure_links(r, "validation"))
     return "".join(out)
 
 
@@ -293,8 +335,16 @@ def _discovery(r) -> str:
     text = "\n".join(line for line in d.report().splitlines()
                      if not line.startswith("Closed loop (validate)"))
     out.append(f"<pre>{_e(text)}</pre>")
-    out.append(_figures(r.figures.get("discover", []), "Flow residual (measured - model) before/after"))
+    out.append(_figure_links(r, "discovery"))
     return "".join(out)
+
+
+def _figures_section(r) -> str:
+    drawn = _drawn(r)
+    if not drawn:
+        why = r.stage_notes.get("figures") or r.stage_errors.get("figures") or "none drawn"
+        return f"<p>No figure ({_e(why)}).</p>"
+    return "".join(_figure_block(fig, paths) for fig, paths in drawn)
 
 
 def _closed_loop_before_after(validation: dict) -> str:
@@ -343,6 +393,7 @@ def _runs(r) -> str:
         out.append(_table(df, left=("path", "stage", "message")))
     else:
         out.append("<p class='ok'>No run failed.</p>")
+    out.append(_figure_links(r, "runs"))
     if not s.empty:
         cols = [c for c in ("run_index", "run_id", "kind", "side", "started_at", "load_mpag",
                             "cam_deg", "q_mm3_s", "dp_mpa", "excluded") if c in s.columns]
@@ -356,8 +407,6 @@ def _runs(r) -> str:
 
 
 def _provenance(r) -> str:
-    from ..manifest import git_sha
-
     manifest = {}
     if r.manifest_path and Path(r.manifest_path).is_file():
         try:
@@ -396,13 +445,35 @@ def _provenance(r) -> str:
 
 
 def render_report(result: Any) -> str:
-    """The report of a :class:`~seanv_analysis.batch.PipelineResult` as one HTML string."""
+    """The report of a pipeline run as one HTML string.
+
+    Parameters
+    ----------
+    result : the record of a pipeline run (the batch runner's
+        ``PipelineResult``), read through these attributes only:
+
+        - ``pipeline`` (``.name``, ``.description``, ``.source``, ``.to_dict()``),
+          ``data`` (input folders), ``executor``, ``command`` (list of str),
+          ``rig`` (rig config: ``rig["valve"][side]["z0_mm"]``, ``.to_dict()``)
+        - ``runs_found``, ``runs_read``, ``summary`` (per-run DataFrame),
+          ``excluded`` ({reason: count}), ``failed`` (objects with ``.to_json()``)
+        - ``flowfit``, ``tracking``, ``validation``, ``validation_augmented``,
+          ``discovery``: stage results, None when the stage did not run
+        - ``figures``: {registered figure name: written paths}
+        - ``stage_errors``, ``stage_notes`` ({stage: one line}), ``warnings``
+        - ``input_hashes`` ({file: sha256}), ``manifest_path`` (or None),
+          ``timings_s``, ``computed``, ``cached`` ({stage: number})
+
+    Figures appear in the order of :data:`seanv_analysis.plots.FIGURES`, each
+    with its registered title as caption.
+    """
     r = result
     sections = [("overview", "Overview", _overview(r)),
                 ("flowfit", "Identified flow model (eq. 5)", _flowfit(r)),
                 ("tracking", "Flow tracking during position control (Sec. III-C)", _tracking(r)),
                 ("validation", "Closed-loop validation", _validation(r)),
                 ("discovery", "Discovery: what the model misses", _discovery(r)),
+                ("figures", "Figures", _figures_section(r)),
                 ("runs", "Runs: excluded and failed", _runs(r)),
                 ("provenance", "Provenance", _provenance(r))]
     nav = "".join(f"<a href='#{sid}'>{_e(title.split(':')[0].split('(')[0].strip())}</a>"
@@ -423,8 +494,8 @@ def write_report(result: Any, path: str | Path) -> Path:
 
     Parameters
     ----------
-    result : :class:`~seanv_analysis.batch.PipelineResult` (stages that did not
-        run are shown as such)
+    result : the record of a pipeline run, as for :func:`render_report`
+        (stages that did not run are shown as such)
     path : output file
 
     Examples

@@ -13,8 +13,10 @@ import numpy as np
 import pandas as pd
 
 from ..errors import DataError
+from ..io.contract import contract_columns
+from ..io.run import Run
 
-__all__ = ["align_streams", "interp_sorted", "same_clock", "HOLD_COLUMNS"]
+__all__ = ["align_streams", "align_run", "interp_sorted", "same_clock", "HOLD_COLUMNS"]
 
 #: Commands: piecewise constant between samples (the controller holds them),
 #: so they are aligned with previous-value hold, never interpolated.
@@ -158,6 +160,38 @@ def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None
         out[time_column] = np.array(t, dtype=np.float64)
     out = {time_column: out.pop(time_column), **out}
     return pd.DataFrame(out, copy=False)
+
+
+def align_run(run: Run, *, t_s: np.ndarray | None = None) -> pd.DataFrame:
+    """All streams of a run on one time base.
+
+    Parameters
+    ----------
+    run : a run as the reader returns it
+    t_s : time base [s], optional. Default: the encoder's timestamps
+        inside the overlap of every table's time span.
+
+    Returns
+    -------
+    DataFrame: ``t_s`` [s], position_mm, p_supply/head/load/tank_mpag,
+    cam_cmd_deg, cam_deg (and x_ref_mm, q_ref_mm3_s for position_control).
+    Measurements are linearly interpolated; commands (cam_cmd_deg,
+    x_ref_mm, q_ref_mm3_s) hold their previous value; nothing is
+    extrapolated (instants outside the overlap are dropped). Extra and
+    raw columns of the files are not included.
+
+    See :func:`align_streams`.
+    """
+    streams = {}
+    for name, df in run.tables.items():
+        try:
+            wanted = contract_columns(name)
+        except KeyError:
+            continue
+        cols = [c for c in wanted if c in df.columns]
+        streams[name] = df if list(df.columns) == cols else df[cols]  # CoW: no copy
+    base = "encoder" if "encoder" in streams else next(iter(streams))
+    return align_streams(streams, t_s=t_s, base=base)
 
 
 def same_clock(t: np.ndarray, tk: np.ndarray) -> slice | None:

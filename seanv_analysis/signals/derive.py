@@ -29,7 +29,7 @@ from scipy.signal import savgol_filter
 from ..errors import ConfigError, DataError
 from ..io.run import Run
 from ..models import flow_from_velocity, side_pressures
-from .align import interp_sorted
+from .align import align_run, interp_sorted
 
 __all__ = [
     "FLOW_METHODS", "DEFAULT_MAX_JITTER", "DEFAULT_SETTLE_BAND",
@@ -268,7 +268,7 @@ def derive_samples(run: Run, *, aligned: pd.DataFrame | None = None,
     Parameters
     ----------
     run : the run (its ``rig`` gives the piston area and the derivative settings)
-    aligned : the run's streams on one time base (default ``run.aligned()``)
+    aligned : the run's streams on one time base (default ``align_run(run)``)
     window_s : derivative window [s] (default ``rig.analysis['derivative_window_s']``)
     polyorder : Savitzky-Golay order (default ``rig.analysis['derivative_polyorder']``)
 
@@ -312,10 +312,10 @@ def derive_samples(run: Run, *, aligned: pd.DataFrame | None = None,
             helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-derive")
             pending = helper.submit(derivative)
     try:
-        # run.aligned() is a fresh frame we own; a caller's frame gets a shallow
+        # align_run(run) is a fresh frame we own; a caller's frame gets a shallow
         # copy (new columns do not touch it). A deep copy here consolidated the
         # blocks and cost more than the derivative itself on an hour of 1 kHz logs.
-        df = run.aligned() if aligned is None else aligned.copy(deep=False)
+        df = align_run(run) if aligned is None else aligned.copy(deep=False)
         for col in ("t_s", "p_supply_mpag", "p_head_mpag"):
             if col not in df:
                 raise DataError(f"aligned table has no '{col}' column; expected the contract's "

@@ -1,9 +1,9 @@
 """Layout of the packed plant parameter vector (units in the comments).
 
 One definition for the kernel (:mod:`.kernel`), the integrator step
-(:mod:`.rosenbrock`), the ODE twin (:mod:`._rhs`) and the packer
-(:meth:`.plant.Plant.packed_params`); numba reads module globals, so the
-compiled modules bind the indices they use as ``_NAME = PP.NAME``.
+(:mod:`.rosenbrock`) and the packer (:meth:`.plant.Plant.packed_params`);
+numba reads module globals, not class attributes, so the compiled modules
+of this package import the ``_NAME = PP.NAME`` bindings below.
 """
 from __future__ import annotations
 

@@ -42,8 +42,9 @@ from numba import njit
 
 from ..errors import ConfigError
 from ..models import ValveModel
-from . import jit as J
 from ..models.valve import MIN_DP_MPA
+from . import jit as J
+from ._config_errors import config_errors
 
 __all__ = ["ControllerState", "ControllerOutput", "FlowModelController", "CamController",
            "controller_step", "KIND_FLOW_MODEL", "KIND_CAM", "CP_SIZE"]
@@ -231,7 +232,8 @@ class FlowModelController(_PController):
         if not self.kp_mm3_s_per_mm > 0:
             raise ConfigError(f"kp_mm3_s_per_mm: expected > 0, got {kp_mm3_s_per_mm}")
         self.__post_init__()
-        set_(self, "_packed", J.pack_model(model))
+        with config_errors():  # e.g. a needle geometry without a monotonic eq. (4)
+            set_(self, "_packed", J.pack_model(model))
 
     @classmethod
     def from_rig(cls, rig: Any, model: ValveModel | None = None, **overrides) -> "FlowModelController":
@@ -243,7 +245,10 @@ class FlowModelController(_PController):
                   convergence_band_mm=c["convergence_band_mm"],
                   release_band_mm=c.get("release_band_mm"), rate_hz=c["rate_hz"])
         kw.update(overrides)
-        return cls(model if model is not None else ValveModel.from_rig(rig), **kw)
+        if model is None:
+            with config_errors():
+                model = ValveModel.from_rig(rig)
+        return cls(model, **kw)
 
     def jit_spec(self):
         """(kind, packed parameters, packed model tables) for compiled code."""

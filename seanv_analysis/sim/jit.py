@@ -1,9 +1,10 @@
 """numba-compiled forms of the model equations for the simulator and controllers.
 
 Nothing here is new physics: each compiled function is ``numba.njit`` applied
-to the plain core function of :mod:`.sealing`, :mod:`.valve` or
-:mod:`.effects`, so the kernel, the controllers and :class:`ValveSide` run
-the same source. The composites (threshold angle, a side's flow, eq. 6 for
+to the plain core function of :mod:`seanv_analysis.models.sealing`,
+:mod:`~seanv_analysis.models.valve` or :mod:`~seanv_analysis.models.effects`,
+so the kernel, the controllers and :class:`~seanv_analysis.models.ValveSide`
+run the same source. The composites (threshold angle, a side's flow, eq. 6 for
 the whole valve) chain the cores exactly as :class:`ValveSide` and
 :class:`ValveModel` do.
 
@@ -17,17 +18,19 @@ import math
 import numpy as np
 from numba import njit
 
+from ..models import effects as _effects
+from ..models import sealing as _sealing
+from ..models import valve as _valve
 from .numba_cache import configure_numba_cache
 
-configure_numba_cache()  # before any cached njit: cache keyed by the compiled sources
-
-from ..models import effects as _effects  # noqa: E402
-from ..models import sealing as _sealing  # noqa: E402
-from ..models import valve as _valve  # noqa: E402
+# before the first cached njit of the package (every compiled module imports
+# this one first): the cache folder is keyed by the compiled sources
+configure_numba_cache()
 
 __all__ = ["SP_Z0", "SP_C", "SP_EXPONENT", "SP_DN", "SP_DO", "SP_K", "SP_UP", "SP_QMAX",
            "SP_SHARP", "SP_SIZE", "pack_side", "pack_model",
-           "fluid_force", "threshold_displacement", "angle_for_height", "signed_power",
+           "fluid_force", "threshold_displacement", "table_segment", "angle_for_height",
+           "signed_power",
            "opening", "flow", "cam_for_flow", "saturate", "threshold_deg", "side_flow", "side_flow_at",
            "model_cam_for_flow", "backlash_play"]
 

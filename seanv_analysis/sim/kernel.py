@@ -17,8 +17,8 @@ physics and the packed parameter layout):
   gain errors) and the controller/servo log at 100 Hz.
 
 Integration: the 2nd-order linearly implicit Rosenbrock-W scheme ROS2
-(:mod:`.rosenbrock`, the same compiled step the ODE twin :mod:`._rhs` and
-the solver benchmark use) at ``sim.time_step_s`` (default 1 ms = one step
+(:mod:`.rosenbrock`, the same compiled step the plant's ODE twin in the
+tests and the solver benchmark use) at ``sim.time_step_s`` (default 1 ms = one step
 per 1 kHz sample): W = I - gamma h A with A the exact tridiagonal Jacobian
 of the hydraulic chain (valve conductance at node 0, tube R-I-C ladder,
 head-node/piston spring, damping part of the friction slope), solved by a
@@ -39,13 +39,40 @@ import math
 import numpy as np
 from numba import njit
 
-from .control import KIND_CAM, KIND_FLOW_MODEL, controller_step
-from . import jit as J  # noqa: F401  (imported first: configures the numba cache)
+from . import jit as J  # first: configures the numba cache
 from . import rosenbrock as RB
-from ._pp import PP, PP_SIZE
-from ._pp import (_DT, _SUBSTEPS, _CTRL_EVERY, _P_SUPPLY, _RIPPLE_AMP, _RIPPLE_HZ, _P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _STROKE, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_DEAD_TICKS, _SERVO_TAU, _SERVO_RATE, _SERVO_RES, _BACKLASH, _DELAY_STEPS, _ENC_RES, _GAIN_X, _GAIN_PS, _GAIN_PH, _GAIN_PL, _P_CAV, _NEUTRAL, _X_STOP_LO, _X_STOP_HI)  # noqa: F401
+from ._pp import (
+    _AREA,
+    _BACKLASH,
+    _CTRL_EVERY,
+    _DELAY_STEPS,
+    _DT,
+    _ENC_RES,
+    _F_STATIC,
+    _GAIN_PH,
+    _GAIN_PL,
+    _GAIN_PS,
+    _GAIN_X,
+    _LOAD_AREA,
+    _N_SEG,
+    _NEUTRAL,
+    _P_CAV,
+    _P_SUPPLY,
+    _P_TANK,
+    _RIPPLE_AMP,
+    _RIPPLE_HZ,
+    _SERVO_DEAD_TICKS,
+    _SERVO_RES,
+    _STROKE,
+    _SUBSTEPS,
+    _X_STOP_HI,
+    _X_STOP_LO,
+    PP,
+    PP_SIZE,
+)
+from .control import controller_step
 
-__all__ = ["simulate_kernel", "PP", "PP_SIZE", "MODE_SCHEDULE"]
+__all__ = ["simulate_kernel", "PP", "PP_SIZE", "MODE_SCHEDULE", "OUT_FAST", "OUT_SLOW"]
 
 #: controller kind for an open-loop cam schedule (flow-step runs)
 MODE_SCHEDULE = 0
@@ -148,7 +175,7 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     released = False
     t_release = np.nan
     theta_n = cam0_deg
-    half_w = 0.5 * pp[_BACKLASH]
+    backlash_deg = pp[_BACKLASH]
     ctick = 0
     servo_target = cam0_deg
     p_load_set = p_load
@@ -207,11 +234,12 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
             cn1 = cn * ch - sn * sh
             ps0 = psup + amp * sn
             ps1 = psup + amp * sn1
-            # servo (ROS2 step of the rate-limited lag), quantised position,
-            # backlash play, extra transport delay -> needle at the step's end
+            # servo (the rate-limited lag solved exactly over the step),
+            # quantised position, backlash play, extra transport delay ->
+            # needle at the step's end
             theta_s = RB.servo_step(y[ith], servo_target, dt, pp)
             theta_q = round(theta_s / res) * res
-            theta_b = min(max(theta_b, theta_q - half_w), theta_q + half_w)
+            theta_b = J.backlash_play(theta_b, theta_q, backlash_deg)
             delay_ring[di] = theta_b
             di = (di + 1) % (ndelay + 1)
             needle1 = delay_ring[di]

@@ -18,8 +18,9 @@ from pathlib import Path
 
 __all__ = ["configure_numba_cache"]
 
+#: the package sources compiled code is built from (relative to the package)
 _SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "sim/jit.py",
-            "sim/control.py", "sim/_pp.py", "sim/kernel.py", "sim/_rhs.py", "sim/rosenbrock.py")
+            "sim/control.py", "sim/_pp.py", "sim/kernel.py", "sim/rosenbrock.py")
 _DONE = False
 
 

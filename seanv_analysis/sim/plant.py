@@ -15,6 +15,11 @@ Physics (units: mm, MPa, s, N):
   law linear below ``valve.plant.dp_smoothing_mpa``, plus a small leakage
   conductance of each sealed needle (``valve.plant``).
 - Servo: dead time, first-order lag, rate limit, quantisation (rig ``servo``).
+- Effects: each injected effect adds its dynamic form
+  (:meth:`~seanv_analysis.models.effects.Effect.valve_terms`: C multiplier,
+  z0 offset, dp exponent, flow cap of a valve side at run i;
+  :meth:`~seanv_analysis.models.effects.Effect.plant_terms`: backlash, extra
+  delay, sensor gains); the plant only folds them in, in the order given.
 """
 from __future__ import annotations
 
@@ -27,9 +32,8 @@ import numpy as np
 from ..config import RigConfig
 from ..errors import ConfigError
 from ..models import ValveModel
+from ..models.effects import Effect, PlantTerms, ValveTerms, parse_effects
 from . import jit as J
-from ..models.effects import (Backlash, Delay, Drift, Effect, PressureLaw, Saturation,
-                              SensorGain, ThresholdShift, parse_effects)
 from .kernel import PP, PP_SIZE
 
 __all__ = ["Plant", "tube_constants"]
@@ -70,32 +74,45 @@ class Plant:
     @classmethod
     def from_rig(cls, rig: RigConfig, *, valve: ValveModel | None = None,
                  effects: Iterable[str | Effect | dict] = ()) -> "Plant":
-        return cls(rig, valve if valve is not None else ValveModel.from_rig(rig),
-                   parse_effects(effects))
+        """The plant of ``rig`` with ``valve`` (default: the rig's) and ``effects``.
 
-    def _effects(self, kind):
-        return [e for e in self.effects if isinstance(e, kind)]
+        Raises
+        ------
+        ConfigError
+            A bad effect spec (unknown name or parameter, value out of range,
+            the same effect twice on one side/sensor).
+        """
+        try:
+            parsed = parse_effects(effects)
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
+        return cls(rig, valve if valve is not None else ValveModel.from_rig(rig), parsed)
+
+    def valve_terms(self, side: str, run_index: int) -> ValveTerms:
+        """What the effects change on ``side`` of the valve at run
+        ``run_index`` (C multiplier, z0 offset, dp exponent, flow cap), in the
+        order they were given."""
+        terms = ValveTerms()
+        for e in self.effects:
+            terms = e.valve_terms(terms, side, run_index)
+        return terms
+
+    def plant_terms(self) -> PlantTerms:
+        """What the effects add outside the valve (backlash, delay, sensor gains)."""
+        terms = PlantTerms()
+        for e in self.effects:
+            terms = e.plant_terms(terms)
+        return terms
 
     def valve_at(self, run_index: int) -> tuple:
         """Packed plant valve (both sides) at run ``run_index`` with the valve
-        effects (drift, threshold_shift, pressure_law, saturation) folded in."""
+        effects folded in (:meth:`valve_terms`)."""
         packed = []
         for name in ("supply", "drain"):
-            side = self.valve.side(name)
-            mult, dz, expo, qmax, sharp = 1.0, 0.0, None, math.inf, 8.0
-            for e in self.effects:
-                if getattr(e, "side", None) != name:
-                    continue
-                if isinstance(e, Drift):
-                    mult *= float(e.c_multiplier(run_index))
-                elif isinstance(e, ThresholdShift):
-                    dz += float(e.z0_offset_mm(run_index))
-                elif isinstance(e, PressureLaw):
-                    expo = e.exponent
-                elif isinstance(e, Saturation):
-                    qmax, sharp = abs(e.q_max_mm3_s), e.sharpness
-            packed += list(J.pack_side(side, c_multiplier=mult, z0_offset_mm=dz, dp_exponent=expo,
-                                       q_max_mm3_s=qmax, sharpness=sharp))
+            t = self.valve_terms(name, run_index)
+            packed += list(J.pack_side(self.valve.side(name), c_multiplier=t.c_multiplier,
+                                       z0_offset_mm=t.z0_offset_mm, dp_exponent=t.dp_exponent,
+                                       q_max_mm3_s=t.q_max_mm3_s, sharpness=t.sharpness))
         return tuple(packed)
 
     def packed_params(self, *, neutral_deg: float, x_stop_mm: tuple[float, float]) -> np.ndarray:
@@ -143,12 +160,11 @@ class Plant:
         pp[PP.SERVO_TAU] = servo["time_constant_s"]
         pp[PP.SERVO_RATE] = servo["max_rate_deg_s"]
         pp[PP.SERVO_RES] = servo["resolution_deg"]
-        pp[PP.BACKLASH] = sum(e.width_deg for e in self._effects(Backlash))
-        pp[PP.DELAY_STEPS] = round(sum(e.delay_s for e in self._effects(Delay)) / dt)
+        extra = self.plant_terms()
+        pp[PP.BACKLASH] = extra.backlash_deg
+        pp[PP.DELAY_STEPS] = round(extra.delay_s / dt)
         pp[PP.ENC_RES] = rig["sensors"]["encoder_resolution_mm"]
-        gains = {"position_mm": 1.0, "p_supply_mpag": 1.0, "p_head_mpag": 1.0, "p_load_mpag": 1.0}
-        for e in self._effects(SensorGain):
-            gains[e.channel] *= e.gain
+        gains = extra.gains
         pp[PP.GAIN_X] = gains["position_mm"]
         pp[PP.GAIN_PS] = gains["p_supply_mpag"]
         pp[PP.GAIN_PH] = gains["p_head_mpag"]

@@ -1,9 +1,10 @@
 """The simulator's integrator: one step of a 2nd-order linearly implicit
 Rosenbrock-W scheme (ROS2, Verwer et al. 1999) for the plant (numba).
 
-Shared by the kernel (:mod:`.kernel`) and the continuous ODE twin of the
-plant (:mod:`._rhs`), so the twin's fixed-step run is the simulator's own
-integrator on the same physics.
+Called by the kernel (:mod:`.kernel`); the continuous ODE twin of the plant
+that checks and benchmarks it (``tests/sim_rhs.py``) steps the same
+functions, so the twin's fixed-step run is the simulator's own integrator on
+the same physics.
 
 Scheme (step h, gamma = 1 + 1/sqrt(2), W = I - gamma h A)::
 
@@ -47,14 +48,33 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 from numba import njit
 
 from . import jit as J
-from ._pp import (_P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_TAU, _SERVO_RATE)  # noqa: F401
+from ._pp import (
+    _AREA,
+    _BULK,
+    _DEAD_VOL,
+    _DP_SMOOTH,
+    _F_COULOMB,
+    _F_STATIC,
+    _I_SEG,
+    _LEAK_G,
+    _LOAD_AREA,
+    _LOAD_TAU,
+    _MASS,
+    _N_SEG,
+    _P_TANK,
+    _R_SEG,
+    _SERVO_RATE,
+    _SERVO_TAU,
+    _V_SEG,
+    _V_STRIBECK,
+    _VISCOUS,
+)
 
 __all__ = ["GAMMA", "FR_SMOOTH", "FR_SLIDE", "FR_STUCK", "plant_f", "plant_step", "servo_step",
-           "servo_rate", "thresholds", "work_arrays"]
+           "thresholds"]
 
 #: ROS2 parameter (L-stable choice)
 GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
@@ -72,16 +92,6 @@ FR_STUCK = 2
 # code (~120 of ~410 ns per step). Called, not inlined: the arguments are
 # borrowed, nothing is counted. error_model='numpy': no zero-division checks
 # (every divisor here is a parameter validated > 0 or a pivot >= 1), ~4 %.
-
-# arrays of the work tuple (see work_arrays)
-_W_F1, _W_F2, _W_K1, _W_Y2, _W_JL, _W_JD, _W_JU, _W_CP, _W_DEN, _W_T = range(10)
-
-
-def work_arrays(n_state: int) -> tuple:
-    """Scratch space for :func:`plant_step` (allocate once per run): ten
-    float arrays of the state's length."""
-    return tuple(np.zeros(n_state) for _ in range(10))
-
 
 @njit(cache=True, nogil=True, inline='always')
 def plant_f(ps, y, needle, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, dydt,
@@ -323,7 +333,8 @@ def plant_step(y, h, ps0, ps1, needle0, needle1, thr, p_load_set, fr_mode, fr_ar
     the sealing thresholds at t_n with their slopes (:func:`thresholds`),
     moved linearly to stage 2's pressures (exact within a segment of the
     valve's height table); load set point [MPaG] and friction mode held
-    over the step. ``w``: :func:`work_arrays`."""
+    over the step. ``w``: scratch space, a tuple of ten float arrays of the
+    state's length (allocated once per run by the caller)."""
     nseg = int(pp[_N_SEG])
     n = y.size
     nc = 2 * nseg + 2
@@ -359,26 +370,16 @@ def plant_step(y, h, ps0, ps1, needle0, needle1, thr, p_load_set, fr_mode, fr_ar
 
 
 @njit(cache=True, nogil=True, inline='always')
-def servo_rate(theta, target, pp):
-    """Servo angle rate: first-order lag towards ``target``, rate-limited [deg/s]."""
-    rate = (target - theta) / pp[_SERVO_TAU]
-    rmax = pp[_SERVO_RATE]
-    if rate > rmax:
-        return rmax
-    if rate < -rmax:
-        return -rmax
-    return rate
-
-
-@njit(cache=True, nogil=True, inline='always')
 def servo_step(theta, target, h, pp):
     """Servo angle after a step ``h`` [s] towards ``target`` (held) [deg]:
     the exact solution of the rate-limited first-order lag
-    (:func:`servo_rate`): at the rate limit (a straight line) while
-    |target - theta| > rate limit x tau, exponential from there on.
-    Exact, so the servo adds no integration error to the plant's inputs
-    (its ROS2 step at 1 ms was off by ~2e-3 deg after a 20 deg command, at
-    the switch from the rate limit to the lag)."""
+    d(theta)/dt = clip((target - theta) / tau, -rate, +rate) (tau =
+    ``pp[SERVO_TAU]`` [s], rate = ``pp[SERVO_RATE]`` [deg/s]): at the rate
+    limit (a straight line) while |target - theta| > rate x tau,
+    exponential from there on. Exact, so the servo adds no integration
+    error to the plant's inputs (a ROS2 step of the lag at 1 ms is off by
+    ~2e-3 deg after a 20 deg command, at the switch from the rate limit to
+    the lag)."""
     tau = pp[_SERVO_TAU]
     e = target - theta
     ae = abs(e)

@@ -11,17 +11,18 @@ from __future__ import annotations
 import math
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Iterable, Sequence
+from typing import Any, Iterable
 
 import numpy as np
 import pandas as pd
 
 from ..config import RigConfig, load_rig
-from .control import CamController, FlowModelController
 from ..errors import ConfigError
 from ..io.run import Run, RunMeta
 from ..models import ValveModel
 from ..models.effects import Effect
+from ._config_errors import config_errors
+from .control import CamController, FlowModelController
 from .kernel import MODE_SCHEDULE, OUT_FAST, OUT_SLOW, simulate_kernel
 from .plant import Plant
 
@@ -58,13 +59,15 @@ def _run(plant: Plant, *, ctrl_kind: int, cp, ctrl_tables, ref, load, cmd, durat
          seed: int, run_index: int, x0_mm: float, cam0_deg: float, neutral_deg: float,
          x_stop_mm: tuple[float, float]):
     rig = plant.rig
-    pp = plant.packed_params(neutral_deg=neutral_deg, x_stop_mm=x_stop_mm)
+    with config_errors():  # the rig's valve geometry and the effects meet here
+        pp = plant.packed_params(neutral_deg=neutral_deg, x_stop_mm=x_stop_mm)
+        valve = plant.valve_at(run_index)
     rate = float(rig["sensors"]["encoder_rate_hz"])
     n_fast = int(round(duration_s * rate)) + 1
     sigma = float(rig["sensors"]["pressure_noise_mpa"])
     noise = _rng(seed, run_index).standard_normal((n_fast, 3)) * sigma
     fast, slow, t_release = simulate_kernel(
-        pp, *plant.valve_at(run_index), ctrl_kind, cp, *ctrl_tables,
+        pp, *valve, ctrl_kind, cp, *ctrl_tables,
         ref[0], ref[1], load[0], load[1], cmd[0], cmd[1], noise, n_fast, float(x0_mm),
         float(cam0_deg))
     return (pd.DataFrame(fast, columns=OUT_FAST), pd.DataFrame(slow, columns=OUT_SLOW),
@@ -123,7 +126,8 @@ def simulate_flow_step(rig: RigConfig | None = None, *, side: str, cam_deg: floa
     rig = rig or load_rig()
     if side not in ("supply", "drain"):
         raise ConfigError(f"side: expected 'supply' or 'drain', got {side!r}")
-    plant = plant or Plant.from_rig(rig, valve=valve, effects=effects)
+    with config_errors():
+        plant = plant or Plant.from_rig(rig, valve=valve, effects=effects)
     neutral = float(rig["servo"]["neutral_deg"])
     stroke = float(rig["actuator"]["stroke_mm"])
     x0, stops = (5.0, (-math.inf, stroke - 5.0)) if side == "supply" else \
@@ -180,7 +184,8 @@ def simulate_position_control(rig: RigConfig | None = None, *,
     (Run, SimTrace)
     """
     rig = rig or load_rig()
-    plant = plant or Plant.from_rig(rig, valve=valve, effects=effects)
+    with config_errors():
+        plant = plant or Plant.from_rig(rig, valve=valve, effects=effects)
     kind, cp, tables = controller.jit_spec()
     ref, ld = _steps(x_ref, "x_ref"), _steps(load, "load")
     neutral = float(rig["servo"]["neutral_deg"])

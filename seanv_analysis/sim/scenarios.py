@@ -21,7 +21,6 @@ Effects (``--effect``) act on the plant of every run; the truth goes to
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -30,11 +29,12 @@ from typing import Callable, Iterable, Iterator
 import numpy as np
 
 from ..config import RigConfig, load_rig
-from .control import CamController, FlowModelController
 from ..errors import ConfigError
 from ..io import Run, write_json_atomic, write_run
 from ..models import ValveModel
 from ..models.effects import Effect
+from ._config_errors import config_errors
+from .control import CamController, FlowModelController
 from .plant import Plant
 from .run import simulate_flow_step, simulate_position_control
 
@@ -112,7 +112,7 @@ def _position_runs(plant: Plant, *, seed: int, which: Iterable[str]) -> Iterator
     t = _START
     for i, name in enumerate(which):
         if name == "model":
-            ctrl = FlowModelController.from_rig(rig, ValveModel.from_rig(rig))
+            ctrl = FlowModelController.from_rig(rig)
         else:
             ctrl = CamController.from_rig(rig)
         rid = f"position-{'with' if name == 'model' else 'without'}-flow-model"
@@ -139,7 +139,8 @@ def iter_scenario_runs(name: str, *, seed: int = 0, effects: Iterable[str | Effe
     """
     if name not in SCENARIOS:
         raise ConfigError(f"scenario: unknown {name!r}; expected one of {', '.join(SCENARIOS)}")
-    plant = plant or Plant.from_rig(rig or load_rig(), valve=valve, effects=effects)
+    with config_errors():
+        plant = plant or Plant.from_rig(rig or load_rig(), valve=valve, effects=effects)
     if name.startswith("paper-flowsteps"):
         return _flowstep_runs(plant, seed=seed, small=name.endswith("small"))
     which = ("model",) if name == "paper-position-model" else ("model", "cam")
@@ -183,7 +184,8 @@ def simulate_scenario(name: str, out_dir: str | Path, *, seed: int = 0,
     if name not in SCENARIOS:
         raise ConfigError(f"scenario: unknown {name!r}; expected one of {', '.join(SCENARIOS)}")
     rig = rig or load_rig()
-    plant = Plant.from_rig(rig, valve=valve, effects=effects)
+    with config_errors():
+        plant = Plant.from_rig(rig, valve=valve, effects=effects)
     out = Path(out_dir)
     if out.exists() and any(out.rglob("run.json")):
         raise ConfigError(f"out: {out} already holds runs; choose an empty folder")

@@ -18,9 +18,9 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
-from . import __version__
-from .io.hashing import file_sha256
-from .io.atomic import write_json_atomic
+from .. import __version__
+from .atomic import write_json_atomic
+from .hashing import file_sha256
 
 __all__ = ["write_manifest", "build_manifest", "input_hashes", "git_sha", "MANIFEST_SCHEMA"]
 

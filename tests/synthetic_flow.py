@@ -1,10 +1,11 @@
-"""Synthetic per-run summaries from the valve model with known truth (tests,
-benchmarks, examples).
+"""Synthetic per-run summaries from the valve model with known truth, for
+``tests/test_flowfit.py`` and ``benchmarks/bench_flowfit.py`` (not part of
+the package).
 
 The flow of each run is eq. (5) of ``model`` at the run's cam angle and
 pressures, plus Gaussian noise of ``noise_floor_mm3_s + noise_rel |Q|``;
 sealed runs get leakage-level flow (|Q| well under 50 mm^3/s). Rows carry
-the summary columns flowfit needs (``io.run.SUMMARY_COLUMNS``) and are
+the summary columns flowfit needs (``seanv_analysis.io.SUMMARY_COLUMNS``) and are
 passed through :func:`seanv_analysis.signals.filters.apply_filters`.
 """
 from __future__ import annotations
@@ -14,7 +15,8 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
-from ..models import ValveModel, side_pressures
+from seanv_analysis.models import ValveModel, side_pressures
+from seanv_analysis.signals.filters import apply_filters
 
 __all__ = ["PAPER_LOADS_MPAG", "PAPER_CAMS_DEG", "synthetic_flow_summary"]
 
@@ -52,8 +54,6 @@ def synthetic_flow_summary(model: ValveModel, rig: Any, *, seed: int = 0,
     cam_deg, cam_measured_deg, q_mm3_s, dp_mpa, p1_mpa, flow_method,
     excluded, excluded_detail (and ``q_true_mm3_s``).
     """
-    from ..signals.filters import apply_filters
-
     rng = np.random.default_rng(seed)
     rows = []
     t0 = pd.Timestamp("2026-03-02T09:00:00Z")

@@ -15,8 +15,8 @@ A pipeline file looks like::
     sides = ["supply", "drain"]
 
 Each ``[[stages]]`` table has a ``name`` (one of :data:`STAGE_NAMES`) and
-that stage's options (:data:`STAGE_OPTIONS` lists the known ones, with their
-defaults). Unknown stages or options are a :class:`~seanv_analysis.errors.ConfigError`
+that stage's options (each stage module's ``OPTIONS``, with their defaults;
+:func:`stage_options`). Unknown stages or options are a :class:`~seanv_analysis.errors.ConfigError`
 naming the file, the stage and the option, so a typo never runs silently with
 a default. Shipped pipelines (``paper``, ``flowfit``, ``tracking``) live in
 the ``pipelines/`` folder of the source tree and can be given by name.
@@ -31,29 +31,23 @@ from typing import Any, Mapping
 
 from ..errors import ConfigError
 
-__all__ = ["STAGE_NAMES", "STAGE_OPTIONS", "Stage", "Pipeline", "load_pipeline",
+__all__ = ["STAGE_NAMES", "stage_options", "Stage", "Pipeline", "load_pipeline",
            "parse_pipeline", "shipped_pipelines", "pipelines_dir"]
+
+
+
+def _stages():
+    from . import STAGES
+    return STAGES
+
 
 #: Stage names in the order they run (a pipeline lists a subset, in this order).
 STAGE_NAMES = ("ingest", "flowfit", "tracking", "validate", "discover", "figures", "report")
 
-#: Known options of each stage and their defaults.
-STAGE_OPTIONS: dict[str, dict[str, Any]] = {
-    # per-run flow estimate of the summary ('steady' or the paper's 'peak')
-    "ingest": {"method": "steady"},
-    # valve sides to fit (eq. 5 per side)
-    "flowfit": {"sides": ["supply", "drain"]},
-    # flow delay shift [s] (None: estimated) and the flow band [mm^3/s] of Fig. 7(b)
-    "tracking": {"shift_s": None, "q_range": [-2.5e3, 8e3]},
-    # closed-loop free-run validation of the identified model on position-control runs
-    "validate": {},
-    # held-out split ('chrono' | 'kfold') and the seed of the permutation check
-    "discover": {"holdout": "chrono", "seed": 0},
-    # which paper figures to draw (4: flow fit, 6: position runs, 7: tracking)
-    "figures": {"figs": [4, 6, 7], "formats": ["png", "svg"]},
-    # name of the HTML report file
-    "report": {"filename": "report.html"},
-}
+
+def stage_options() -> dict[str, dict[str, Any]]:
+    """Known options of each stage and their defaults (from the stage modules)."""
+    return {name: copy.deepcopy(mod.OPTIONS) for name, mod in _stages().items()}
 
 
 def pipelines_dir() -> Path:
@@ -111,33 +105,12 @@ class Pipeline:
 
 
 def _check_option(where: str, stage: str, key: str, value: Any) -> Any:
-    """Type checks of the options whose type matters downstream."""
-    def bad(expected: str) -> ConfigError:
-        return ConfigError(f"{where}: stage '{stage}' option '{key}' = {value!r}; expected {expected}")
-
-    if stage == "ingest" and key == "method" and value not in ("steady", "peak"):
-        raise bad("'steady' or 'peak'")
-    if stage == "flowfit" and key == "sides":
-        if not isinstance(value, list) or not value or any(v not in ("supply", "drain") for v in value):
-            raise bad("a non-empty list of 'supply', 'drain'")
-    if stage == "tracking" and key == "shift_s" and value is not None:
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value < 5:
-            raise bad("a delay in s between 0 and 5 (or leave it out to estimate it)")
-        value = float(value)
-    if stage == "tracking" and key == "q_range":
-        if (not isinstance(value, list) or len(value) != 2
-                or not all(isinstance(v, (int, float)) for v in value) or value[0] >= value[1]):
-            raise bad("[min, max] flow in mm^3/s with min < max")
-        value = [float(v) for v in value]
-    if stage == "discover" and key == "holdout" and value not in ("chrono", "kfold"):
-        raise bad("'chrono' or 'kfold'")
-    if stage == "figures" and key == "figs":
-        if not isinstance(value, list) or any(v not in (4, 6, 7) for v in value):
-            raise bad("a list of figure numbers among 4, 6, 7")
-    if stage == "figures" and key == "formats":
-        if not isinstance(value, list) or any(v not in ("png", "svg") for v in value):
-            raise bad("a list among 'png', 'svg'")
-    return value
+    """The stage's own check of one option (its ValueError says what is expected)."""
+    try:
+        return _stages()[stage].check_option(key, value)
+    except ValueError as exc:
+        raise ConfigError(f"{where}: stage '{stage}' option '{key}' = {value!r}; expected {exc}") \
+            from None
 
 
 def parse_pipeline(doc: Mapping[str, Any], *, source: str | Path | None = None) -> Pipeline:
@@ -183,11 +156,11 @@ def parse_pipeline(doc: Mapping[str, Any], *, source: str | Path | None = None) 
             raise ConfigError(f"{where}: stage #{i + 1} has no name; expected name = one of "
                               f"{', '.join(STAGE_NAMES)}")
         sname = item["name"]
-        if sname not in STAGE_OPTIONS:
+        if not isinstance(sname, str) or sname not in STAGE_NAMES:
             raise ConfigError(f"{where}: unknown stage '{sname}'; expected one of {', '.join(STAGE_NAMES)}")
         if any(s.name == sname for s in stages):
             raise ConfigError(f"{where}: stage '{sname}' is listed twice")
-        known = STAGE_OPTIONS[sname]
+        known = stage_options()[sname]
         options = copy.deepcopy(known)
         for key, value in item.items():
             if key == "name":

@@ -1,19 +1,22 @@
-"""Continuous-time right-hand side f(t, y) of the plant (numba), for
-benchmarking the simulator's integrator against a general ODE solver.
+"""Continuous-time right-hand side f(t, y) of the simulator's plant (numba),
+for checking and benchmarking the simulator's integrator against a general
+ODE solver.
 
-Private helper of ``benchmarks/bench_sim.py`` and ``tests/test_sim_rhs.py``;
-the simulator itself runs :func:`.kernel.simulate_kernel`. Both call the
-same compiled plant physics (:func:`.rosenbrock.plant_f`), and
+A helper of ``tests/test_sim_rhs.py`` and ``benchmarks/bench_sim.py``, not
+part of the package: the simulator itself runs
+:func:`seanv_analysis.sim.kernel.simulate_kernel`. Both call the same
+compiled plant physics (:func:`seanv_analysis.sim.rosenbrock.plant_f`), and
 :func:`fixed_step` integrates it with the kernel's own ROS2 step
-(:func:`.rosenbrock.plant_step`, :func:`.rosenbrock.servo_step`).
+(:func:`~seanv_analysis.sim.rosenbrock.plant_step`,
+:func:`~seanv_analysis.sim.rosenbrock.servo_step`).
 
 Same physics as the kernel, from the same packed parameter vector
-(:class:`.kernel.PP`) and the same compiled valve functions
+(:class:`seanv_analysis.sim.kernel.PP`) and the same compiled valve functions
 (:mod:`seanv_analysis.sim.jit`): supply with pump ripple, valve eq. (3)-(5)
 per side with the smoothed dp law and the leakage conductance, the tube as
 ``n_seg`` lumped R-I segments with C at the nodes (last node grows with the
 chamber), first-order load regulator, piston with Coulomb + Stribeck +
-viscous friction, servo first-order lag with rate limit.
+viscous friction, servo first-order lag with rate limit (:func:`servo_rate`).
 
 Differences from the kernel, all needed to make the plant an ODE a
 general-purpose solver can integrate (each is a switch or absent):
@@ -44,19 +47,31 @@ import math
 import numpy as np
 from numba import njit
 
-from . import jit as J
-from . import rosenbrock as RB
-from .kernel import PP
-from ._pp import (_DT, _P_SUPPLY, _RIPPLE_AMP, _RIPPLE_HZ, _P_TANK, _N_SEG, _R_SEG, _I_SEG, _V_SEG, _BULK, _AREA, _LOAD_AREA, _DEAD_VOL, _MASS, _F_COULOMB, _F_STATIC, _V_STRIBECK, _VISCOUS, _LOAD_TAU, _LEAK_G, _DP_SMOOTH, _SERVO_TAU, _SERVO_RATE, _SERVO_RES)  # noqa: F401
+from seanv_analysis.sim import jit as J  # first: configures the numba cache
+from seanv_analysis.sim import rosenbrock as RB
+from seanv_analysis.sim.kernel import PP
 
-__all__ = ["AUX_SIZE", "make_aux", "layout", "initial_state", "derivs", "rhs",
+__all__ = ["AUX_SIZE", "make_aux", "layout", "initial_state", "servo_rate", "derivs", "rhs",
            "fixed_step", "check_supported", "OpenLoopStep", "open_loop_step", "solve_ivp_grid",
            "atol_scale"]
+
+# numba reads module globals, not class attributes: the packed-parameter
+# indices this module's compiled functions use, bound once
+_DT = PP.DT
+_P_SUPPLY = PP.P_SUPPLY
+_RIPPLE_AMP = PP.RIPPLE_AMP
+_RIPPLE_HZ = PP.RIPPLE_HZ
+_P_TANK = PP.P_TANK
+_N_SEG = PP.N_SEG
+_AREA = PP.AREA
+_LOAD_AREA = PP.LOAD_AREA
+_SERVO_TAU = PP.SERVO_TAU
+_SERVO_RATE = PP.SERVO_RATE
+_SERVO_RES = PP.SERVO_RES
 
 # auxiliary parameter vector (open-loop case and regularisation)
 _A_T_ON, _A_TH0, _A_TH1, _A_PLOAD, _A_EPS, _A_QUANT = range(6)
 AUX_SIZE = 6
-
 
 
 def make_aux(*, t_on_s: float, theta0_deg: float, theta1_deg: float, p_load_mpag: float,
@@ -100,16 +115,31 @@ def check_supported(pp: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True)
+def servo_rate(theta, target, pp):
+    """Servo angle rate [deg/s]: first-order lag (time constant
+    ``pp[SERVO_TAU]``) towards ``target``, limited to +-``pp[SERVO_RATE]``;
+    :func:`seanv_analysis.sim.rosenbrock.servo_step` is its exact solution
+    over a step."""
+    rate = (target - theta) / pp[_SERVO_TAU]
+    rmax = pp[_SERVO_RATE]
+    if rate > rmax:
+        return rmax
+    if rate < -rmax:
+        return -rmax
+    return rate
+
+
+@njit(cache=True, nogil=True)
 def derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     """f(t, y) into ``dydt``: the simulator's compiled plant physics
-    (:func:`.rosenbrock.plant_f`, friction tanh-regularised) with the
+    (:func:`~seanv_analysis.sim.rosenbrock.plant_f`, friction tanh-regularised) with the
     sealing thresholds at the current pressures, and the servo lag (target
     ``theta0`` before ``t_on``, ``theta1`` from it)."""
     nseg = int(pp[_N_SEG])
     ith = 2 * nseg + 3
     target = aux[_A_TH1] if t >= aux[_A_T_ON] else aux[_A_TH0]
     theta = y[ith]
-    dydt[ith] = RB.servo_rate(theta, target, pp)
+    dydt[ith] = servo_rate(theta, target, pp)
     needle = theta
     if aux[_A_QUANT] > 0.5:
         res = pp[_SERVO_RES]
@@ -133,8 +163,9 @@ def rhs(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
 @njit(cache=True, nogil=True)
 def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     """The simulator's integrator over the same physics as :func:`derivs`:
-    ROS2 steps of ``pp[DT]`` (:func:`.rosenbrock.servo_step`, the servo
-    lag solved exactly, then :func:`.rosenbrock.plant_step`, as the kernel
+    ROS2 steps of ``pp[DT]`` (:func:`~seanv_analysis.sim.rosenbrock.servo_step`,
+    the servo lag solved exactly, then
+    :func:`~seanv_analysis.sim.rosenbrock.plant_step`, as the kernel
     calls them), friction
     tanh-regularised (``FR_SMOOTH``), sealing thresholds at the start of
     each step moved linearly to stage 2, servo target held over a step (the
@@ -218,7 +249,7 @@ class OpenLoopStep:
 def open_loop_step(plant, *, cam_deg: float, load_mpag: float, x0_mm: float = 5.0,
                    t_cmd_s: float = 0.5, duration_s: float = 3.0, eps_v_mm_s: float = 1e-2,
                    quantise: bool = False, run_index: int = 0) -> OpenLoopStep:
-    """The flow step of :func:`.run.simulate_flow_step` (cam from neutral to
+    """The flow step of :func:`seanv_analysis.sim.simulate_flow_step` (cam from neutral to
     ``cam_deg`` commanded at ``t_cmd_s``, held) as an ODE case: the servo
     target switches when the kernel's servo would see the command (first
     controller tick at or after ``t_cmd_s`` plus the dead time), i.e. at the

@@ -1,0 +1,81 @@
+"""The Parquet table format, and Parquet tables with units in their schema.
+
+Run tables in Parquet are read by pyarrow's reader (their own column types;
+the reader converts the contract's columns to float64). Every Parquet file
+this package writes, run tables and analysis tables alike, goes through
+:func:`write_table_parquet`, which records each column's unit.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from ..errors import DataError
+from .atomic import atomic_path
+from .contract import TableSpec, canonical_names, contract_columns
+from .validate import one_line
+
+__all__ = ["parse_parquet", "write_table_parquet", "units_from_columns"]
+
+# Unit of a column from its name suffix (data contract: units in names).
+_SUFFIX_UNITS = (
+    ("_mm3_s", "mm^3/s"), ("_mm_s", "mm/s"), ("_mpag", "MPa gauge"), ("_mpa", "MPa"),
+    ("_deg", "deg"), ("_mm", "mm"), ("_s", "s"), ("_n", "N"), ("_hz", "Hz"),
+    ("_pct", "%"),
+)
+
+
+def parse_parquet(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool) -> pa.Table:
+    """Read a Parquet table, columns under the contract's names.
+
+    ``head`` and ``pool`` are not used: the file is binary (its first bytes
+    say nothing a message needs) and pyarrow's Parquet reader takes Arrow's
+    default pool.
+
+    Raises
+    ------
+    DataError
+        the file is not a readable Parquet table.
+    """
+    try:
+        table = pq.read_table(path)  # (no pool argument: Arrow's default pool)
+    except (pa.ArrowException, OSError, ValueError) as exc:
+        raise DataError(f"not a readable Parquet file ({one_line(str(exc))[:160]}); expected a "
+                        f"Parquet table with columns {', '.join(contract_columns(spec.name))}",
+                        path=path) from None
+    names = canonical_names(table.column_names, spec)
+    return table if names == table.column_names else table.rename_columns(names)
+
+
+def units_from_columns(columns: Iterable[Any]) -> dict[str, str]:
+    """Map each column to the unit its name carries ('' when none)."""
+    out = {}
+    for c in columns:
+        out[c] = next((u for suf, u in _SUFFIX_UNITS if str(c).endswith(suf)), "")
+    return out
+
+
+def write_table_parquet(df: pd.DataFrame, path: str | Path, *,
+                        units: Mapping[str, str] | None = None,
+                        metadata: Mapping[str, Any] | None = None) -> Path:
+    """Write ``df`` as Parquet atomically, units in the schema metadata.
+
+    Each field carries ``unit`` metadata and the file carries a JSON
+    ``seanv.units`` map (plus ``metadata`` under ``seanv.meta``).
+    """
+    units = dict(units_from_columns(df.columns), **(units or {}))
+    table = pa.Table.from_pandas(df, preserve_index=False)
+    fields = [f.with_metadata({b"unit": units.get(f.name, "").encode()}) for f in table.schema]
+    meta = dict(table.schema.metadata or {})
+    meta[b"seanv.units"] = json.dumps(units).encode()
+    if metadata:
+        meta[b"seanv.meta"] = json.dumps(metadata, default=str).encode()
+    table = table.cast(pa.schema(fields, metadata=meta))
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp)
+    return Path(path)

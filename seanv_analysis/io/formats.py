@@ -1,0 +1,171 @@
+"""Table formats of a run folder: the one place the reader and writer learn a file type.
+
+Each table of a run (encoder, pressure, servo, controller) is one file
+``<table><suffix>``. :data:`FORMATS` maps every suffix to its
+:class:`TableFormat`; the reader looks for a table under each suffix of
+:func:`table_suffixes` and parses what it finds with that suffix's
+``parse``; :func:`~seanv_analysis.io.writer.write_run` writes with a
+format's ``write``.
+
+``data_schema/contract.toml`` ``table_formats`` says which formats a data set
+may use (the contract is shared with the rig software); this registry says
+how each is read. They must agree, and :func:`table_formats` checks it when
+reading starts: a format named in the contract without a parser, or a
+parser the contract does not name, is a :class:`~seanv_analysis.errors.ConfigError`
+rather than a format silently ignored.
+
+Adding a format: a parse function (see :data:`ParseFn`), one
+:func:`register_format` call at the end of this module, and its name in
+contract.toml ``table_formats``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Iterable
+
+import pandas as pd
+import pyarrow as pa
+
+from ..config import schema_dir
+from ..errors import ConfigError
+from .contract import TableSpec, contract
+from .format_csv import parse_csv, write_csv
+from .format_parquet import parse_parquet, write_table_parquet
+
+__all__ = ["TableFormat", "ParseFn", "WriteFn", "FORMATS", "register_format",
+           "registered_formats", "table_formats", "table_suffixes", "format_named", "either"]
+
+#: ``parse(path, spec, head, pool) -> pyarrow.Table``: the table file at
+#: ``path`` as an Arrow table whose columns carry the contract's names
+#: (:func:`~seanv_analysis.io.contract.canonical_names`), any column types
+#: (the reader converts the contract's columns to float64 and checks them).
+#: ``head`` is the file's first 64 KiB (already read: for sniffing a text
+#: header), ``pool`` the Arrow memory pool to parse into. Raise
+#: :class:`~seanv_analysis.errors.DataError` naming the file for a file that
+#: cannot be parsed.
+ParseFn = Callable[[Path, TableSpec, bytes, pa.MemoryPool], pa.Table]
+
+#: ``write(df, path)``: write one run table atomically
+#: (:func:`~seanv_analysis.io.atomic.atomic_path`).
+WriteFn = Callable[[pd.DataFrame, Path], object]
+
+
+@dataclass(frozen=True)
+class TableFormat:
+    """One file format a run's tables may be stored in.
+
+    Attributes
+    ----------
+    name : as contract.toml ``table_formats`` and ``write_run(fmt=...)`` name it
+    title : as messages name it ("CSV")
+    suffixes : file name endings, with the dot (".csv")
+    parse : see :data:`ParseFn`
+    write : see :data:`WriteFn`; None when runs are never written in it
+    text : a text format: a NUL byte in the file is reported as binary data
+        (with its row) before parsing
+    """
+
+    name: str
+    title: str
+    suffixes: tuple[str, ...]
+    parse: ParseFn
+    write: WriteFn | None = None
+    text: bool = False
+
+
+#: every registered format by suffix, in registration order
+FORMATS: dict[str, TableFormat] = {}
+
+
+def register_format(fmt: TableFormat) -> TableFormat:
+    """Add ``fmt`` to :data:`FORMATS` under each of its suffixes (replacing a
+    format of the same name); returns ``fmt``.
+
+    Raises
+    ------
+    ValueError
+        no suffix, a suffix without its leading dot, or a suffix another
+        format already has.
+    """
+    if not fmt.suffixes or any(not s.startswith(".") or len(s) < 2 for s in fmt.suffixes):
+        raise ValueError(f"format {fmt.name!r}: suffixes {fmt.suffixes!r}; expected file name "
+                         "endings with their dot, like ('.csv',)")
+    for suffix in fmt.suffixes:
+        other = FORMATS.get(suffix)
+        if other is not None and other.name != fmt.name:
+            raise ValueError(f"format {fmt.name!r}: suffix {suffix!r} is already read by format "
+                             f"{other.name!r}; expected a suffix of its own")
+    for suffix in [s for s, f in FORMATS.items() if f.name == fmt.name]:
+        del FORMATS[suffix]
+    for suffix in fmt.suffixes:
+        FORMATS[suffix] = fmt
+    return fmt
+
+
+def registered_formats() -> list[TableFormat]:
+    """Every registered format once, in registration order."""
+    out: dict[str, TableFormat] = {}
+    for fmt in FORMATS.values():
+        out.setdefault(fmt.name, fmt)
+    return list(out.values())
+
+
+def table_formats() -> tuple[TableFormat, ...]:
+    """The formats a run's tables may use, in contract.toml ``table_formats``
+    order (the first is the one named when a table is missing).
+
+    Raises
+    ------
+    ConfigError
+        the contract and the registry disagree.
+    """
+    named = contract().get("table_formats", ())
+    known = {fmt.name: fmt for fmt in registered_formats()}
+    if len(named) == len(known) and set(named) == known.keys():
+        return tuple(known[n] for n in named)  # the usual case (checked for every table read)
+    where = f"{schema_dir() / 'contract.toml'}: table_formats"
+    missing = [n for n in named if n not in known]
+    if missing:
+        raise ConfigError(f"{where} names {either(repr(n) for n in missing)} but no parser is "
+                          f"registered for it; expected formats of seanv_analysis.io.formats "
+                          f"({', '.join(known)}), or register a TableFormat there")
+    unnamed = [n for n in known if n not in named]
+    if unnamed:
+        raise ConfigError(f"{where} does not name the registered format(s) "
+                          f"{', '.join(repr(n) for n in unnamed)}; expected every format of "
+                          "seanv_analysis.io.formats named there (add the name, or do not "
+                          "register the format)")
+    return tuple(known[n] for n in dict.fromkeys(named))  # a name listed twice counts once
+
+
+def table_suffixes() -> tuple[str, ...]:
+    """File name endings the reader looks for, in :func:`table_formats` order."""
+    return tuple(s for fmt in table_formats() for s in fmt.suffixes)
+
+
+def format_named(name: str) -> TableFormat:
+    """The format ``name`` (as contract.toml names it) that runs can be written in.
+
+    Raises
+    ------
+    ValueError
+        no such format, or it has no ``write``.
+    """
+    writable = {fmt.name: fmt for fmt in table_formats() if fmt.write is not None}
+    if name not in writable:
+        raise ValueError(f"fmt: expected {either(repr(n) for n in writable)}, got {name!r}")
+    return writable[name]
+
+
+def either(words: Iterable[str]) -> str:
+    """'a', 'a or b', 'a, b or c': alternatives in a message."""
+    words = list(words)
+    if not words:
+        return "nothing"
+    return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} or {words[-1]}"
+
+
+register_format(TableFormat("csv", "CSV", (".csv",), parse_csv, write_csv, text=True))
+register_format(TableFormat("parquet", "Parquet", (".parquet",), parse_parquet,
+                            write_table_parquet))

@@ -1,0 +1,233 @@
+"""What the stages share: the context they run in, the per-run mapper, failed runs.
+
+A stage is a module of this package with
+
+``NAME``         its name in pipelines and on the command line
+``NEEDS``        the results of earlier stages it reads ("dataset", "flowfit", ...)
+``WRITES``       what :func:`write` puts in its output folder (for ``--list-stages``)
+``OPTIONS``      its options and their defaults (pipeline files are checked against them)
+``check_option`` ``(key, value) -> value``: type check of one option, ValueError if bad
+``run(ctx, options) -> result``   the work (a result object, never written by itself)
+``write(result, folder) -> list[Path]``   its files, each written atomically
+
+Per-run work goes through :attr:`Context.map_runs`: in a notebook or a single
+command it reads and processes the runs here (:func:`serial_map`); the batch
+runner passes a mapper that runs the same functions in worker processes or
+on a Dask cluster, with a per-run cache.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Mapping, Protocol, Sequence
+
+from ..config import RigConfig, load_rig
+from ..errors import DataError, SeanvError
+from ..models import ValveModel
+
+__all__ = ["Context", "FailedRun", "RunOutcome", "RunMapper", "serial_map", "one_line",
+           "with_path", "find_run_dirs"]
+
+
+def one_line(exc: BaseException | str) -> str:
+    """An error as one line (newlines and runs of blanks collapsed)."""
+    return " ".join(str(exc).split())
+
+
+def with_path(path: str | Path, message: str) -> str:
+    """``message`` prefixed with the run folder unless it names it already."""
+    return message if str(path) in message else f"{path}: {message}"
+
+
+@dataclass(frozen=True)
+class FailedRun:
+    """A run that could not be processed: its folder, the stage and one line why."""
+
+    path: str
+    stage: str
+    message: str
+
+    def to_json(self) -> dict[str, str]:
+        return {"path": self.path, "stage": self.stage, "message": self.message}
+
+
+@dataclass(frozen=True)
+class RunOutcome:
+    """What a per-run function gave for one run folder: its value, or one line
+    why it failed; ``hashes`` are {file name: SHA-256} of the files the run
+    was read from; ``computed`` is False when the value came from a cache."""
+
+    item: str
+    ok: bool
+    value: Any = None
+    error: str = ""
+    hashes: Mapping[str, str] = field(default_factory=dict)
+    computed: bool = True
+
+
+class RunMapper(Protocol):
+    """Applies ``func(run, **kwargs)`` to the run read from each folder.
+
+    ``stage`` names the work (progress bars, the cache); ``params`` are the
+    options that change ``func``'s result (the cache key); ``valid`` tells
+    whether a cached value can still be used (e.g. its figure files exist).
+    """
+
+    def __call__(self, stage: str, func: Callable[..., Any], run_dirs: Sequence[Path], *,
+                 rig: RigConfig, params: Mapping[str, Any], kwargs: Mapping[str, Any],
+                 valid: Callable[[Any], bool] | None = None) -> dict[str, RunOutcome]: ...
+
+
+def serial_map(stage: str, func: Callable[..., Any], run_dirs: Sequence[Path], *,
+               rig: RigConfig, params: Mapping[str, Any], kwargs: Mapping[str, Any],
+               valid: Callable[[Any], bool] | None = None) -> dict[str, RunOutcome]:
+    """The :class:`RunMapper` of a single process: each run read here (the
+    next one on a helper thread while this one is processed), no cache."""
+    out: dict[str, RunOutcome] = {}
+    for path, run in _read_ahead(list(run_dirs), rig):
+        key = str(path)
+        if isinstance(run, SeanvError):
+            out[key] = RunOutcome(key, False, error=with_path(path, one_line(run)))
+            continue
+        hashes = {Path(p).name: h for p, h in run.file_sha256.items()}
+        try:
+            out[key] = RunOutcome(key, True, func(run, **kwargs), hashes=hashes)
+        except SeanvError as exc:
+            out[key] = RunOutcome(key, False, error=with_path(path, one_line(exc)), hashes=hashes)
+    return out
+
+
+def _read_ahead(run_dirs: list[Path], rig: RigConfig):
+    """(folder, Run or the SeanvError of reading it) in order; the next run is
+    read on a helper thread (the reader parses without the GIL) while the
+    caller works on this one."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from ..io.reader import read_run
+
+    def read(path: Path):
+        try:
+            return read_run(path, rig=rig)
+        except SeanvError as exc:
+            return exc
+
+    if not run_dirs:
+        return
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        pending = pool.submit(read, run_dirs[0])
+        for i, path in enumerate(run_dirs):
+            run = pending.result()
+            if i + 1 < len(run_dirs):
+                pending = pool.submit(read, run_dirs[i + 1])
+            yield path, run
+
+
+def find_run_dirs(data: Sequence[Path]) -> tuple[list[Path], dict[str, int]]:
+    """Run folders under each data folder (sorted) and the index of the data
+    folder each belongs to (runs of separately recorded data sets each start at
+    use 0).
+
+    Raises
+    ------
+    DataError
+        a data folder is missing, or none holds a run.
+    """
+    from ..io.reader import find_runs
+
+    run_dirs: list[Path] = []
+    dataset_of: dict[str, int] = {}
+    for i, d in enumerate(data):
+        for p in find_runs(d):
+            if str(p) not in dataset_of:
+                dataset_of[str(p)] = i
+                run_dirs.append(p)
+    run_dirs.sort()
+    if not run_dirs:
+        raise DataError("no run.json found at any depth; expected a data set folder (sub-folders "
+                        "holding run.json) or a run folder", path=data[0])
+    return run_dirs, dataset_of
+
+
+@dataclass
+class Context:
+    """What a stage runs with: the rig, the data, where outputs go, how per-run
+    work is mapped, the valve model to start from (None: the rig config's
+    where a stage needs one) and the results of the stages before it (by
+    stage name); ``record`` is the batch runner's record of the whole run
+    (what the report renders).
+
+    Build one with :meth:`for_data`; a stage adds nothing to it itself: the
+    caller stores each result with :meth:`add`.
+    """
+
+    rig: RigConfig
+    data: list[Path]
+    run_dirs: list[Path]
+    dataset_of: dict[str, int] = field(default_factory=dict)
+    out_dir: Path | None = None
+    map_runs: RunMapper = serial_map
+    start_model: ValveModel | None = None
+    start_model_source: str = "rig config (paper's z0, C)"
+    results: dict[str, Any] = field(default_factory=dict)
+    read_runs: dict[str, Any] = field(default_factory=dict)
+    record: Any = None
+    quiet: bool = True
+    log: Callable[[str], None] = lambda msg: None
+
+    @classmethod
+    def for_data(cls, data: str | Path | Sequence[str | Path], *, rig: RigConfig | str | Path | None = None,
+                 out_dir: str | Path | None = None, model: ValveModel | None = None,
+                 model_source: str | None = None, map_runs: RunMapper = serial_map,
+                 quiet: bool = True, log: Callable[[str], None] | None = None) -> Context:
+        """Context for a data set folder, a run folder, or several.
+
+        Raises
+        ------
+        DataError
+            a data folder is missing or holds no run; ``out_dir`` lies inside one.
+        """
+        if rig is None or isinstance(rig, (str, Path)):
+            rig = load_rig(rig)
+        datas = [Path(data)] if isinstance(data, (str, Path)) else [Path(d) for d in data]
+        out = Path(out_dir) if out_dir is not None else None
+        if out is not None:
+            for d in datas:
+                d_res, o_res = d.resolve(), out.resolve()
+                if o_res == d_res or d_res in o_res.parents:
+                    raise DataError(f"out_dir: {out} is inside the data folder; outputs never go "
+                                    "into raw data: choose another output folder", path=d)
+        run_dirs, dataset_of = find_run_dirs(datas)
+        source = model_source or ("given model" if model is not None
+                                  else "rig config (paper's z0, C)")
+        return cls(rig, datas, run_dirs, dataset_of, out, map_runs, model, source,
+                   quiet=quiet, log=log or (lambda msg: None))
+
+    def add(self, name: str, result: Any) -> None:
+        """Store a stage's result for the stages after it."""
+        self.results[name] = result
+
+    def result(self, name: str) -> Any:
+        """The result of stage ``name``, or None when it did not run (or failed)."""
+        return self.results.get(name)
+
+    @property
+    def model(self) -> ValveModel | None:
+        """The valve model later stages use: the flow fit's when it succeeded,
+        else the one the context started with (None: none given)."""
+        fit = self.results.get("flowfit")
+        if fit is not None and getattr(fit, "success", False) and fit.model is not None:
+            return fit.model
+        return self.start_model
+
+    @property
+    def valve(self) -> ValveModel:
+        """:attr:`model`, or the rig config's valve (the paper's z0, C) when none."""
+        return self.model if self.model is not None else ValveModel.from_rig(self.rig)
+
+    @property
+    def model_source(self) -> str:
+        fit = self.results.get("flowfit")
+        if fit is not None and getattr(fit, "success", False) and fit.model is not None:
+            return "flowfit (this data set)"
+        return self.start_model_source if self.start_model is not None \
+            else "rig config (paper's z0, C)"

@@ -1,0 +1,213 @@
+"""Stage ``ingest``: read, validate and summarise every run; the paper's filters.
+
+The one path from run folders to the per-run summary that flowfit, tracking,
+validate, discover, the figures and the report all read: each run is read
+(checked against the data contract), its flow derived and summarised
+(:func:`seanv_analysis.signals.derive.summarize_run`); the rows are put in
+``started_at`` order with ``run_index`` (the "use" count of drift effects,
+per data folder) and the filters applied (leakage |Q| <= 50 mm^3/s,
+friction, cam range: :func:`seanv_analysis.signals.filters.apply_filters`).
+A run that cannot be read or summarised is a :class:`FailedRun`; the others
+go on.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import pandas as pd
+
+from ..errors import DataError
+from .base import Context, FailedRun, with_path
+
+__all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DatasetResult", "check_option", "run", "collect",
+           "summarize_runs", "summarize_derived",
+           "write",
+           "summarize", "summary_frame", "position_runs"]
+
+NAME = "ingest"
+NEEDS: tuple[str, ...] = ()
+WRITES = ("summary.parquet",)
+DESCRIPTION = "read, validate and summarise every run (per-run flow, dp); the paper's filters"
+#: method: per-run flow estimate, 'steady' (robust) or the paper's 'peak'
+OPTIONS: dict[str, Any] = {"method": "steady"}
+
+
+def check_option(key: str, value: Any) -> Any:
+    if key == "method" and value not in ("steady", "peak"):
+        raise ValueError("'steady' or 'peak'")
+    return value
+
+
+@dataclass(frozen=True)
+class DatasetResult:
+    """The per-run summary of a data set and what could not be read.
+
+    Attributes
+    ----------
+    summary : one row per run read (``io.run.SUMMARY_COLUMNS`` + ``path``,
+        ``dataset``, ``flow_model``), ``started_at`` order, filters applied
+    failed : runs that could not be read or summarised, sorted by folder
+    excluded : {reason: count} of the filters (flow-step runs)
+    runs_found, runs_read : run folders found / read and summarised
+    input_hashes : {file path: SHA-256} of every file of the runs read
+    """
+
+    summary: pd.DataFrame
+    failed: tuple[FailedRun, ...] = ()
+    excluded: Mapping[str, int] = field(default_factory=dict)
+    runs_found: int = 0
+    runs_read: int = 0
+    input_hashes: Mapping[str, str] = field(default_factory=dict)
+
+    def kind(self, kind: str) -> pd.DataFrame:
+        """Rows of one run kind ('flow_step', 'position_control')."""
+        s = self.summary
+        return s[s["kind"] == kind] if not s.empty else s.assign(path=[])
+
+    def report(self) -> str:
+        kinds = self.summary["kind"].value_counts().to_dict() if not self.summary.empty else {}
+        k = ", ".join(f"{n} {kind}" for kind, n in sorted(kinds.items()))
+        ex = ", ".join(f"{r}: {n}" for r, n in self.excluded.items() if n) or "none"
+        return (f"runs: {self.runs_found} found, {self.runs_read} read" + (f" ({k})" if k else "")
+                + f", {len(self.failed)} failed\nexcluded from the flow fit: {ex}")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"runs_found": self.runs_found, "runs_read": self.runs_read,
+                "excluded": dict(self.excluded), "failed": [f.to_json() for f in self.failed]}
+
+
+def summarize(run, *, method: str) -> dict[str, Any]:
+    """Per-run function of the stage: the run's summary row and the metadata
+    later stages need (its controller)."""
+    from ..signals.derive import summarize_run
+
+    meta = run.meta
+    return {"row": summarize_run(run, method=method),
+            "meta": {"path": str(Path(meta.path)), "run_id": meta.run_id, "kind": meta.kind,
+                     "controller": dict(meta.controller or {})}}
+
+
+def summarize_derived(run, *, method: str) -> dict[str, Any]:
+    """:func:`summarize` of a run whose samples are derived first, position-control
+    runs too (their summary does not need it), so a run whose streams cannot
+    be aligned is a failed run here rather than later."""
+    from ..signals.derive import derive_samples
+
+    derive_samples(run)
+    return summarize(run, method=method)
+
+
+def summary_frame(rows: list[dict[str, Any]], rig) -> pd.DataFrame:
+    """Rows -> summary in ``started_at`` order with ``run_index`` and filters.
+
+    ``run_index`` counts the runs of each data folder (``dataset``: its
+    position in the data list) in ``started_at`` order: data sets recorded
+    separately each start at use 0.
+    """
+    from ..signals.filters import apply_filters
+
+    frame = pd.DataFrame(rows)
+    frame["started_at"] = pd.to_datetime(frame["started_at"], utc=True)
+    frame = frame.sort_values(["started_at", "run_id", "path"], kind="stable").reset_index(drop=True)
+    frame.insert(4, "run_index", frame.groupby("dataset").cumcount().astype("int64"))
+    return apply_filters(frame, rig)
+
+
+def run(ctx: Context, options: Mapping[str, Any]) -> DatasetResult:
+    """Summarise every run of the context's data.
+
+    Raises
+    ------
+    DataError
+        no run could be read (the first bad run's line says why).
+    """
+    result = collect(ctx, options)
+    if result.runs_read == 0:
+        raise DataError("no run could be read; " + (result.failed[0].message if result.failed
+                                                     else ""), path=ctx.data[0])
+    return result
+
+
+def collect(ctx: Context, options: Mapping[str, Any], *, func=None) -> DatasetResult:
+    """:func:`run` without raising when no run is usable (empty summary): a
+    command can then list every bad run. ``func``: per-run function in place
+    of :func:`summarize` (same result, e.g. also keeping the derived samples)."""
+    from ..signals.filters import exclusion_counts
+
+    method = options.get("method", OPTIONS["method"])
+    res = ctx.map_runs("ingest", func or summarize, ctx.run_dirs, rig=ctx.rig,
+                       params={"method": method}, kwargs={"method": method})
+    failed: list[FailedRun] = []
+    hashes: dict[str, str] = {}
+    rows = []
+    for d in ctx.run_dirs:
+        r = res[str(d)]
+        if not r.ok:
+            failed.append(FailedRun(str(d), "ingest", with_path(d, r.error)))
+            continue
+        row = {**r.value["row"], "path": str(d), "dataset": ctx.dataset_of.get(str(d), 0)}
+        for name, sha in r.hashes.items():
+            hashes[str(Path(d) / name)] = sha
+        rows.append((row, r.value.get("meta", {})))
+    rows.sort(key=lambda rm: (pd.Timestamp(rm[0]["started_at"]), rm[0]["run_id"], rm[0]["path"]))
+    kept, seen = [], {}
+    for row, meta in rows:
+        if row["run_id"] in seen:
+            failed.append(FailedRun(row["path"], "ingest", (
+                f"{row['path']}/run.json: field 'run_id': '{row['run_id']}' is also the run id "
+                f"of {seen[row['run_id']]}; expected run ids unique in the data set")))
+            continue
+        seen[row["run_id"]] = row["path"]
+        row["flow_model"] = (meta.get("controller") or {}).get("flow_model")
+        kept.append(row)
+    failed.sort(key=lambda f: f.path)
+    if not kept:
+        return DatasetResult(pd.DataFrame(), tuple(failed), {}, len(ctx.run_dirs), 0, hashes)
+    summary = summary_frame(kept, ctx.rig)
+    return DatasetResult(summary, tuple(failed), exclusion_counts(summary), len(ctx.run_dirs),
+                         len(kept), hashes)
+
+
+def write(result: DatasetResult, folder: Path) -> list[Path]:
+    """``summary.parquet`` (the per-run summary, filters applied)."""
+    from ..io.writer import write_table_parquet
+
+    return [write_table_parquet(result.summary.drop(columns=["flow_model"]),
+                                Path(folder) / "summary.parquet")]
+
+
+def position_runs(ctx: Context) -> list:
+    """The position-control runs of the data set, read once per context (few, short)."""
+    from ..io.reader import read_run
+
+    ds = ctx.result(NAME)
+    if ds is None:
+        return []
+    cache = ctx.read_runs
+    out = []
+    for p in ds.kind("position_control")["path"].tolist():
+        if p not in cache:
+            cache[p] = read_run(p, rig=ctx.rig)
+        out.append(cache[p])
+    return out
+
+
+def summarize_runs(runs, rig, *, method: str = "steady") -> tuple[pd.DataFrame, list[FailedRun]]:
+    """Summary of runs already in memory (e.g. straight from the simulator), as
+    :func:`run` makes it from folders: (summary, runs that could not be summarised)."""
+    from ..errors import SeanvError
+    from .base import one_line
+
+    rows, failed = [], []
+    for r in runs:
+        path = str(r.meta.path) if r.meta.path is not None else r.run_id
+        try:
+            value = summarize(r, method=method)
+        except SeanvError as exc:
+            failed.append(FailedRun(path, NAME, with_path(path, one_line(exc))))
+            continue
+        rows.append({**value["row"], "path": path, "dataset": 0,
+                     "flow_model": value["meta"]["controller"].get("flow_model")})
+    return (summary_frame(rows, rig) if rows else pd.DataFrame()), failed

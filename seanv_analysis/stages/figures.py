@@ -1,0 +1,167 @@
+"""Stage ``figures``: the paper-style figures of the registry in :mod:`seanv_analysis.plots`.
+
+Every registered :class:`~seanv_analysis.plots.Figure` the pipeline asks for
+(``figs``: numbers such as 4, 6, 7 or names; "all" by default) whose inputs
+exist is drawn: data-set figures from the results of earlier stages, per-run
+figures (Fig. 6, one per position-control run) as per-run tasks through the
+context's mapper. A figure that cannot be drawn is noted; it never sinks the run.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+from .base import Context, one_line, with_path
+from .validate import position_paths
+
+__all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "FiguresResult", "check_option", "run", "write",
+           "draw_figures", "figures_of", "results_for_figures", "selected_figures", "draw_run_figure"]
+
+NAME = "figures"
+NEEDS = ("ingest",)
+WRITES = ("figures/<figure>.png|.svg", "figures/fig6/<run>.png|.svg")
+DESCRIPTION = "paper-style figures (Fig. 4, 6, 7, discovery residuals, ...) as PNG and SVG"
+#: figs: figure numbers or names of :data:`seanv_analysis.plots.FIGURES`, or
+#: "all"; formats: file formats to write
+OPTIONS: dict[str, Any] = {"figs": "all", "formats": ["png", "svg"]}
+
+
+def check_option(key: str, value: Any) -> Any:
+    from ..plots import FIGURES
+
+    if key == "figs":
+        if value == "all":
+            return value
+        known = {f.number for f in FIGURES.values() if f.number is not None} | set(FIGURES)
+        if (not isinstance(value, list) or any(isinstance(v, bool) or v not in known
+                                               for v in value)):
+            raise ValueError("\"all\" or a list of figures among "
+                             + ", ".join(str(k) for k in sorted(known, key=str)))
+    if key == "formats":
+        if not isinstance(value, list) or not value or any(v not in ("png", "svg") for v in value):
+            raise ValueError("a non-empty list among 'png', 'svg'")
+    return value
+
+
+@dataclass(frozen=True)
+class FiguresResult:
+    """{figure name: files written} and one line per figure that could not be drawn."""
+
+    paths: Mapping[str, tuple[Path, ...]] = field(default_factory=dict)
+    problems: tuple[str, ...] = ()
+
+    def all_paths(self) -> list[Path]:
+        return [p for ps in self.paths.values() for p in ps]
+
+    def to_json(self) -> dict[str, Any]:
+        return {"figures": {k: [str(p) for p in v] for k, v in self.paths.items()},
+                "problems": list(self.problems)}
+
+
+def results_for_figures(ctx: Context) -> dict[str, Any]:
+    """The results a figure may need, by the names figures use."""
+    val = ctx.result("validate")
+    disc = ctx.result("discover")
+    out = {"flowfit": ctx.result("flowfit"), "tracking": ctx.result("tracking"),
+           "validation": val.validation if val is not None else None,
+           "discovery": disc.discovery if disc is not None else None}
+    return {k: v for k, v in out.items() if v is not None}
+
+
+def selected_figures(figs: Any) -> list:
+    """The registered figures a ``figs`` option selects, in registry order."""
+    from ..plots import FIGURES
+
+    if figs == "all":
+        return list(FIGURES.values())
+    return [f for f in FIGURES.values() if f.name in figs or (f.number is not None and f.number in figs)]
+
+
+def figures_of(result_name: str) -> list[str]:
+    """Names of the data-set figures drawn from one result ('validation', ...)."""
+    from ..plots import FIGURES
+
+    return [f.name for f in FIGURES.values() if not f.per_run and tuple(f.needs) == (result_name,)]
+
+
+def draw_run_figure(run, *, name: str, folder: str, formats: tuple[str, ...], rig) -> dict[str, Any]:
+    """Per-run function: the per-run figure ``name`` of one run."""
+    from ..plots import FIGURES
+
+    paths = FIGURES[name].draw_run(run, Path(folder), formats=formats, rig=rig)
+    return {"paths": [str(p) for p in paths], "run_id": run.meta.run_id}
+
+
+def run(ctx: Context, options: Mapping[str, Any]) -> FiguresResult:
+    """Draw the selected figures into ``ctx.out_dir / 'figures'``.
+
+    Figures are files by nature: this stage writes while it runs, and
+    :func:`write` has nothing left to do.
+    """
+    opts = {**OPTIONS, **options}
+    return draw_figures(ctx, opts["figs"], Path(ctx.out_dir) / "figures",
+                        formats=tuple(opts["formats"]))
+
+
+def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, ...] = ("png", "svg"),
+                 per_run_folders: bool = True) -> FiguresResult:
+    """Draw the figures ``figs`` selects ("all", or numbers/names) from the
+    context's results into ``folder`` (per-run figures into ``folder/<name>/``
+    when ``per_run_folders``)."""
+    folder = Path(folder)
+    have = results_for_figures(ctx)
+    explicit = figs != "all"
+    paths: dict[str, tuple[Path, ...]] = {}
+    problems: list[str] = []
+    for fig in selected_figures(figs):
+        if fig.per_run:
+            runs = position_paths(ctx) if fig.run_kind == "position_control" else []
+            if not runs:
+                continue
+            out = folder / fig.name if per_run_folders else folder
+            res = ctx.map_runs(fig.name, draw_run_figure, runs, rig=ctx.rig,
+                               params={"out_dir": str(out), "formats": list(formats)},
+                               kwargs={"name": fig.name, "folder": str(out), "formats": formats,
+                                       "rig": ctx.rig},
+                               valid=lambda v: all(Path(p).is_file() for p in v["paths"]))
+            got: list[Path] = []
+            for d in runs:
+                r = res[str(d)]
+                if r.ok:
+                    got += [Path(p) for p in r.value["paths"]]
+                else:
+                    problems.append(f"{fig.name}: {with_path(d, r.error)}")
+            if got:
+                paths[fig.name] = tuple(got)
+            continue
+        missing = [n for n in fig.needs if n not in have]
+        if missing:
+            if explicit or any(n in ("flowfit", "tracking") for n in missing) and \
+                    _expected(ctx, missing):
+                problems.append(f"{fig.name}: no {', '.join(missing)} result "
+                                "(stage absent or failed)")
+            continue
+        try:
+            drawn = fig.draw({n: have[n] for n in fig.needs}, folder, formats=formats)
+        except Exception as exc:  # a figure must not sink the run
+            problems.append(f"{fig.name}: {one_line(exc)}")
+            continue
+        paths[fig.name] = tuple(Path(p) for p in drawn)
+    return FiguresResult(paths, tuple(problems))
+
+
+def _expected(ctx: Context, missing: list[str]) -> bool:
+    """Whether the data would have given the missing results (flow steps for
+    a flow fit, position-control runs for tracking)."""
+    ds = ctx.result("ingest")
+    if ds is None:
+        return False
+    if "flowfit" in missing and not ds.kind("flow_step").empty:
+        return True
+    return "tracking" in missing and not ds.kind("position_control").empty
+
+
+def write(result: FiguresResult, folder: Path) -> list[Path]:
+    """Nothing more: the figure files were written as they were drawn."""
+    return [p for ps in result.paths.values() for p in ps]

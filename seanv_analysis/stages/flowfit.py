@@ -1,0 +1,85 @@
+"""Stage ``flowfit``: z0 and C of each valve side with 95 % intervals (eq. 3-5).
+
+Q = C (theta - theta_d(p1, dp; z0))^2 sqrt(dp), eq. (5), fitted on the
+flow-step runs the filters kept (:func:`seanv_analysis.fit.fit_flow`). The
+fitted model is what the later stages (tracking, validate, discover) use.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Mapping
+
+from ..errors import DataError
+from .base import Context
+
+__all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "check_option", "run", "write"]
+
+NAME = "flowfit"
+NEEDS = ("ingest",)
+WRITES = ("flowfit/flowfit.json", "flowfit/flowfit_details.json", "flowfit/model.toml",
+          "flowfit/model.json", "flowfit/per_run.parquet", "flowfit/per_load.parquet")
+DESCRIPTION = "z0 and C per valve side with 95 % intervals (eq. 3-5)"
+#: sides: valve sides to fit; procedure: 'joint' (eq. 5 on all runs) or the
+#: paper's 'two_step'; cam: 'measured' (servo feedback) or 'commanded';
+#: n_boot: bootstrap resamples of the 95 % intervals; seed: their seed
+OPTIONS: dict[str, Any] = {"sides": ["supply", "drain"], "procedure": "joint", "cam": "measured",
+                           "n_boot": 200, "seed": 0}
+
+
+def check_option(key: str, value: Any) -> Any:
+    if key == "sides" and (not isinstance(value, list) or not value
+                           or any(v not in ("supply", "drain") for v in value)):
+        raise ValueError("a non-empty list of 'supply', 'drain'")
+    if key == "procedure" and value not in ("joint", "two_step"):
+        raise ValueError("'joint' or 'two_step'")
+    if key == "cam" and value not in ("measured", "commanded"):
+        raise ValueError("'measured' or 'commanded'")
+    if key in ("n_boot", "seed") and (not isinstance(value, int) or isinstance(value, bool)
+                                      or value < 0):
+        raise ValueError("a whole number >= 0")
+    return value
+
+
+def run(ctx: Context, options: Mapping[str, Any]):
+    """:func:`seanv_analysis.fit.fit_flow` on the data set's summary.
+
+    Raises
+    ------
+    DataError
+        no flow-step run in the data set.
+    FitError
+        no side could be fitted.
+    """
+    from ..fit import fit_flow
+
+    opts = {**OPTIONS, **options}
+    ds = ctx.result("ingest")
+    if ds is None or not (ds.summary["kind"] == "flow_step").any():
+        raise DataError("no flow_step runs in the data set; expected flow-step runs "
+                        "(run.json kind = 'flow_step')", path=ctx.data[0])
+    return fit_flow(ds.summary, ctx.rig, sides=tuple(opts["sides"]), procedure=opts["procedure"],
+                    cam=opts["cam"], n_boot=opts["n_boot"], seed=opts["seed"])
+
+
+def write(fit, folder: Path) -> list[Path]:
+    """``flowfit.json`` (the contract), ``flowfit_details.json``, ``model.json``
+    and ``model.toml`` (the valve model, ``--model`` of the other commands),
+    ``per_run.parquet``, ``per_load.parquet``; each atomically."""
+    from ..io import write_json_atomic, write_table_parquet
+    from ..io.model_file import write_model_toml
+
+    out = Path(folder)
+    model_dict = fit.model.to_dict()
+    return [
+        write_json_atomic(out / "flowfit.json", fit.to_json()),
+        write_json_atomic(out / "flowfit_details.json", fit.to_dict()),
+        write_json_atomic(out / "model.json", model_dict),
+        write_model_toml(out / "model.toml", fit.model,
+                         header="SEANV valve model fitted by seanv-analyze flowfit "
+                                "(paper eq. 3-5). Units: mm, deg, MPa, mm^3/s."),
+        write_table_parquet(fit.per_run, out / "per_run.parquet",
+                            units={"residual_mm3_s": "mm^3/s", "z_score": ""}),
+        write_table_parquet(fit.per_load, out / "per_load.parquet",
+                            units={"alpha": "mm^3/(s deg^2)", "alpha_se": "mm^3/(s deg^2)",
+                                   "alpha_model": "mm^3/(s deg^2)"}),
+    ]

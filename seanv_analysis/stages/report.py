@@ -1,0 +1,56 @@
+"""Stage ``report``: one self-contained ``report.html`` of the whole run.
+
+The parameters with 95 % intervals beside the paper's, tracking numbers, the
+validation table, the discovery verdict with the held-out error before and
+after, the figures (from the registry in :mod:`seanv_analysis.plots`), the
+excluded and failed runs, and provenance
+(:func:`seanv_analysis.report.write_report`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path, PurePath
+from typing import Any, Mapping
+
+from .base import Context
+
+__all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "ReportResult", "check_option", "run", "write"]
+
+NAME = "report"
+NEEDS = ("ingest",)
+WRITES = ("report.html", "manifest.json")
+DESCRIPTION = "one self-contained report.html: numbers, figures, failed runs, provenance"
+#: filename: name of the HTML file inside the output folder
+OPTIONS: dict[str, Any] = {"filename": "report.html"}
+
+
+def check_option(key: str, value: Any) -> Any:
+    if key == "filename":
+        if (not isinstance(value, str) or not value.endswith(".html")
+                or PurePath(value).name != value or value.startswith(".")):
+            raise ValueError("a file name ending in .html (no folder part)")
+    return value
+
+
+@dataclass(frozen=True)
+class ReportResult:
+    """The pipeline record the report renders and the file name to write."""
+
+    record: Any
+    filename: str = "report.html"
+
+    def to_json(self) -> dict[str, Any]:
+        return {"filename": self.filename}
+
+
+def run(ctx: Context, options: Mapping[str, Any]) -> ReportResult:
+    """The record of the run so far (``ctx.record``, kept by the batch runner)."""
+    opts = {**OPTIONS, **options}
+    return ReportResult(ctx.record, opts["filename"])
+
+
+def write(result: ReportResult, folder: Path) -> list[Path]:
+    """``report.html`` in ``folder``."""
+    from ..report import write_report
+
+    return [Path(write_report(result.record, Path(folder) / result.filename))]
