@@ -46,9 +46,9 @@ def _time(data: Path, out: Path, *, workers: int, fresh: bool = True) -> tuple[f
 
 def main() -> dict:
     """Measure and write ``benchmarks/results/batch.json``; return the results."""
-    from benchmarks.bench_ingest import write_hour
     import seanv_analysis.batch  # noqa: F401  (imports not timed)
     import seanv_analysis.signals.derive  # noqa: F401
+    from benchmarks.bench_ingest import write_hour
 
     load0 = os.getloadavg()[0]
     with tempfile.TemporaryDirectory(prefix="bench-batch-") as tmp:
@@ -59,7 +59,7 @@ def main() -> dict:
         raw_mb = sum(f.stat().st_size for f in data.rglob("*.csv")) / 2**20
         _time(data, tmp / "warm", workers=1)  # page cache, numba caches
         serial, pool = [], []
-        for r in range(REPEATS):
+        for _r in range(REPEATS):
             t, res1 = _time(data, tmp / "serial", workers=1)
             serial.append(t)
             t, res2 = _time(data, tmp / "pool", workers=2)

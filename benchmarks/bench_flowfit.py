@@ -91,8 +91,8 @@ def _conftest_writer():
 def bench_disk(rig) -> dict:
     from seanv_analysis.fit import fit_flow
     from seanv_analysis.models import ValveModel, side_pressures
-    from seanv_analysis.stages import run_stages
     from seanv_analysis.plots.fig4 import plot_fig4
+    from seanv_analysis.stages import run_stages
 
     write = _conftest_writer()
     if write is None:
@@ -107,7 +107,7 @@ def bench_disk(rig) -> dict:
             for load in LOADS_500:
                 p_head = 4 * load + (0.3 if side == "supply" else 0.0)
                 p1, dp = side_pressures(side, 3.3, p_head, 0.0)
-                for rep in range(2):
+                for _rep in range(2):
                     for cam in cams[side]:
                         q = float(model.side(side).flow(cam, p1, dp))
                         write(root, side=side, cam_deg=round(float(cam), 2), load_mpag=load,

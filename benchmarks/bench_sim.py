@@ -140,8 +140,8 @@ def _cold_compile() -> dict:
 
 def _rtf() -> dict:
     from seanv_analysis import load_rig
-    from seanv_analysis.sim.control import FlowModelController
     from seanv_analysis.sim import simulate_position_control, simulate_scenario
+    from seanv_analysis.sim.control import FlowModelController
     from seanv_analysis.sim.scenarios import paper_position_profile
 
     rig = load_rig()

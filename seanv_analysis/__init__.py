@@ -5,16 +5,17 @@ Paper: "Series Elastic Actuated Needle Valve (SEANV)" flow and sealing
 characteristics (see README). Units follow the paper: mm, MPa gauge, deg, s,
 mm^3/s, N.
 """
-from importlib.metadata import PackageNotFoundError, version as _version
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _version
 
 try:
     __version__ = _version("seanv-analysis")
 except PackageNotFoundError:  # running from a source tree without install
     __version__ = "0.0.0+unknown"
 
-from .errors import ConfigError, DataError, FitError, SeanvError
 from .config import RigConfig, load_rig
-from .models import ValveModel, ValveSide, NeedleGeometry
+from .errors import ConfigError, DataError, FitError, SeanvError
+from .models import NeedleGeometry, ValveModel, ValveSide
 
 __all__ = ["__version__", "SeanvError", "DataError", "ConfigError", "FitError",
            "RigConfig", "load_rig", "ValveModel", "ValveSide", "NeedleGeometry"]

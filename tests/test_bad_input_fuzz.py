@@ -27,16 +27,14 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
+from conftest import snapshot, write_synthetic_dataset, write_synthetic_run
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from conftest import snapshot
 from seanv_analysis.cli import cli
 from seanv_analysis.errors import DataError
 from seanv_analysis.io import read_run
 from seanv_analysis.io.validate import read_run_json
-
-from conftest import write_synthetic_dataset, write_synthetic_run
 
 DURATION_S = 0.3
 COMMANDS = {

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -14,9 +13,7 @@ import pandas as pd
 import pytest
 from pandas.testing import assert_frame_equal
 
-from seanv_analysis.batch import (STAGE_NAMES, load_pipeline, parse_pipeline, run_pipeline,
-                                  shipped_pipelines)
-from seanv_analysis.batch import runner as runner_mod
+from seanv_analysis.batch import STAGE_NAMES, load_pipeline, parse_pipeline, run_pipeline, shipped_pipelines
 from seanv_analysis.batch.cache import RunCache, run_key
 from seanv_analysis.batch.executor import make_executor, progress_enabled
 from seanv_analysis.errors import ConfigError, DataError

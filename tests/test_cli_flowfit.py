@@ -9,11 +9,11 @@ from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
-
 from conftest import write_synthetic_run
-from seanv_analysis.io.model_file import read_model
+
 from seanv_analysis.cli import cli
 from seanv_analysis.config import load_rig
+from seanv_analysis.io.model_file import read_model
 from seanv_analysis.models import ValveModel, side_pressures
 
 CAMS = {"supply": (-12.0, -7.5, -5.0, -2.5, 0.0, 2.5, 5.0),

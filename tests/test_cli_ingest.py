@@ -12,13 +12,12 @@ import pandas as pd
 import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
+from conftest import snapshot
+from test_io_bad_input import CASES
 
 from seanv_analysis.cli import cli
 from seanv_analysis.io import SUMMARY_COLUMNS, read_dataset
 from seanv_analysis.signals.align import align_run
-
-from conftest import snapshot
-from test_io_bad_input import CASES
 
 CLI_MATCH = {  # where the CLI sees a different first problem than read_run
     "run_json_missing": r"no run\.json found at any depth",
@@ -67,7 +66,7 @@ def test_dataset_writes_tables_summary_manifest(tmp_path, make_dataset):
         assert table.schema.field("position_mm").metadata[b"unit"] == b"mm"
         df = table.to_pandas()
         runs = [r for r in ds.runs if r.kind == kind]
-        assert sorted(df["run_id"].unique()) == sorted(r.run_id for r in runs)  # folder order
+        assert list(df["run_id"].unique()) == [r.run_id for r in runs]
         first = df[df["run_id"] == runs[0].run_id]
         aligned = align_run(runs[0])
         pd.testing.assert_frame_equal(first[aligned.columns].reset_index(drop=True), aligned)

@@ -52,6 +52,7 @@ def test_run_json_and_cache(data, tmp_path):
 
 def test_run_pipeline_file_and_bad_runs_exit_1(data, tmp_path):
     import shutil
+
     from conftest import write_synthetic_run
 
     d = tmp_path / "data"

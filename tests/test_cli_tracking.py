@@ -8,11 +8,10 @@ import sys
 import pytest
 from click.testing import CliRunner
 from numpy.testing import assert_allclose
-
-from seanv_analysis.stages import run_stages
-from seanv_analysis.cli import cli
-
 from test_tracking import write_delayed_run
+
+from seanv_analysis.cli import cli
+from seanv_analysis.stages import run_stages
 
 
 @pytest.fixture(scope="module")

@@ -18,11 +18,19 @@ import pytest
 from numpy.testing import assert_allclose
 
 from seanv_analysis.config import load_rig
-from seanv_analysis.signals.derive import (FLOW_METHODS, DerivativeInfo, FlowEstimate, derive_samples,
-                                   estimate_flow, step_window, summarize_run, velocity_mm_s)
 from seanv_analysis.errors import ConfigError, DataError
 from seanv_analysis.io.run import SUMMARY_COLUMNS, Run, RunMeta
 from seanv_analysis.signals.align import align_run
+from seanv_analysis.signals.derive import (
+    FLOW_METHODS,
+    DerivativeInfo,
+    FlowEstimate,
+    derive_samples,
+    estimate_flow,
+    step_window,
+    summarize_run,
+    velocity_mm_s,
+)
 
 RIG = load_rig()
 AREA = RIG.piston_area_mm2

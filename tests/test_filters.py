@@ -146,8 +146,8 @@ def test_errors():
 
 
 def test_filters_on_summaries_of_runs(tmp_path, make_dataset):
-    from seanv_analysis.signals.derive import summarize_run
     from seanv_analysis.io.reader import read_dataset
+    from seanv_analysis.signals.derive import summarize_run
     root = make_dataset(tmp_path, n_flow=3, duration_s=0.6)
     rows = [summarize_run(r) for r in read_dataset(root).runs]
     out = apply_filters(pd.DataFrame(rows), RIG)

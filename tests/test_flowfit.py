@@ -10,13 +10,13 @@ import numpy as np
 import pyarrow.parquet as pq
 import pytest
 from numpy.testing import assert_allclose
+from synthetic_flow import synthetic_flow_summary
 
 from seanv_analysis.config import load_rig
-from seanv_analysis.io.model_file import read_model
 from seanv_analysis.errors import ConfigError, DataError, FitError
 from seanv_analysis.fit import fit_flow
 from seanv_analysis.fit._perload import _stderr, group_loads
-from synthetic_flow import synthetic_flow_summary
+from seanv_analysis.io.model_file import read_model
 from seanv_analysis.models import ValveModel
 
 #: truth sets {side: (z0_mm, C)}: the paper's and two others

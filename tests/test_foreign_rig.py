@@ -21,8 +21,8 @@ import math
 
 import pytest
 from click.testing import CliRunner
-
 from foreign_rig import ForeignTruth, flowstep_plan, write_flowsteps, write_position
+
 from seanv_analysis.cli import cli
 
 #: a small protocol: 3 loads x 3 repeats x (4 supply + 5 drain angles) = 81 runs;

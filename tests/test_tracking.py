@@ -9,12 +9,12 @@ import pytest
 from numpy.testing import assert_allclose
 
 from seanv_analysis.analysis.tracking import run_flows, tracking_runs
-from seanv_analysis.stages import run_stages
 from seanv_analysis.config import load_rig
-from seanv_analysis.signals.align import align_run
-from seanv_analysis.signals.derive import derive_samples
 from seanv_analysis.errors import ConfigError, DataError
 from seanv_analysis.io import read_dataset, read_run, write_run
+from seanv_analysis.signals.align import align_run
+from seanv_analysis.signals.derive import derive_samples
+from seanv_analysis.stages import run_stages
 
 AREA = math.pi / 4 * 16.0 ** 2
 
@@ -186,8 +186,8 @@ def test_write_and_figures(delayed_runs, delayed_dataset, tmp_path):
 
 def _paper_run(effects=(), seed=0):
     sim = pytest.importorskip("seanv_analysis.sim")
-    from seanv_analysis.sim.control import FlowModelController
     from seanv_analysis.models import ValveModel
+    from seanv_analysis.sim.control import FlowModelController
     from seanv_analysis.sim.scenarios import paper_position_profile
 
     rig = load_rig()

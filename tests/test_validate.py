@@ -8,18 +8,22 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose
+from test_tracking import write_delayed_run
 
-from seanv_analysis.analysis.validate import (Validation, build_controller, fit_percent,
-                                              load_steps, reference_steps, step_metrics,
-                                              validate_runs)
+from seanv_analysis.analysis.validate import (
+    Validation,
+    build_controller,
+    fit_percent,
+    load_steps,
+    reference_steps,
+    step_metrics,
+    validate_runs,
+)
 from seanv_analysis.config import load_rig
-from seanv_analysis.sim.control import CamController, FlowModelController
 from seanv_analysis.errors import ConfigError, DataError
 from seanv_analysis.io import Run, read_run
 from seanv_analysis.models import ValveModel
-
-from test_tracking import write_delayed_run
-
+from seanv_analysis.sim.control import CamController, FlowModelController
 
 # --- pure helpers ------------------------------------------------------------
 

@@ -31,9 +31,9 @@ from typing import Any, Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from ..signals.derive import derive_samples
 from ..errors import ConfigError, DataError
 from ..io.run import Run
+from ..signals.derive import derive_samples
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments
 
 __all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "RunTracking", "Tracking",
@@ -228,7 +228,7 @@ class RunTracking:
 
 @dataclass
 class Tracking:
-    """Flow tracking of a set of position_control runs (issue 6 contract).
+    """Flow tracking of a set of position_control runs (``tracking --json`` contract).
 
     Attributes
     ----------
@@ -278,7 +278,7 @@ class Tracking:
         return pd.DataFrame([r.row() for r in self.runs])
 
     def to_json(self) -> dict[str, Any]:
-        """The issue-6 JSON document (``runs[].lag_s`` = the run's own estimate)."""
+        """The ``tracking --json`` document (``runs[].lag_s`` = the run's own estimate)."""
         ci = self.lag_ci95_s
         return {"lag_s": _num(self.lag_s), "lag_source": self.lag_source,
                 "lag_ci95_s": None if ci is None else [_num(ci[0]), _num(ci[1])],

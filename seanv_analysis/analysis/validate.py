@@ -1,5 +1,5 @@
 """Closed-loop validation: re-run each measured position-control test on the
-simulated plant and compare (issue 6, paper Sec. III-C).
+simulated plant and compare (paper Sec. III-C).
 
 For every position_control run the same controller is rebuilt from run.json
 (``controller.kp``, ``controller.flow_model``: :class:`~seanv_analysis.sim.control.FlowModelController`
@@ -31,9 +31,9 @@ from typing import Any, Callable, Iterable, Sequence
 import numpy as np
 import pandas as pd
 
-from ..signals.derive import derive_samples
 from ..errors import ConfigError, DataError
 from ..io.run import Run
+from ..signals.derive import derive_samples
 from .tracking import load_levels_mpag
 
 __all__ = ["DEFAULT_THRESHOLD_PCT", "fit_percent", "reference_steps", "load_steps",
@@ -217,7 +217,7 @@ class RunValidation:
 
 @dataclass
 class Validation:
-    """Closed-loop validation of a data set (issue 6).
+    """Closed-loop validation of a data set.
 
     Attributes
     ----------

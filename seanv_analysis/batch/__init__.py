@@ -11,8 +11,15 @@ Pipeline files (stages and their options) are read by
 :mod:`seanv_analysis.stages.pipeline`, re-exported here.
 """
 from ..stages import FailedRun
-from ..stages.pipeline import (STAGE_NAMES, Pipeline, Stage, load_pipeline, parse_pipeline,
-                               shipped_pipelines, stage_options)
+from ..stages.pipeline import (
+                               STAGE_NAMES,
+                               Pipeline,
+                               Stage,
+                               load_pipeline,
+                               parse_pipeline,
+                               shipped_pipelines,
+                               stage_options,
+)
 from .cache import RunCache, run_key
 from .executor import Executor, TaskResult, make_executor
 from .runner import CachedMapper, PipelineResult, run_pipeline

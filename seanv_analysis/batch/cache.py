@@ -193,9 +193,6 @@ class RunCache:
             self._dirty = True
 
     # entries -------------------------------------------------------------
-    def _entry(self, key: str) -> Path:
-        return self.entries / f"{key}.pkl"
-
     def get(self, key: str) -> Any | None:
         """The stored result for ``key``, or None (missing, unreadable or disabled)."""
         if not self.enabled:

@@ -129,7 +129,7 @@ class PipelineResult:
     def to_json(self) -> dict[str, Any]:
         """Numbers and paths as one JSON document (``result.json``)."""
         def j(obj):
-            return obj.to_json() if obj is not None and hasattr(obj, "to_json") else None
+            return obj.to_json() if obj is not None else None
 
         return {
             "schema": "seanv-pipeline-result/1",

@@ -62,8 +62,16 @@ def cli() -> None:
 
 
 # the subcommands register themselves on ``cli`` when imported
-from . import (discover_cmd, flowfit_cmd, ingest_cmd, plots_cmd, run_cmd,  # noqa: E402,F401
-               simulate_cmd, tracking_cmd, validate_cmd)
+from . import (  # noqa: E402,F401
+    discover_cmd,
+    flowfit_cmd,
+    ingest_cmd,
+    plots_cmd,
+    run_cmd,
+    simulate_cmd,
+    tracking_cmd,
+    validate_cmd,
+)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -3,7 +3,6 @@ Parquet tables, a per-run summary and a manifest."""
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 from contextlib import ExitStack
@@ -21,27 +20,6 @@ __all__ = ["ingest_cmd", "ingest"]
 def _inside(child: Path, parent: Path) -> bool:
     child, parent = child.resolve(), parent.resolve()
     return child == parent or parent in child.parents
-
-
-def _summary_frame(rows: list[dict[str, Any]]):
-    """Rows -> DataFrame with exactly SUMMARY_COLUMNS, in order, typed."""
-    import pandas as pd
-
-    from ..io.run import SUMMARY_COLUMNS
-
-    df = pd.DataFrame(rows)
-    for col, dtype in SUMMARY_COLUMNS.items():
-        if col not in df:
-            df[col] = "" if dtype == "str" else (0 if dtype == "int64" else math.nan)
-    df = df[list(SUMMARY_COLUMNS)]
-    for col, dtype in SUMMARY_COLUMNS.items():
-        if dtype == "str":
-            df[col] = df[col].fillna("").astype(str)
-        elif dtype.startswith("datetime64"):
-            df[col] = pd.to_datetime(df[col], utc=True).astype(dtype)
-        else:
-            df[col] = df[col].astype(dtype)
-    return df
 
 
 class _SampleWriter:
@@ -95,7 +73,7 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[st
     """
     from ..errors import DataError
     from ..io.manifest import write_manifest
-    from ..io.reader import is_run_dir
+    from ..io.reader import dataset_plan, is_run_dir
     from ..io.writer import write_table_parquet
     from ..signals.derive import derive_samples, summarize_run
     from ..stages import Context, dataset
@@ -106,6 +84,9 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[st
         raise DataError(f"--out: {out_dir} is inside the data folder; outputs never go into raw "
                         "data: choose another --out (default: outputs/<dataset-name>/ingest/ under "
                         "the current folder)", path=root)
+    # samples are written in time order (the plan's started_at order), bad metadata last
+    order = {str(m.path): i for i, m in enumerate(dataset_plan(root, rig=rig)[0])}
+    ctx.run_dirs.sort(key=lambda d: (order.get(str(d), len(order)), str(d)))
     meta = {"rig_source": rig.source, "data": str(root)}
     by_kind: dict[str, int] = {}
     with ExitStack() as stack:
@@ -134,7 +115,7 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[st
             raise DataError(errors[0].message)
         if ds.runs_read == 0:  # no writer was opened: nothing is written
             return _result(root, out_dir, by_kind, errors, {}, None, excluded={})
-        summary = _summary_frame(ds.summary.to_dict("records"))
+        summary = ds.contract_table()
     tables = {kind: str(writer.path(kind)) for kind in writer.rows}
     summary_path = write_table_parquet(summary, out_dir / "summary.parquet", metadata=meta)
     result = _result(root, out_dir, by_kind, errors, tables, summary_path,

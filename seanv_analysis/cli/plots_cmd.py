@@ -71,7 +71,6 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
     """
     from ..batch import run_pipeline
     from ..errors import DataError
-
     from ..stages.figures import selected_figures
 
     chosen = "all" if "all" in fig else [int(f) if f.isdigit() else f for f in fig]
@@ -87,10 +86,9 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
         from .run_cmd import bad_runs
         return unusable(data, bad_runs([data], rig_file, exc), exc)
     n = 0
-    for name, paths in result.figures.items():
-        for p in paths:
-            click.echo(str(p))
-            n += 1
+    for p in (p for paths in result.figures.values() for p in paths):
+        click.echo(str(p))
+        n += 1
     click.echo(f"{n} figure file(s) under {out / 'figures'}", err=True)
     for stage, msg in {**result.stage_notes, **result.stage_errors}.items():
         click.echo(f"note: {stage}: {msg}", err=True)

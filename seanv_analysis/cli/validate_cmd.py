@@ -9,8 +9,15 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import (check_out_dir, default_out_dir, echo_bad_runs, sim_default_dataset,
-                      stage_context, unusable, write_command_manifest)
+from ._common import (
+    check_out_dir,
+    default_out_dir,
+    echo_bad_runs,
+    sim_default_dataset,
+    stage_context,
+    unusable,
+    write_command_manifest,
+)
 
 __all__ = ["validate_cmd"]
 

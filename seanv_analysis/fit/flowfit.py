@@ -132,7 +132,7 @@ class SideFit:
     message: str = ""
 
     def to_json(self) -> dict[str, Any]:
-        """The issue-5 contract for one side (NaN -> null)."""
+        """The ``--json`` contract for one side (NaN -> null)."""
         return {"z0_mm": _json_num(self.z0_mm), "C": _json_num(self.c_flow),
                 "z0_ci95": [_json_num(v) for v in self.z0_ci95],
                 "C_ci95": [_json_num(v) for v in self.c_ci95],
@@ -190,7 +190,7 @@ class FlowFit:
     settings: dict[str, Any] = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
-        """The stable JSON contract of issue 5 (``--json``)."""
+        """The stable JSON contract of ``flowfit --json``."""
         out: dict[str, Any] = {s: f.to_json() for s, f in self.sides.items()}
         out["excluded"] = {k: int(v) for k, v in self.excluded.items()}
         out["units"] = dict(UNITS)

@@ -12,6 +12,7 @@ go on.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -65,6 +66,26 @@ class DatasetResult:
         """Rows of one run kind ('flow_step', 'position_control')."""
         s = self.summary
         return s[s["kind"] == kind] if not s.empty else s.assign(path=[])
+
+    def contract_table(self) -> pd.DataFrame:
+        """The summary with exactly the data contract's columns
+        (``io.run.SUMMARY_COLUMNS``), in order and typed: ``summary.parquet``
+        of ``seanv-analyze ingest``."""
+        from ..io.run import SUMMARY_COLUMNS
+
+        df = self.summary.copy()
+        for col, dtype in SUMMARY_COLUMNS.items():
+            if col not in df:
+                df[col] = "" if dtype == "str" else (0 if dtype == "int64" else math.nan)
+        df = df[list(SUMMARY_COLUMNS)]
+        for col, dtype in SUMMARY_COLUMNS.items():
+            if dtype == "str":
+                df[col] = df[col].fillna("").astype(str)
+            elif dtype.startswith("datetime64"):
+                df[col] = pd.to_datetime(df[col], utc=True).astype(dtype)
+            else:
+                df[col] = df[col].astype(dtype)
+        return df.reset_index(drop=True)
 
     def report(self) -> str:
         kinds = self.summary["kind"].value_counts().to_dict() if not self.summary.empty else {}
