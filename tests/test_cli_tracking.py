@@ -109,8 +109,8 @@ def test_tracking_on_simulated_paper_position(sim_sets, tmp_path):
     # the run without flow model has no q_ref: skipped (no --model), listed in the details
     details = json.loads((tmp_path / "t" / "tracking_details.json").read_text())
     assert list(details["skipped"]) == ["position-without-flow-model"]
-    # Fig. 6 one per run, Fig. 7 the tracked one
-    for name in ("fig7.png", "fig7.svg",
+    # Fig. 6 shows both runs ((a) without, (b) with the flow model), Fig. 7 the tracked one
+    for name in ("fig6.png", "fig6.svg", "fig7.png", "fig7.svg",
                  "fig6_position-without-flow-model.png", "fig7_position-with-flow-model.svg"):
         assert (out / name).stat().st_size > 1000
 

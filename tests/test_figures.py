@@ -73,7 +73,7 @@ def _record(tmp_path: Path, figures: dict[str, list[Path]]) -> SimpleNamespace:
 # --- the registry -----------------------------------------------------------------
 
 def test_registered_figures_are_consistent():
-    assert list(FIGURES)[:4] == ["fig4", "fig6", "fig7", "discover_residuals"]
+    assert list(FIGURES)[:5] == ["fig4", "fig6", "fig6_runs", "fig7", "discover_residuals"]
     numbers = [f.number for f in FIGURES.values() if f.number is not None]
     assert len(numbers) == len(set(numbers)), numbers
     assert {f.number for f in FIGURES.values()} >= {4, 6, 7}
@@ -221,22 +221,20 @@ def test_per_run_figure_writes_the_formats_asked(rig, position_runs, tmp_path):
     assert np.all([p.read_text().lstrip().startswith("<?xml") for p in paths])
 
 
-def test_discovery_residuals_keep_only_the_formats_asked(monkeypatch, tmp_path):
-    from seanv_analysis.plots import residuals
+def test_discovery_residuals_keep_only_the_formats_asked(rig, tmp_path):
+    from synthetic_flow import synthetic_flow_summary
 
-    def fake(discovery, *, out_dir, **_):
-        out = [Path(out_dir) / f"discover_residuals.{ext}" for ext in ("png", "svg")]
-        for p in out:
-            p.parent.mkdir(parents=True, exist_ok=True)
-            p.write_bytes(b"x")
-        return out
+    from seanv_analysis.discover import discover_flow_steps
+    from seanv_analysis.models import ValveModel
 
-    monkeypatch.setattr(residuals, "plot_discovery_residuals", fake)
-    paths = FIGURES["discover_residuals"].draw({"discovery": object()}, tmp_path, formats=["svg"])
+    truth = ValveModel.from_rig(rig)
+    disc = discover_flow_steps(synthetic_flow_summary(truth, rig, seed=1), model=truth)
+    paths = FIGURES["discover_residuals"].draw({"discovery": disc}, tmp_path, formats=["svg"])
     assert [p.name for p in paths] == ["discover_residuals.svg"]
     assert [p.name for p in tmp_path.iterdir()] == ["discover_residuals.svg"]
+    assert paths[0].read_text().lstrip().startswith("<?xml")
     with pytest.raises(ValueError, match="formats"):
-        FIGURES["discover_residuals"].draw({"discovery": object()}, tmp_path, formats=["pdf"])
+        FIGURES["discover_residuals"].draw({"discovery": disc}, tmp_path, formats=[".pdf"])
 
 
 def test_formats_errors(rig, position_runs, tmp_path):

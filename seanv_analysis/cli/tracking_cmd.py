@@ -82,7 +82,7 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
     ctx.add("tracking", result)
     tracking.write(result, out)
     if not no_figures:
-        figures.draw_figures(ctx, [6, 7], out, per_run_folders=False)
+        figures.draw_figures(ctx, [6, "fig6_runs", 7], out, per_run_folders=False)
     write_command_manifest(out, ctx, extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
                                             "model": str(model_file) if model_file else None})
     if as_json:

@@ -10,7 +10,7 @@ several runs side by side.
 """
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -132,6 +132,15 @@ def plot_fig6_dataset(runs: Sequence, out_dir: str | Path, *, stem: str = "fig6"
         fig.align_ylabels(axes[:, 0])
         fig.tight_layout(h_pad=0.4)
         return save_figure(fig, out_dir, stem, formats=formats)
+
+
+def draw_runs(results: Mapping[str, Any], folder: Path, *,
+              formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Registry entry: the position-control runs side by side as
+    ``folder/fig6.<format>``, the paper's order: (a) without, (b) with the flow model."""
+    runs = sorted(results["position_runs"],
+                  key=lambda r: bool((r.meta.controller or {}).get("flow_model", True)))
+    return plot_fig6_dataset(runs, folder, formats=formats)
 
 
 def draw_run(run, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS,

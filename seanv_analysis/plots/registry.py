@@ -7,7 +7,8 @@ drawing function that writes its files and returns their paths:
 - a data-set figure has ``draw(results, folder, *, formats) -> [paths]``,
   where ``results`` maps each of its ``needs`` to the stage's result
   (``"flowfit"``: FlowFit, ``"tracking"``: Tracking, ``"validation"``:
-  Validation, ``"discovery"``: Discovery);
+  Validation, ``"discovery"``: Discovery, ``"position_runs"``: the data
+  set's position-control runs);
 - a per-run figure (``per_run=True``, ``needs=("runs",)``) has
   ``draw_run(run, folder, *, formats, rig) -> [paths]``, called once per run
   of kind ``run_kind`` (the batch runner runs these as parallel, cached
@@ -35,8 +36,10 @@ __all__ = ["Figure", "FIGURES", "RESULT_NAMES", "register_figure", "describe_fig
            "DrawDataset", "DrawRun"]
 
 #: names a figure's ``needs`` may use: the stage results a figure draws from,
-#: and "runs" for a per-run figure (it draws from one run at a time)
-RESULT_NAMES: tuple[str, ...] = ("flowfit", "tracking", "validation", "discovery", "runs")
+#: the position-control runs of the data set, and "runs" for a per-run figure
+#: (it draws from one run at a time)
+RESULT_NAMES: tuple[str, ...] = ("flowfit", "tracking", "validation", "discovery",
+                                  "position_runs", "runs")
 
 
 class DrawDataset(Protocol):
@@ -110,11 +113,6 @@ class Figure:
                 raise ValueError(f"{where}: needs 'runs' and run_kind belong to per-run figures "
                                  "(per_run=True)")
 
-    @property
-    def label(self) -> str:
-        """``"fig 4"`` for a numbered figure, else its name (for messages)."""
-        return f"fig {self.number}" if self.number is not None else self.name
-
 
 #: {name: Figure}, in the order the report shows them
 FIGURES: dict[str, Figure] = {}
@@ -154,24 +152,10 @@ def _draw_discovery_residuals(results: Mapping[str, Any], folder: Path, *,
                               formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
     """Residuals before/after discovery as ``folder/discover_residuals.<format>``
     (:func:`~seanv_analysis.plots.residuals.plot_discovery_residuals`)."""
-    # imported here: the residuals module loads matplotlib when imported
     from .residuals import plot_discovery_residuals
 
-    formats = check_formats(formats)
-    unsupported = [f for f in formats if f not in DEFAULT_FORMATS]
-    if unsupported:
-        raise ValueError(f"formats: the discovery residuals figure is written as "
-                         f"{' and '.join(DEFAULT_FORMATS)} only, not {unsupported[0]!r}")
-    written = [Path(p) for p in plot_discovery_residuals(results["discovery"], out_dir=folder)]
-    # plot_discovery_residuals always writes every default format; the folder
-    # must hold exactly the formats asked, so the others are removed again
-    kept = []
-    for p in written:
-        if p.suffix.lstrip(".") in formats:
-            kept.append(p)
-        else:
-            p.unlink(missing_ok=True)
-    return kept
+    return plot_discovery_residuals(results["discovery"], out_dir=folder,
+                                    formats=check_formats(formats))
 
 
 register_figure(Figure(
@@ -182,6 +166,10 @@ register_figure(Figure(
     name="fig6", number=6, needs=("runs",), per_run=True, run_kind="position_control",
     draw_run=fig6.draw_run,
     title="Fig. 6: position control under load variation, one figure per run"))
+register_figure(Figure(
+    name="fig6_runs", needs=("position_runs",), draw=fig6.draw_runs,
+    title="Fig. 6: the position-control runs side by side, (a) without and (b) with the flow "
+          "model"))
 register_figure(Figure(
     name="fig7", number=7, needs=("tracking",), draw=fig7.draw,
     title="Fig. 7: flow tracking, target vs actual flow (delay-shifted), all runs and per run"))

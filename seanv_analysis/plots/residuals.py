@@ -3,14 +3,11 @@ variables, before and after adding the effects found."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Sequence
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-from ..io.atomic import atomic_path  # noqa: E402
+from ._style import DEFAULT_FORMATS, new_figure, save_figure
 
 __all__ = ["plot_discovery_residuals"]
 
@@ -20,8 +17,10 @@ _LABELS = {"run_index": "Run index (time order) [-]", "dp_mpa": "Pressure differ
 
 
 def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "discover_residuals",
-                             variables=("run_index", "dp_mpa", "opening_deg", "cam_approach")):
-    """Residual vs variable, all runs (fit set and held-out), before/after. PNG + SVG.
+                             variables=("run_index", "dp_mpa", "opening_deg", "cam_approach"),
+                             formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Residual vs variable, all runs (fit set and held-out), before/after,
+    as ``<out_dir>/<stem>.<format>`` for each of ``formats``.
 
     Returns the written paths; none when the discovery had no flow-step runs
     (position-control data only: its evidence is the lag and ``validate``).
@@ -31,8 +30,8 @@ def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "dis
     # the variables and predictions exactly as discovery saw them
     from ..discover import predict_static, residual_variables
 
-    fig, axes = plt.subplots(1, len(variables), figsize=(4.2 * len(variables), 3.6), sharey=True)
-    axes = np.atleast_1d(axes)
+    fig = new_figure(figsize=(4.2 * len(variables), 3.6))
+    axes = np.atleast_1d(fig.subplots(1, len(variables), sharey=True))
     for part, data, marker in (("fit", discovery.fit_data, "o"), ("held-out", discovery.heldout_data, "s")):
         if data is None or len(data) == 0:
             continue
@@ -64,12 +63,4 @@ def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "dis
     fig.legend(uniq.values(), uniq.keys(), loc="lower center", ncol=min(len(uniq), 6), fontsize=8,
                frameon=False)
     fig.tight_layout(rect=(0, 0.08, 1, 0.95))
-    out_dir = Path(out_dir)
-    paths = []
-    for ext in ("png", "svg"):
-        path = out_dir / f"{stem}.{ext}"
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format=ext, dpi=130)
-        paths.append(path)
-    plt.close(fig)
-    return paths
+    return save_figure(fig, out_dir, stem, formats=formats, dpi=130, tight=False)

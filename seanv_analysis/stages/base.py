@@ -169,7 +169,7 @@ class Context:
     start_model: ValveModel | None = None
     start_model_source: str = "rig config (paper's z0, C)"
     results: dict[str, Any] = field(default_factory=dict)
-    read_runs: dict[str, Any] = field(default_factory=dict)
+    loaded_runs: dict[str, Any] = field(default_factory=dict)  # {folder: Run} read in this process
     record: Any = None
     quiet: bool = True
     log: Callable[[str], None] = lambda msg: None

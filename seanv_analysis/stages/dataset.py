@@ -206,7 +206,7 @@ def position_runs(ctx: Context) -> list:
     ds = ctx.result(NAME)
     if ds is None:
         return []
-    cache = ctx.read_runs
+    cache = ctx.loaded_runs
     out = []
     for p in ds.kind("position_control")["path"].tolist():
         if p not in cache:

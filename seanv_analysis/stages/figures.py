@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from .base import Context, one_line, with_path
+from .dataset import position_runs
 from .validate import position_paths
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "FiguresResult", "check_option", "run", "write",
@@ -65,7 +66,8 @@ def results_for_figures(ctx: Context) -> dict[str, Any]:
     disc = ctx.result("discover")
     out = {"flowfit": ctx.result("flowfit"), "tracking": ctx.result("tracking"),
            "validation": val.validation if val is not None else None,
-           "discovery": disc.discovery if disc is not None else None}
+           "discovery": disc.discovery if disc is not None else None,
+           "position_runs": position_runs(ctx) or None}
     return {k: v for k, v in out.items() if v is not None}
 
 
