@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from html import escape as html_escape
+from pathlib import Path
+from types import SimpleNamespace
 from typing import ClassVar
 
 import numpy as np
@@ -22,6 +25,7 @@ from seanv_analysis.discover.static import EffectSpec
 from seanv_analysis.errors import ConfigError
 from seanv_analysis.models import effects as fx
 from seanv_analysis.models import side_pressures
+from seanv_analysis.report import render_report
 
 RIG = load_rig()
 MODEL = ValveModel.from_rig(RIG)
@@ -121,6 +125,21 @@ def test_discover_names_the_toy_effect_and_reports_it(toy):
     # what discover found rebuilds the effect (what validate would simulate)
     _, specs = d.augmented_model_and_effects()
     assert specs[0].startswith("ripple:amplitude=")
+    # and the HTML report names it with its sentence (no report code knows "ripple")
+    html = render_report(_record(d))
+    assert "ripple" in html and html_escape(first.sentence(), quote=True) in html
+
+
+def _record(discovery) -> SimpleNamespace:
+    """A pipeline record holding only a discovery (the report reads it duck-typed)."""
+    pipeline = SimpleNamespace(name="toy", description="", source=None,
+                               to_dict=lambda: {"name": "toy"})
+    return SimpleNamespace(
+        pipeline=pipeline, data=[Path("data")], executor="serial", command=["toy"], rig=None,
+        runs_found=0, runs_read=0, summary=pd.DataFrame(), excluded={}, failed=[], flowfit=None,
+        tracking=None, validation=None, validation_augmented=None, discovery=discovery,
+        figures={}, stage_errors={}, stage_notes={}, warnings=[], input_hashes={},
+        manifest_path=None, timings_s={}, computed={}, cached={})
 
 
 def test_toy_effect_is_gone_after_its_test():
