@@ -48,12 +48,13 @@ AUTO_PARALLEL_MIN_RUNS = 64
 @contextmanager
 def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True):
     """The :class:`~seanv_analysis.stages.Context` of a single command: per-run
-    work in this process, or on all cores for large data sets (no cache)."""
+    work in this process, or on all cores for large data sets (no cache)
+    inside the block; in this process after it."""
     import multiprocessing as mp
     import os
 
     from ..batch import CachedMapper, make_executor
-    from ..stages import Context
+    from ..stages import Context, serial_map
 
     ctx = Context.for_data(data, rig=rig, out_dir=out_dir, model=model,
                            model_source="--model" if model is not None else None, quiet=quiet)
@@ -63,7 +64,10 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True):
         return
     with make_executor(workers=os.cpu_count()) as ex:
         ctx.map_runs = CachedMapper(ex, None, quiet=quiet)
-        yield ctx
+        try:
+            yield ctx
+        finally:  # the pool is gone after the block
+            ctx.map_runs = serial_map
 
 
 def unusable(data, failed, exc: Exception | None = None) -> int:
