@@ -199,3 +199,43 @@ def snapshot(folder: Path) -> dict[str, str]:
 def rig():
     """The shipped default rig config."""
     return load_rig()
+
+
+#: the paper's drain drift, strong enough to show in 24 flow steps
+GOLDEN_DRIFT = "drift:side=drain,step=0.05,every=3"
+
+
+@pytest.fixture(scope="session")
+def golden_data(tmp_path_factory):
+    """The golden data set (tests/test_golden.py): 24 flow steps on both sides
+    at two loads with a drain drift, and the position-control test with and
+    without the flow model, simulated with the built-in plant (seed 5)."""
+    from datetime import datetime, timedelta, timezone
+
+    from seanv_analysis.sim import simulate_flow_step, simulate_scenario
+
+    root = tmp_path_factory.mktemp("golden") / "data"
+    t = datetime(2026, 3, 2, 9, 0, tzinfo=timezone.utc)
+    grid = [(side, cam, load) for load in (0.3, 0.5) for rep in range(2)
+            for side, cams in (("supply", (-5.0, 0.0, 5.0)), ("drain", (-40.0, -32.5, -25.0)))
+            for cam in cams]
+    for i, (side, cam, load) in enumerate(grid):
+        run, _ = simulate_flow_step(side=side, cam_deg=cam, load_mpag=load, seed=5, run_index=i,
+                                    effects=[GOLDEN_DRIFT], run_id=f"fs{i:02d}-{side}",
+                                    started_at=t + timedelta(minutes=i))
+        write_run(root / "flow" / run.meta.run_id, run.meta.to_json(), run.tables)
+    simulate_scenario("paper-position", root / "position", seed=5)
+    return root
+
+
+@pytest.fixture(scope="session")
+def golden_run(golden_data, tmp_path_factory):
+    """The paper pipeline on the golden data set, serial: (result.json document, out folder)."""
+    import json
+
+    from seanv_analysis.batch import run_pipeline
+
+    out = tmp_path_factory.mktemp("golden-run") / "out"
+    run_pipeline("paper", [golden_data / "flow", golden_data / "position"], out_dir=out,
+                 workers=1, quiet=True, command=["golden"])
+    return json.loads((out / "result.json").read_text()), out

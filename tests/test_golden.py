@@ -5,10 +5,11 @@ its closed-loop check, exclusions, bad runs, the files written) must stay what
 they were when ``tests/golden/paper_pipeline.json`` was recorded. A change of
 behaviour shows here; a change of layout must not.
 
-The data: 24 flow steps on both sides at two loads with the paper's
-drain-side drift (step 5 % every 3 runs, strong enough for 24 runs), plus the
-position-control test with and without the flow model, simulated with the
-built-in plant (seed 5). Re-record after an intended change of numbers with::
+The data (conftest ``golden_data``): 24 flow steps on both sides at two
+loads with the paper's drain-side drift (step 5 % every 3 runs, strong enough
+for 24 runs), plus the position-control test with and without the flow
+model, simulated with the built-in plant (seed 5). The serial run
+(``golden_run``) is also what test_batch holds the other executors to. Re-record after an intended change of numbers with::
 
     SEANV_UPDATE_GOLDEN=1 .venv/bin/python -m pytest tests/test_golden.py
 """
@@ -17,34 +18,11 @@ from __future__ import annotations
 import json
 import math
 import os
-from datetime import datetime, timedelta, timezone
 from pathlib import Path
 
-import pytest
-
 GOLDEN = Path(__file__).parent / "golden" / "paper_pipeline.json"
-DRIFT = "drift:side=drain,step=0.05,every=3"
 #: keys of result.json that depend on the machine or the clock, not the numbers
 VOLATILE = ("timings_s", "computed", "cached", "executor", "version")
-
-
-@pytest.fixture(scope="module")
-def golden_data(tmp_path_factory):
-    from seanv_analysis.io import write_run
-    from seanv_analysis.sim import simulate_flow_step, simulate_scenario
-
-    root = tmp_path_factory.mktemp("golden") / "data"
-    t = datetime(2026, 3, 2, 9, 0, tzinfo=timezone.utc)
-    grid = [(side, cam, load) for load in (0.3, 0.5) for rep in range(2)
-            for side, cams in (("supply", (-5.0, 0.0, 5.0)), ("drain", (-40.0, -32.5, -25.0)))
-            for cam in cams]
-    for i, (side, cam, load) in enumerate(grid):
-        run, _ = simulate_flow_step(side=side, cam_deg=cam, load_mpag=load, seed=5, run_index=i,
-                                    effects=[DRIFT], run_id=f"fs{i:02d}-{side}",
-                                    started_at=t + timedelta(minutes=i))
-        write_run(root / "flow" / run.meta.run_id, run.meta.to_json(), run.tables)
-    simulate_scenario("paper-position", root / "position", seed=5)
-    return root
 
 
 def _portable(obj, replace: dict[str, str]):
@@ -84,13 +62,9 @@ def _compare(got, want, where: str = "") -> list[str]:
     return [f"{where}: {got!r}, golden {want!r}"]
 
 
-def test_paper_pipeline_numbers_unchanged(golden_data, tmp_path):
-    from seanv_analysis.batch import run_pipeline
-
-    out = tmp_path / "out"
-    run_pipeline("paper", [golden_data / "flow", golden_data / "position"], out_dir=out,
-                 workers=1, quiet=True, command=["golden"])
-    doc = json.loads((out / "result.json").read_text())
+def test_paper_pipeline_numbers_unchanged(golden_data, golden_run):
+    doc, out = golden_run
+    doc = dict(doc)
     for key in VOLATILE:
         doc.pop(key, None)
     doc["outputs"] = sorted(doc["outputs"])
