@@ -378,3 +378,29 @@ def test_demo_data_is_remade_when_the_simulator_changes(tmp_path, monkeypatch):
     monkeypatch.setattr(cache, "simulator_version", lambda: "0.0.0+simother")
     demo.demo_datasets(tmp_path)
     assert len(made) == 2 * n                              # re-simulated
+
+
+def test_cache_entry_not_signed_by_this_user_is_never_loaded(tmp_path):
+    """A pickle planted in the output folder's cache runs no code: it is a miss."""
+    import pickle
+
+    from seanv_analysis.batch.cache import read_entry, write_entry
+
+    entries = tmp_path / "runs"
+    entries.mkdir()
+    marker = tmp_path / "pwned"
+
+    class Planted:
+        def __reduce__(self):
+            return (marker.write_text, ("ran",))
+
+    (entries / "k1.pkl").write_bytes(b"\0" * 32 + pickle.dumps(Planted()))
+    (entries / "k2.pkl").write_bytes(pickle.dumps(Planted()))
+    assert read_entry(entries, "k1") is None and read_entry(entries, "k2") is None
+    assert not marker.exists()
+    assert not (entries / "k1.pkl").exists()  # removed, recomputed next time
+    write_entry(entries, "k3", {"row": [1.5, "x"]})
+    assert read_entry(entries, "k3") == {"row": [1.5, "x"]}
+    data = (entries / "k3.pkl").read_bytes()
+    (entries / "k3.pkl").write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # one bit changed
+    assert read_entry(entries, "k3") is None

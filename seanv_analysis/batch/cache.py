@@ -18,11 +18,17 @@ Every write is atomic (temp file + rename) and the index is saved every few
 seconds while a stage runs, so killing a run (SIGINT, SIGKILL) leaves either
 whole entries or none; temp files left by a killed run are removed when the
 cache is opened again, and an unreadable entry counts as missing.
+
+Entries are pickles signed with a per-user key (HMAC-SHA256; the key lives
+in ``$SEANV_CACHE_KEY_DIR`` or ``~/.cache/seanv-analysis/cache-key``, mode
+0600): only an entry this user's processes wrote is ever unpickled. A file
+another user (or anything else) put into ``<out>/.cache`` is a miss.
 """
 from __future__ import annotations
 
 import functools
 import hashlib
+import hmac
 import json
 import os
 import pickle
@@ -203,25 +209,72 @@ class RunCache:
         write_entry(self.entries, key, value)
 
 
+#: per-user secret that signs cache entries (HMAC-SHA256): an entry is only
+#: unpickled when this user's process wrote it, so a file someone else put in
+#: a shared output folder is a cache miss, never code run by the next user
+_KEY_NAME = "cache-key"
+_MAC_SIZE = 32
+
+
+def _key_dir() -> Path:
+    base = os.environ.get("SEANV_CACHE_KEY_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+        "seanv-analysis")
+    return Path(base)
+
+
+@functools.lru_cache(maxsize=1)
+def _signing_key() -> bytes:
+    """This user's signing key (created once, readable by the user only)."""
+    folder = _key_dir()
+    path = folder / _KEY_NAME
+    try:
+        return path.read_bytes()
+    except FileNotFoundError:
+        pass
+    folder.mkdir(parents=True, exist_ok=True)
+    key = os.urandom(32)
+    try:  # O_EXCL: two processes starting together agree on the first key written
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:
+        return path.read_bytes()
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(key)
+    return key
+
+
+def _mac(payload: bytes) -> bytes:
+    return hmac.new(_signing_key(), payload, hashlib.sha256).digest()
+
+
 def read_entry(entries: str | Path, key: str) -> Any | None:
-    """Load one entry (None when missing or damaged; a damaged one is removed)."""
+    """Load one entry; None when missing, damaged or not signed with this
+    user's key (such a file is removed and the result recomputed)."""
     path = Path(entries) / f"{key}.pkl"
     try:
-        with open(path, "rb") as fh:
-            return pickle.load(fh)
+        data = path.read_bytes()
     except FileNotFoundError:
         return None
-    except Exception:  # truncated or foreign file: treat as missing
-        try:
-            path.unlink()
-        except OSError:
-            pass
+    except OSError:
         return None
+    mac, payload = data[:_MAC_SIZE], data[_MAC_SIZE:]
+    if len(data) > _MAC_SIZE and hmac.compare_digest(mac, _mac(payload)):
+        try:
+            return pickle.loads(payload)  # signed by this user: written by this package
+        except Exception:  # noqa: BLE001 - a stale class layout: treat as missing
+            pass
+    try:
+        path.unlink()
+    except OSError:
+        pass
+    return None
 
 
 def write_entry(entries: str | Path, key: str, value: Any) -> None:
-    """Store one entry atomically (temp file in the same folder + rename)."""
+    """Store one entry atomically (temp file in the same folder + rename),
+    signed with this user's key."""
     path = Path(entries) / f"{key}.pkl"
+    payload = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            pickle.dump(value, fh, protocol=pickle.HIGHEST_PROTOCOL)
+            fh.write(_mac(payload) + payload)
