@@ -225,22 +225,33 @@ def _key_dir() -> Path:
 
 @functools.lru_cache(maxsize=1)
 def _signing_key() -> bytes:
-    """This user's signing key (created once, readable by the user only)."""
+    """This user's signing key (32 random bytes, created once, readable by the
+    user only)."""
     folder = _key_dir()
     path = folder / _KEY_NAME
-    try:
-        return path.read_bytes()
-    except FileNotFoundError:
-        pass
     folder.mkdir(parents=True, exist_ok=True)
-    key = os.urandom(32)
-    try:  # O_EXCL: two processes starting together agree on the first key written
+    try:  # O_EXCL: of processes starting together, the first one writes the key
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     except FileExistsError:
-        return path.read_bytes()
+        return _read_key(path)
+    key = os.urandom(_MAC_SIZE)
     with os.fdopen(fd, "wb") as fh:
         fh.write(key)
     return key
+
+
+def _read_key(path: Path, *, wait_s: float = 2.0) -> bytes:
+    """The key in ``path``, waiting while another process is still writing it
+    (a short or empty key is never used)."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        key = path.read_bytes()
+        if len(key) == _MAC_SIZE:
+            return key
+        if time.monotonic() > deadline:
+            raise OSError(f"{path}: cache signing key is {len(key)} bytes, expected {_MAC_SIZE}; "
+                          "delete it to make a new one")
+        time.sleep(0.01)
 
 
 def _mac(payload: bytes) -> bytes:
