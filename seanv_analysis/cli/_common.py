@@ -80,19 +80,20 @@ def unusable(data, failed, exc: Exception | None = None) -> int:
     """
     from ..errors import DataError
     from ..io.reader import is_run_dir
+    from ..io.validate import one_line
 
     errors = [getattr(f, "message", str(f)) for f in failed]
     single = data is not None and is_run_dir(data)
     if not errors:
         if exc is None:
             raise DataError("no valid runs in the data set", path=data)
-        msg = " ".join(str(exc).split())
+        msg = one_line(exc)
         if single and isinstance(exc, DataError) and str(data) not in msg:
             raise DataError(msg, path=data) from None  # name the run folder at least
         raise exc
     if single:
         raise DataError(errors[0]) from None
-    line = " ".join(str(exc).split()) if exc is not None else f"{data}: no valid runs in the data set"
+    line = one_line(exc) if exc is not None else f"{data}: no valid runs in the data set"
     click.echo(f"error: {line}", err=True)
     return echo_bad_runs(errors)
 

@@ -23,15 +23,11 @@ from typing import Any, Callable, Mapping, Protocol, Sequence
 
 from ..config import RigConfig, load_rig
 from ..errors import DataError, SeanvError
+from ..io.validate import one_line
 from ..models import ValveModel
 
 __all__ = ["Context", "FailedRun", "RunOutcome", "RunMapper", "serial_map", "one_line",
            "with_path", "find_run_dirs"]
-
-
-def one_line(exc: BaseException | str) -> str:
-    """An error as one line (newlines and runs of blanks collapsed)."""
-    return " ".join(str(exc).split())
 
 
 def with_path(path: str | Path, message: str) -> str:

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from ..errors import DataError
-from .base import Context, FailedRun, with_path
+from .base import Context, FailedRun, one_line, with_path
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "ValidateResult", "check_option", "run", "write",
            "validate_model",
@@ -76,7 +76,7 @@ def validate_one(run, *, rig, model: Mapping[str, Any], effects: Sequence[str], 
         rv.simulated = None  # the simulated run is large and not needed downstream
         return {"validation": rv, "notes": [f"{run.run_id}: {w.message}" for w in caught]}
     except DataError as exc:
-        return {"skipped": " ".join(str(exc).split()), "run_id": run.run_id}
+        return {"skipped": one_line(exc), "run_id": run.run_id}
 
 
 def position_paths(ctx: Context) -> list[Path]:
