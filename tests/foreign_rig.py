@@ -5,7 +5,9 @@ it has its own, deliberately different, plant and writes the run folders
 itself, exactly as ``data-contract.md`` (``seanv-run/1``) describes. The only
 package code it calls is the paper's sealing model (eq. 3-4, through
 ``seanv_analysis.models``) to place the sealing threshold theta_d, and the
-flow-model inversion (eq. 6) used by the foreign controller.
+flow-model inversion (eq. 6) used by the foreign controller; the paper's
+Table II valve dimensions are read from the package's rig file (the needle
+centres too, unless this rig brings its own: see below).
 
 How the foreign rig differs from the built-in simulator
 -------------------------------------------------------
@@ -29,6 +31,71 @@ How the foreign rig differs from the built-in simulator
   eq. (6); the actual flow is the valve's flow at the cam command of
   ``delay_s`` earlier (a pure delay, no other dynamics in the flow path).
 
+The defaults above are this rig as it always was (same seed, same files).
+
+Opt-in: a rig that owns every constant the paper does not publish
+-----------------------------------------------------------------
+``ForeignTruth`` fields, all defaulting to the behaviour above, and
+:func:`own_rig`, which sets every one of them away from the package's
+``data_schema/rig/default.toml``:
+
+- needle centres ``supply_x_c_mm``, ``supply_y_c_mm``, ``drain_x_c_mm``,
+  ``drain_y_c_mm`` [mm] (None: the package default). Given, the valve uses a
+  :class:`~seanv_analysis.models.NeedleGeometry` with the paper's Table II
+  values (read from the rig file) and this centre, in eq. (3)-(4); the
+  position controller's eq. (6) uses the same geometry (the lab knows its
+  own valve). :meth:`ForeignTruth.geometry` gives the geometry in use.
+- servo ``servo_dead_s``, ``servo_tau_s``, ``servo_rate_deg_s``: the goal is
+  quantised to the servo step (360/4096 deg), delayed by the dead time T_d,
+  then followed by a rate-limited first-order lag::
+
+      theta(t + h) = theta + clip((g(t - T_d) - theta) h / tau, -r h, +r h)
+
+  Used in flow steps always, and in position control when
+  ``servo_in_position``: then the servo's goal is the controller's command
+  ``delay_s`` ago (``delay_s`` is an extra pure delay, e.g. bus latency, and
+  may be 0), the valve sees the servo's angle, and the logged ``cam_deg`` is
+  that angle quantised (so it lags ``cam_cmd_deg`` by about
+  ``delay_s + servo_dead_s + servo_tau_s``).
+- flow path ``flow_path``: ``"first_order"`` (above) or ``"tube"``, a lumped
+  hydraulic line, in flow steps and position control alike. Its one state is
+  the pressure p_l of the line volume at the valve port (compliance
+  C_l = ``line_compliance_mm3_per_mpa``), joined to the actuator head through
+  a resistance R_l = ``line_resistance_mpa_s_per_mm3``; the head pressure
+  stays quasi-static (no actuator mass)::
+
+      C_l dp_l/dt = Q_v(theta, p_s, p_l, p_t) + Q_leak - Q_a
+      Q_a = (p_l - (F_load + s F_c) / A) / (R_l + b / A^2)   (moving, s = sign of motion)
+      Q_a = 0                                                 (stuck, at an end stop)
+      p_h = p_l - R_l Q_a,   dx/dt = Q_a / A
+
+  Q_v is eq. (5) at the valve-port pressure, Q_leak = g_l (p_s - p_l)
+  - g_l (p_l - p_t) (seat leakage, g_l = 1.5 mm^3/s/MPa per needle), F_c the Coulomb
+  force, b the viscous coefficient, A the actuator area. The logged
+  ``p_head_mpag`` is p_l (the sensor sits on the valve block), so eq. (5)
+  holds at the logged pressures at every instant while the actuator's flow
+  Q_a lags the valve's flow Q_v with the time constant
+  ``C_l (R_l + b / A^2)`` (:meth:`ForeignTruth.flow_lag_s`, the valve taken
+  as a flow source; its own pressure sensitivity g = dQ_v/dp_l ~ Q_v / (2 dp)
+  shortens it by the factor 1 / (1 + g (R_l + b / A^2)): 5-20 % at large
+  openings).
+  This is not the package's model (a 3-segment R-I tube with compliance at
+  the nodes, an actuator mass and Stribeck friction).
+- friction ``static_n`` (breakaway force, None: no stiction). The actuator
+  is stuck while |p A - F_load| <= F_s (F_s = ``static_n``; on the tube path
+  with ``static_n`` None, F_s = F_c: a Coulomb dead band, no stick-slip);
+  while stuck Q_a = 0 and the head pressure follows the valve through the
+  line compliance (C_l dp/dt = Q_v + Q_leak: it climbs towards the supply or
+  falls towards the tank pressure); it breaks away when the net force exceeds
+  F_s and sticks again when its flow reaches zero (tube: when Q_a above
+  changes sign; first-order path: when both the valve's and the lagged flow
+  fall below A x 0.05 mm/s in the direction of motion; while it moves the
+  head pressure is quasi-static as above, so it drops from the breakaway
+  level to the quasi-static one at the instant of release). F_s > F_c
+  gives stick-slip: a slow flow charges the line by (F_s - F_c)/A, the
+  actuator jumps, stops, and waits again. End stops hold the actuator the
+  same way (it only leaves them in the free direction).
+
 Everything is seeded: the same arguments give the same files.
 """
 from __future__ import annotations
@@ -46,12 +113,15 @@ import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-__all__ = ["ForeignTruth", "write_flowsteps", "write_position", "flowstep_plan",
+__all__ = ["ForeignTruth", "own_rig", "write_flowsteps", "write_position", "flowstep_plan",
            "ACTUATOR_AREA_MM2"]
 
 ACTUATOR_AREA_MM2 = 201.06          # 16 mm bore
 LOAD_AREA_MM2 = math.pi / 4 * 32.0 ** 2   # pneumatic load piston (full bore)
 SERVO_STEP_DEG = 0.087890625        # 360/4096
+FLOW_PATHS = ("first_order", "tube")
+LEAK_MM3_S_PER_MPA = 1.5            # seat leakage of each needle, open or sealed
+STICK_V_MM_S = 0.05                 # first-order path: sticks again below this speed
 JST = timezone(timedelta(hours=9))
 
 
@@ -73,12 +143,122 @@ class ForeignTruth:
     # both sides' C x (1 + a sin(2 pi i / period)): a wear/temperature pattern
     # that comes and goes, which no candidate effect describes
     c_modulation: dict | None = None  # {"amplitude": 0.08, "period_runs": 30}
+    # --- opt-in: constants the paper does not publish (module docstring) ---
+    # needle-head centres [mm]; None = the package's default.toml value
+    supply_x_c_mm: float | None = None
+    supply_y_c_mm: float | None = None
+    drain_x_c_mm: float | None = None
+    drain_y_c_mm: float | None = None
+    # servo: dead time, first-order lag, rate limit (flow steps; position
+    # control too when servo_in_position)
+    servo_dead_s: float = 0.02
+    servo_tau_s: float = 0.04
+    servo_rate_deg_s: float = 300.0
+    servo_in_position: bool = False
+    # "first_order" (tau_flow_s in flow steps, instantaneous in position
+    # control) or "tube" (lumped line C_l, R_l in both)
+    flow_path: str = "first_order"
+    line_compliance_mm3_per_mpa: float = 2000.0
+    line_resistance_mpa_s_per_mm3: float = 4.5e-5
+    # breakaway force [N]; None = no stiction
+    static_n: float | None = None
     runs: list = field(default_factory=list)
+
+    def __post_init__(self):
+        if self.flow_path not in FLOW_PATHS:
+            raise ValueError(f"flow_path: expected one of {FLOW_PATHS}, got {self.flow_path!r}")
+        if self.static_n is not None and self.static_n < self.coulomb_n:
+            raise ValueError(f"static_n ({self.static_n} N) must be >= coulomb_n "
+                             f"({self.coulomb_n} N)")
+        if min(self.servo_tau_s, self.servo_rate_deg_s, self.line_compliance_mm3_per_mpa,
+               self.line_resistance_mpa_s_per_mm3) <= 0 or self.servo_dead_s < 0 \
+                or self.delay_s < 0:
+            raise ValueError("servo/line constants must be > 0 (dead time and delay >= 0)")
+
+    @property
+    def _simple_plant(self) -> bool:
+        """True for the original plant loops (first-order path, no stiction)."""
+        return self.flow_path == "first_order" and self.static_n is None
+
+    def geometry(self, side: str):
+        """The :class:`~seanv_analysis.models.NeedleGeometry` this rig's
+        ``side`` valve uses: the rig file's Table II values and centre, the
+        centre replaced by this truth's ``<side>_x_c_mm`` / ``_y_c_mm`` when
+        given."""
+        from seanv_analysis.config import load_rig
+        from seanv_analysis.models import NeedleGeometry
+
+        g = NeedleGeometry.from_rig(load_rig(), side)
+        xc, yc = getattr(self, f"{side}_x_c_mm"), getattr(self, f"{side}_y_c_mm")
+        if xc is None and yc is None:
+            return g
+        d = g.to_dict()
+        d["needle_x_c_mm"] = float(d["needle_x_c_mm"] if xc is None else xc)
+        d["needle_y_c_mm"] = float(d["needle_y_c_mm"] if yc is None else yc)
+        return NeedleGeometry(**d)
+
+    def servo_lag_s(self) -> float:
+        """Servo dead time + time constant [s] (small steps, below the rate limit)."""
+        return self.servo_dead_s + self.servo_tau_s
+
+    def flow_lag_s(self, kind: str = "position_control") -> float:
+        """Equivalent first-order time constant [s] of the flow path from the
+        valve's flow to the actuator's flow in ``kind`` runs ('flow_step' or
+        'position_control'): ``tau_flow_s`` in first-order flow steps, 0 in
+        first-order position control (instantaneous), C_l (R_l + b / A^2)
+        on the tube path (the valve taken as a flow source)."""
+        if kind not in ("flow_step", "position_control"):
+            raise ValueError(f"kind: expected 'flow_step' or 'position_control', got {kind!r}")
+        if self.flow_path == "tube":
+            return self.line_compliance_mm3_per_mpa * (
+                self.line_resistance_mpa_s_per_mm3
+                + self.viscous_n_s_per_mm / ACTUATOR_AREA_MM2 ** 2)
+        return self.tau_flow_s if kind == "flow_step" else 0.0
+
+    def position_lag_s(self) -> float:
+        """Expected lag [s] of the actual flow behind the controller's command
+        in position control: pure delay + servo (when in the loop) + flow path."""
+        servo = self.servo_lag_s() if self.servo_in_position else 0.0
+        return self.delay_s + servo + self.flow_lag_s("position_control")
 
     def to_json(self) -> dict:
         d = asdict(self)
         d["stroke_mm"] = list(self.stroke_mm)
+        d["needle_geometry"] = {s: self.geometry(s).to_dict() for s in ("supply", "drain")}
+        d["flow_lag_s"] = {k: self.flow_lag_s(k) for k in ("flow_step", "position_control")}
+        d["servo_lag_s"] = self.servo_lag_s()
+        d["position_lag_s"] = self.position_lag_s()
         return d
+
+
+def own_rig(**over) -> ForeignTruth:
+    """A foreign rig whose every unpublished constant differs from the
+    package's ``default.toml`` (``over``: field overrides).
+
+    ====================  ======================  ======================
+    constant              default.toml            this rig
+    ====================  ======================  ======================
+    supply centre x, y    -7.10, -20 mm           -4.0, -28.0 mm
+    drain centre x, y     -9.30, +20 mm           -8.0, +13.0 mm
+    servo dead, tau, rate 0.03 s, 0.07 s, 240/s   0.05 s, 0.03 s, 180/s
+    flow path             3-segment tube, B 150   lumped line, lag 0.12 s
+    friction C, S, visc.  155 N, 160 N, 2 N s/mm  40 N, 55 N, 0.6 N s/mm
+    ====================  ======================  ======================
+
+    Servo in the position loop, no extra pure delay. The centres put the
+    sealing thresholds at this rig's pressures (supply 3.0 MPaG, loads
+    0.1-0.5 MPaG) at about -10 .. -8 deg (supply) and -21 .. -18 deg (drain),
+    so the default flow-step angles open the valves; and their slope over the
+    pressure range differs from the default geometry's enough that no z0 makes
+    the default geometry fit (max residual ~0.4 deg per side).
+    """
+    kw = dict(supply_x_c_mm=-4.0, supply_y_c_mm=-28.0, drain_x_c_mm=-8.0, drain_y_c_mm=13.0,
+              servo_dead_s=0.05, servo_tau_s=0.03, servo_rate_deg_s=180.0,
+              servo_in_position=True, delay_s=0.0, flow_path="tube",
+              line_compliance_mm3_per_mpa=2000.0, line_resistance_mpa_s_per_mm3=4.5e-5,
+              coulomb_n=40.0, static_n=55.0, viscous_n_s_per_mm=0.6)
+    kw.update(over)
+    return ForeignTruth(**kw)
 
 
 # ---------------------------------------------------------------------------
@@ -88,11 +268,13 @@ class ForeignTruth:
 class _Needle:
     """One needle with scalar (fast) threshold and flow functions."""
 
-    def __init__(self, side: str, z0_mm: float, c: float):
-        from seanv_analysis.config import load_rig
-        from seanv_analysis.models import NeedleGeometry
+    def __init__(self, side: str, z0_mm: float, c: float, geometry=None):
+        if geometry is None:
+            from seanv_analysis.config import load_rig
+            from seanv_analysis.models import NeedleGeometry
 
-        g = NeedleGeometry.from_rig(load_rig(), side)
+            geometry = NeedleGeometry.from_rig(load_rig(), side)
+        g = self.geometry = geometry
         self.side, self.z0, self.c = side, float(z0_mm), float(c)
         self.dn2, self.do2, self.k = g.needle_diameter_mm ** 2, g.seat_diameter_mm ** 2, \
             g.spring_constant_n_per_mm
@@ -238,6 +420,105 @@ def _servo_track(t: np.ndarray, cmd: np.ndarray, *, dead_s=0.02, tau_s=0.04,
     return out
 
 
+class _Servo:
+    """:func:`_servo_track` one step at a time (for the position loop)."""
+
+    def __init__(self, tr: ForeignTruth, h: float, theta0: float):
+        self.nd = int(round(tr.servo_dead_s / h))
+        self.a, self.lim = h / tr.servo_tau_s, tr.servo_rate_deg_s * h
+        self.y = round(theta0 / SERVO_STEP_DEG) * SERVO_STEP_DEG
+        self.goals = [self.y] * self.nd     # goals in flight (dead time)
+        self.k = 0
+
+    def step(self, goal: float) -> float:
+        """The servo angle after one step towards ``goal`` [deg]."""
+        g = round(goal / SERVO_STEP_DEG) * SERVO_STEP_DEG
+        if self.nd:
+            c, self.goals[self.k] = self.goals[self.k], g
+            self.k = (self.k + 1) % self.nd
+        else:
+            c = g
+        self.y += min(max(self.a * (c - self.y), -self.lim), self.lim)
+        return self.y
+
+
+class _Plant:
+    """Actuator + flow path of the opt-in modes (``flow_path='tube'`` or
+    ``static_n`` given), one step at a time; the equations are in the module
+    docstring. ``tau_s``: the first-order lag (first-order path; 0 =
+    instantaneous). ``p`` is the logged head pressure (the line pressure on
+    the tube path), ``q`` the actuator's flow, ``qv`` the valve's (leakage
+    included)."""
+
+    def __init__(self, tr: ForeignTruth, needles: dict, *, x: float, load_mpag: float,
+                 tau_s: float):
+        self.tr, self.tube, self.tau = tr, tr.flow_path == "tube", float(tau_s)
+        self.sup, self.drn = needles["supply"], needles["drain"]
+        self.fs = tr.static_n if tr.static_n is not None else tr.coulomb_n
+        self.stiction = self.tube or tr.static_n is not None
+        self.cl = tr.line_compliance_mm3_per_mpa
+        self.rl = tr.line_resistance_mpa_s_per_mm3
+        self.r_eff = self.rl + tr.viscous_n_s_per_mm / ACTUATOR_AREA_MM2 ** 2
+        self.lo, self.hi = tr.stroke_mm
+        self.x, self.q, self.qv, self.s = float(x), 0.0, 0.0, 0
+        self.p = load_mpag * LOAD_AREA_MM2 / ACTUATOR_AREA_MM2
+        self.stuck = True
+
+    def _valve(self, cam, ps, p, p_tank, cs, cd):
+        return (self.sup.flow1(cam, ps, ps - p, cs) + self.drn.flow1(cam, p, p - p_tank, cd)
+                + LEAK_MM3_S_PER_MPA * (ps - p) - LEAK_MM3_S_PER_MPA * (p - p_tank))
+
+    def _breakaway(self, f_load: float) -> None:
+        """Stuck: leave when the net force exceeds F_s, in a free direction."""
+        f = self.p * ACTUATOR_AREA_MM2 - f_load
+        if f > self.fs and self.x < self.hi:
+            self.stuck, self.s = False, 1
+        elif f < -self.fs and self.x > self.lo:
+            self.stuck, self.s = False, -1
+
+    def step(self, cam: float, ps: float, p_tank: float, load_mpag: float, h: float,
+             cs: float, cd: float) -> None:
+        tr, area = self.tr, ACTUATOR_AREA_MM2
+        f_load = load_mpag * LOAD_AREA_MM2
+        if self.tube:
+            if self.stuck:
+                self._breakaway(f_load)
+            qa = 0.0
+            if not self.stuck:
+                qa = (self.p - (f_load + self.s * tr.coulomb_n) / area) / self.r_eff
+                if qa * self.s <= 0.0:
+                    self.stuck, qa = True, 0.0
+            self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd)
+            self.p += (self.qv - qa) * h / self.cl   # actuator side: p - R_l qa
+        else:
+            if self.stuck and self.stiction:
+                self._breakaway(f_load)
+                if not self.stuck:   # released: quasi-static again, flow from rest
+                    self.q = 0.0
+            if self.stuck and self.stiction:
+                qa = 0.0
+                self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd)
+                self.p += self.qv * h / self.cl
+            else:
+                self.p = _head_pressure(load_mpag, self.q / area, tr)
+                self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd)
+                if self.tau > 0.0:
+                    self.q += (self.qv - self.q) * h / self.tau
+                else:
+                    self.q = self.qv
+                qa = self.q
+                # sticks again once both the valve's and the lagged flow died out
+                if self.stiction and max(qa * self.s, self.qv * self.s) < STICK_V_MM_S * area:
+                    self.stuck, qa = True, 0.0
+        self.p = min(max(self.p, min(p_tank, 0.0) - 0.05), ps + 0.05)
+        self.q = qa
+        x = self.x + qa / area * h
+        if x >= self.hi or x <= self.lo:   # end stop: held there like a stuck actuator
+            x = min(max(x, self.lo), self.hi)
+            self.q, self.stuck = 0.0, True
+        self.x = x
+
+
 def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_now: dict,
                    rng, *, h: float = 1e-3, p_tank: float = 0.0):
     """Fine-grid (1 kHz) true signals of one flow step."""
@@ -249,7 +530,8 @@ def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_
     t = np.arange(0.0, pre + hold + post + 0.05, h)
     cmd = np.where(t < pre, closed, step.cam_deg)
     cmd = np.where(t >= pre + hold, closed, cmd)
-    cam = _servo_track(t, cmd.astype(float))
+    cam = _servo_track(t, cmd.astype(float), dead_s=tr.servo_dead_s, tau_s=tr.servo_tau_s,
+                       rate_deg_s=tr.servo_rate_deg_s)
     lo, hi = tr.stroke_mm
     x = lo + 1.0 if step.side == "supply" else hi - 1.0
     q = 0.0
@@ -262,6 +544,15 @@ def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_
     cs, cd = c_now["supply"], c_now["drain"]
     cam = cam.tolist()
     t_l = t.tolist()
+    if not tr._simple_plant:
+        plant = _Plant(tr, needles, x=x, load_mpag=step.load_mpag,
+                       tau_s=tr.tau_flow_s)
+        for i in range(n):
+            ps = tr.supply_mpag - 2.0e-5 * max(plant.qv, 0.0) \
+                + 0.02 * math.sin(2 * math.pi * 33.0 * t_l[i] + ripple_phase)
+            plant.step(cam[i], ps, p_tank, step.load_mpag, h, cs, cd)
+            X[i], Q[i], PS[i], PH[i] = plant.x, plant.q, ps, plant.p
+        return t, cmd, np.asarray(cam), X, Q, PS, PH
     v = 0.0
     for i in range(n):
         v = q / ACTUATOR_AREA_MM2
@@ -322,8 +613,8 @@ def _start(out, truth, seed_key):
     tr = truth or ForeignTruth()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c),
-               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c)}
+    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c, tr.geometry("supply")),
+               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c, tr.geometry("drain"))}
     return tr, out, np.random.default_rng(seed_key), needles
 
 
@@ -383,17 +674,25 @@ def write_flowsteps(out: str | Path, *, plan: Iterable[Step] | None = None, seed
 # ---------------------------------------------------------------------------
 
 def _controller_model(tr: ForeignTruth):
+    """The foreign controller's eq. (6) model: this rig's z0, C and needle
+    geometry (the same the valve has)."""
     from seanv_analysis.config import load_rig
     from seanv_analysis.models import ValveModel
 
     return ValveModel.from_rig(load_rig()).with_side("supply", z0_mm=tr.supply_z0_mm,
-                                                    c_flow=tr.supply_c) \
-        .with_side("drain", z0_mm=tr.drain_z0_mm, c_flow=tr.drain_c)
+                                                    c_flow=tr.supply_c,
+                                                    geometry=tr.geometry("supply")) \
+        .with_side("drain", z0_mm=tr.drain_z0_mm, c_flow=tr.drain_c,
+                   geometry=tr.geometry("drain"))
 
 
 def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_load,
                        duration_s, kp=480.0, rate_hz=50.0, h=1e-3, p_tank=0.0):
     model = _controller_model(tr)
+    if not tr._simple_plant:
+        return _simulate_position_plant(tr, needles, model, refs=refs, t_ref=t_ref, loads=loads,
+                                        t_load=t_load, duration_s=duration_s, kp=kp,
+                                        rate_hz=rate_hz, h=h, p_tank=p_tank)
     t = np.arange(0.0, duration_s, h)
     n = t.size
     nd = int(round(tr.delay_s / h))
@@ -407,6 +706,7 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
     cam_cmd = -12.0
     sup, drn = needles["supply"], needles["drain"]
     lo, hi = tr.stroke_mm
+    servo = _Servo(tr, h, -12.0) if tr.servo_in_position else None
     for i in range(n):
         ti = t[i]
         load_sp = loads[np.searchsorted(t_load, ti, side="right") - 1]
@@ -424,6 +724,8 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
             ctrl_q.append(q_ref)
         cam_hist[i] = cam_cmd
         cam_valve = cam_hist[i - nd] if i >= nd else -12.0
+        if servo is not None:  # the servo follows the (delayed) command
+            cam_valve = servo.step(cam_valve)
         # pure delay: the valve sees the command of delay_s ago, flow is instantaneous
         q = sup.flow1(cam_valve, ps, ps - ph, sup.c) + drn.flow1(cam_valve, ph, ph - p_tank, drn.c)
         x = min(max(x + q / ACTUATOR_AREA_MM2 * h, lo), hi)
@@ -432,12 +734,59 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
                                                 np.array(ctrl_q))
 
 
+def _simulate_position_plant(tr: ForeignTruth, needles, model, *, refs, t_ref, loads, t_load,
+                             duration_s, kp, rate_hz, h, p_tank):
+    """:func:`_simulate_position` with the opt-in plant (:class:`_Plant`)."""
+    t = np.arange(0.0, duration_s, h)
+    n = t.size
+    t_l = t.tolist()
+    nd = int(round(tr.delay_s / h))
+    ctrl_every = int(round(1.0 / (rate_hz * h)))
+    i_ref = (np.searchsorted(t_ref, t, side="right") - 1).tolist()
+    i_load = (np.searchsorted(t_load, t, side="right") - 1).tolist()
+    refs, loads = [float(r) for r in refs], [float(v) for v in loads]
+    load_reg = loads[0]
+    plant = _Plant(tr, needles, x=5.0, load_mpag=load_reg, tau_s=0.0)
+    servo = _Servo(tr, h, -12.0) if tr.servo_in_position else None
+    X, Q, PS, PH, PL, CAM = ([0.0] * n for _ in range(6))
+    ctrl_t, ctrl_x, ctrl_q = [], [], []
+    cam_hist = [-12.0] * n
+    cam_cmd = -12.0
+    cs, cd = needles["supply"].c, needles["drain"].c
+    two_pi_33 = 2 * math.pi * 33.0
+    for i in range(n):
+        ti = t_l[i]
+        load_reg += (loads[i_load[i]] - load_reg) * h / 0.1
+        ps = tr.supply_mpag - 2.0e-5 * max(plant.qv, 0.0) + 0.02 * math.sin(two_pi_33 * ti)
+        if i % ctrl_every == 0:
+            x_ref = refs[i_ref[i]]
+            x_meas = round(plant.x / 0.01) * 0.01
+            q_ref = kp * (x_ref - x_meas)
+            cam_cmd = float(model.cam_for_flow(q_ref, ps, plant.p, p_tank))
+            ctrl_t.append(ti)
+            ctrl_x.append(x_ref)
+            ctrl_q.append(q_ref)
+        cam_hist[i] = cam_cmd
+        cam_valve = cam_hist[i - nd] if i >= nd else -12.0
+        if servo is not None:
+            cam_valve = servo.step(cam_valve)
+        plant.step(cam_valve, ps, p_tank, load_reg, h, cs, cd)
+        X[i], Q[i], PS[i], PH[i], PL[i], CAM[i] = plant.x, plant.q, ps, plant.p, load_reg, \
+            cam_valve
+    arr = np.asarray
+    return t, arr(X), arr(Q), arr(PS), arr(PH), arr(PL), arr(cam_hist), arr(CAM), (
+        arr(ctrl_t), arr(ctrl_x), arr(ctrl_q))
+
+
 def write_position(out: str | Path, *, seed: int = 0, truth: ForeignTruth | None = None,
                    n_runs: int = 2, duration_s: float = 64.0,
-                   start: datetime | None = None, empty_qref_run: bool = True) -> ForeignTruth:
+                   start: datetime | None = None, empty_qref_run: bool = True,
+                   trace: bool = False) -> ForeignTruth:
     """Write ``n_runs`` position-control runs (flow model, kp 480, 50 Hz) of
     the foreign rig under ``out``. The last one logs an empty q_ref column
-    when ``empty_qref_run`` (the analysis must rebuild Q_ref from kp)."""
+    when ``empty_qref_run`` (the analysis must rebuild Q_ref from kp).
+    ``trace``: also write the true 1 kHz signals (``_trace.parquet``, not a
+    contract table)."""
     tr, out, rng, needles = _start(out, truth, [seed, 0xB0B])
     t_wall = start or datetime(2026, 5, 12, 0, 30, 0, tzinfo=timezone.utc)
     for k in range(n_runs):
@@ -479,6 +828,10 @@ def write_position(out: str | Path, *, seed: int = 0, truth: ForeignTruth | None
                    "servo": "csv", "controller": "parquet" if k % 2 == 0 else "csv"}
         _write_run(out / rid, meta, {"encoder": enc, "pressure": pres, "servo": servo,
                                      "controller": controller}, formats)
+        if trace:  # true plant signals, for debugging only (not a contract table)
+            pd.DataFrame({"t_s": t, "x_mm": X, "q_mm3_s": Q, "p_supply_mpag": PS,
+                          "p_head_mpag": PH, "p_load_mpag": PL, "cam_cmd_deg": cam_cmd,
+                          "cam_deg": cam_valve}).to_parquet(out / rid / "_trace.parquet")
         tr.runs.append({"run_id": rid, "kind": "position_control", "encoder_rate_hz": enc_rate})
         t_wall += timedelta(seconds=duration_s + 60.0)
     return tr
@@ -493,8 +846,11 @@ if __name__ == "__main__":  # pragma: no cover - manual use
     ap.add_argument("--drift", action="store_true", help="drain C -2 %% every 3 runs")
     ap.add_argument("--no-position", action="store_true")
     ap.add_argument("--full", action="store_true", help="cam every 2.5 deg (else 5 deg)")
+    ap.add_argument("--own", action="store_true",
+                    help="own_rig(): own needle centres, servo, line and stiction")
     a = ap.parse_args()
-    truth = ForeignTruth(drift={"side": "drain", "step": 0.02, "every": 3} if a.drift else None)
+    drift = {"side": "drain", "step": 0.02, "every": 3} if a.drift else None
+    truth = own_rig(drift=drift) if a.own else ForeignTruth(drift=drift)
     plan = flowstep_plan(
         supply_cams=np.arange(-10.0, 10.0 + 1e-9, 2.5 if a.full else 5.0),
         drain_cams=np.arange(-40.0, -15.0 + 1e-9, 2.5 if a.full else 5.0))

@@ -119,10 +119,10 @@ def test_simulated_paper_pipeline_identical_on_all_executors(golden_data, golden
     from dask.distributed import Client
 
     serial, _ = golden_run
-    doc = {"stages": [{"name": "ingest"}, {"name": "flowfit"}, {"name": "tracking"},
-                      {"name": "validate"}, {"name": "discover"}]}
+    doc = {"stages": [{"name": "ingest"}, {"name": "flowfit"}, {"name": "identify"},
+                      {"name": "tracking"}, {"name": "validate"}, {"name": "discover"}]}
     data = [golden_data / "flow", golden_data / "position"]
-    keys = ("flowfit", "tracking", "validation", "validation_augmented", "discovery", "excluded",
+    keys = ("flowfit", "identify", "tracking", "validation", "validation_augmented", "discovery", "excluded",
             "stage_errors", "runs_read")
     pool = run_pipeline(doc, data, out_dir=tmp_path / "p", workers=2, quiet=True).to_json()
     with Client(dask_cluster) as client:

@@ -154,7 +154,8 @@ def test_json_contract(paper_fit):
     assert list(doc) == ["supply", "drain", "excluded", "units"]
     for side in ("supply", "drain"):
         d = doc[side]
-        assert list(d) == ["z0_mm", "C", "z0_ci95", "C_ci95", "rmse_mm3_s", "n_runs"]
+        assert list(d) == ["z0_mm", "C", "z0_ci95", "C_ci95", "rmse_mm3_s", "n_runs",
+                           "lack_of_fit", "lack_of_fit_ratio", "lack_of_fit_p"]
         assert all(isinstance(d[k], float) for k in ("z0_mm", "C", "rmse_mm3_s"))
         assert isinstance(d["n_runs"], int)
         assert len(d["z0_ci95"]) == 2 and all(isinstance(v, float) for v in d["z0_ci95"])

@@ -29,7 +29,7 @@ from .tasks import cached_run_task
 __all__ = ["PipelineResult", "FailedRun", "run_pipeline", "CachedMapper"]
 
 #: where each stage writes, under the output folder
-STAGE_FOLDERS = {"ingest": ".", "flowfit": "flowfit", "tracking": "tracking",
+STAGE_FOLDERS = {"ingest": ".", "flowfit": "flowfit", "identify": "identify", "tracking": "tracking",
                  "validate": "validate", "discover": "discover", "figures": "figures", "report": "."}
 
 
@@ -47,7 +47,7 @@ class PipelineResult:
     summary : per-run summary (``SUMMARY_COLUMNS`` + ``path``), filters applied
     failed : runs that could not be read or processed (one line each)
     excluded : {reason: count} of the paper's filters (flow-step runs)
-    flowfit, tracking, validation, validation_augmented, discovery : the
+    flowfit, identify, tracking, validation, validation_augmented, discovery : the
         stage results (None when the stage did not run or failed)
     figures : {figure name: [paths]}
     stage_errors : {stage: one-line error} of stages that failed on the data
@@ -68,6 +68,7 @@ class PipelineResult:
     excluded: dict[str, int] = field(default_factory=dict)
     model: Any = None
     flowfit: Any = None
+    identify: Any = None
     tracking: Any = None
     validation: Any = None
     validation_augmented: Any = None
@@ -143,6 +144,7 @@ class PipelineResult:
             "failed": [f.to_json() for f in self.failed],
             "excluded": self.excluded,
             "flowfit": j(self.flowfit),
+            "identify": j(self.identify),
             "tracking": j(self.tracking),
             "validation": j(self.validation),
             "validation_augmented": j(self.validation_augmented),
@@ -337,6 +339,8 @@ def _record(result: PipelineResult, name: str, value: Any) -> None:
         result.input_hashes.update(value.input_hashes)
     elif name == "flowfit":
         result.flowfit = value
+    elif name == "identify":
+        result.identify = value
     elif name == "tracking":
         result.tracking = value
     elif name == "validate":

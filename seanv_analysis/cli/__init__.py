@@ -53,6 +53,7 @@ def cli() -> None:
       seanv-analyze flowfit data/flow                          # z0, C per side (eq. 3-5)
       seanv-analyze simulate paper-position --out data/pos
       seanv-analyze tracking data/pos --shift 0.25             # the paper's procedure
+      seanv-analyze identify data/flow data/pos                # your rig: geometry, servo, line
       seanv-analyze validate data/pos --model outputs/flow/flowfit/model.toml
       seanv-analyze discover data/flow                         # what the model misses
       seanv-analyze run paper data                             # all of it + report.html
@@ -65,6 +66,7 @@ def cli() -> None:
 from . import (  # noqa: E402,F401
     discover_cmd,
     flowfit_cmd,
+    identify_cmd,
     ingest_cmd,
     plots_cmd,
     run_cmd,

@@ -58,12 +58,19 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
     simulated paper data set (paper-flowsteps, generated once and cached) is used.
     Runs are summarised, filtered (leakage, friction, cam range, invalid),
     fitted per load (Q = alpha (theta - theta_d)^2) and jointly (eq. 5); 95 %
-    intervals come from a bootstrap over runs.
+    intervals come from a bootstrap over runs. A lack-of-fit check per side
+    compares the residual scatter with the repeats' scatter (runs of the same
+    load and cam angle): lack_of_fit true means eq. (5) does not describe the
+    runs (drift, or another effect) and the intervals, which assume it does,
+    are not to be trusted (try `seanv-analyze discover`); null means it could
+    not be tested (no condition was repeated).
 
     \b
     Writes (under --out, default outputs/<dataset-name>/flowfit/):
-      flowfit.json          z0_mm, C, 95 % intervals, RMSE, runs per side; exclusions
-      flowfit_details.json  both procedures, noise model, per-load table, warnings
+      flowfit.json          z0_mm, C, 95 % intervals, RMSE, runs, lack_of_fit
+                            (+ _ratio, _p) per side; exclusions
+      flowfit_details.json  both procedures, noise model, lack-of-fit test, per-load
+                            table, warnings
       model.toml, model.json  valve model file for tracking / validate / the controller
       per_run.parquet       per run: measured and model flow, residual (measured - model)
       per_load.parquet      per side and load: theta_d, alpha (+- s.e.)

@@ -63,5 +63,6 @@ def fit_candidate(model_base: StaticFit, data: FlowData, sigma: np.ndarray, spec
         q_base = predict_static(model_base.model, data)
         x0, fixed = spec.effect.static_search(data, _side_mask(data, spec.side), q_base, sigma)
         spec = replace(spec, x0=tuple(x0), fixed={**spec.fixed, **fixed})
-    fit = fit_static(model_base.model, data, sigma, effects=[*selected, spec])
+    fit = fit_static(model_base.model, data, sigma, effects=[*selected, spec],
+                     geometry=model_base.geometry)
     return fit, spec

@@ -33,7 +33,7 @@ from .candidates import candidate_specs, fit_candidate
 from .diagnostics import ljung_box, robust_scale, trend_tests
 from .result import Discovery, EffectFinding
 from .split import chrono_split, kfold_splits
-from .static import FlowData, StaticFit, fit_static, predict_static
+from .static import FlowData, StaticFit, fit_static, geometry_sides, predict_static
 
 __all__ = ["discover_flow_steps", "noise_model", "residual_variables", "trend_amplitude",
            "practical_floor_mm3_s"]
@@ -187,7 +187,7 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
         b_fit = base if f_m is fit_m else _fit_base(model, fd)[0]
         specs = [spec for spec, _ in final.effects.values()]
         a_fit = final if f_m is fit_m else fit_static(b_fit.model, fd, _fit_base(model, fd)[1],
-                                                      effects=specs)
+                                                      effects=specs, geometry=final.geometry)
         before.append(hd.q_mm3_s - predict_static(b_fit.model, hd))
         after.append(hd.q_mm3_s - predict_static(a_fit.model, hd, a_fit.effects))
         n_held += int(np.unique(hd.run_index).size)
@@ -202,8 +202,13 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
         # resolution, so tiny systematic terms (leakage) on very clean data
         # are not called "unexplained".
         floor = practical_floor_mm3_s(fit_data, leakage_mm3_s)
-        raw = fit_data.q_mm3_s - predict_static(base.model, fit_data)
-        variables = residual_variables(base.model, fit_data, df[fit_m])
+        if final.geometry:      # the base model with the rig's needle geometry identified
+            trends = trend_tests(final.weighted_residual,
+                                 residual_variables(final.model, fit_data, df[fit_m]))
+            order = np.argsort(fit_data.run_index, kind="stable")
+            lb = ljung_box(final.weighted_residual[order])
+        raw = fit_data.q_mm3_s - predict_static(final.model, fit_data)
+        variables = residual_variables(final.model, fit_data, df[fit_m])
         alpha_trend = 1e-3 / max(len(trends), 1)
         structured = [t for t in trends if t.p_value < alpha_trend and abs(t.rho) > 0.2
                       and trend_amplitude(raw, variables[t.variable]) > floor]
@@ -216,7 +221,10 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
             trend_var = structured[0].variable if structured else "run_index"
         else:
             verdict, trend_var = "none", None
-    return Discovery(verdict=verdict, effects=findings, n_heldout_runs=n_held,
+    geometry = {s: {"needle_y_c_mm": float(final.model.side(s).geometry.needle_y_c_mm),
+                    "rig_file_mm": float(model.side(s).geometry.needle_y_c_mm)}
+                for s in final.geometry} or None
+    return Discovery(verdict=verdict, effects=findings, n_heldout_runs=n_held, geometry=geometry,
                      rmse_before_mm3_s=rmse_before, rmse_after_mm3_s=rmse_after,
                      trend_variable=trend_var, base_model=base.model, model=final.model,
                      effect_fits=final.effects, trends=trends, ljung_box=lb,
@@ -240,12 +248,13 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
     current = base
     selected = []
     findings: list[EffectFinding] = []
-    for _ in range(max_effects):
+    geom_sides = geometry_sides(base.model, data)
+    while len(selected) < max_effects:
         specs = [s for s in candidate_specs(data, base)
                  if (s.name, s.side) not in {(x.name, x.side) for x in selected}]
         if not specs:
             break
-        cur_in = fit_static(current.model, d_in, s_in, effects=selected)
+        cur_in = fit_static(current.model, d_in, s_in, effects=selected, geometry=current.geometry)
         q_cur = predict_static(current.model, data, current.effects)
         rmse_cur_w = _rmse((d_val.q_mm3_s - predict_static(cur_in.model, d_val, cur_in.effects)) / s_val)
         scored = []
@@ -260,11 +269,20 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
             if size <= floor_mm3_s:
                 improvement = min(improvement, 0.0)
             scored.append((f, p, improvement, spec_c, fit))
+        if geom_sides and not current.geometry:
+            # the rig's unpublished needle geometry competes with the effects:
+            # what it explains is a constant of the rig, not an effect
+            g = _geometry_candidate(current, cur_in, data, d_in, d_val, sigma, s_in, s_val,
+                                    selected, geom_sides, rmse_cur_w)
+            scored.append(g)
         m = len(scored)
         passing = [s for s in scored if s[1] < alpha / m and s[2] >= min_improvement]
         if not passing:
             break
         f, p, improvement, spec_c, fit = max(passing, key=lambda s: s[0])
+        if spec_c is GEOMETRY:
+            current = fit
+            continue
         p_perm = _permutation_check(current, data, sigma, spec_c, selected, f, n_perm=n_perm, rng=rng)
         if p_perm >= alpha_perm:
             break
@@ -276,7 +294,53 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
         ci = {name: ci_all[f"{spec_c.label}.{name}"] for name in spec_c.params}
         findings.append(EffectFinding(spec_c.name, spec_c.side, values, ci, p_value=p_perm,
                                       f_p_value=p, inner_improvement=improvement))
+    if selected and geom_sides and not current.geometry:
+        current, selected, findings = _prune_geometry(
+            base, current, selected, findings, data, d_in, d_val, sigma, s_in, s_val, geom_sides,
+            alpha=alpha, min_improvement=min_improvement)
     return base, current, findings, trends, lb
+
+
+#: marks the geometry pseudo-candidate in the selection
+GEOMETRY = "needle_geometry"
+
+
+def _geometry_candidate(current, cur_in, data, d_in, d_val, sigma, s_in, s_val, selected,
+                        sides, rmse_cur_w):
+    """(F, p, inner improvement, GEOMETRY, fit) of freeing the needle centre y_c."""
+    fit = fit_static(current.model, data, sigma, effects=selected, geometry=sides)
+    f, p = _f_test(current.rss_weighted, current.n_params, fit.rss_weighted, fit.n_params, len(data))
+    new_in = fit_static(cur_in.model, d_in, s_in, effects=selected, geometry=sides)
+    rmse_new_w = _rmse((d_val.q_mm3_s - predict_static(new_in.model, d_val, new_in.effects)) / s_val)
+    improvement = 1.0 - rmse_new_w / rmse_cur_w if rmse_cur_w > 0 else 0.0
+    return f, p, improvement, GEOMETRY, fit
+
+
+def _prune_geometry(base, current, selected, findings, data, d_in, d_val, sigma, s_in, s_val,
+                    sides, *, alpha, min_improvement):
+    """Keep an effect only if it still beats the base model with the needle
+    geometry identified (with the other effects kept): F-test and the inner
+    validation improvement, as in the selection. What it does not beat is
+    the unpublished geometry, not an effect."""
+    kept = list(selected)
+    for spec in list(selected):
+        others = [x for x in kept if x is not spec]
+        with_e = fit_static(base.model, data, sigma, effects=kept, geometry=sides)
+        without = fit_static(base.model, data, sigma, effects=others, geometry=sides)
+        _, p = _f_test(without.rss_weighted, without.n_params, with_e.rss_weighted,
+                       with_e.n_params, len(data))
+        w_in = fit_static(base.model, d_in, s_in, effects=kept, geometry=sides)
+        wo_in = fit_static(base.model, d_in, s_in, effects=others, geometry=sides)
+        r_with = _rmse((d_val.q_mm3_s - predict_static(w_in.model, d_val, w_in.effects)) / s_val)
+        r_wo = _rmse((d_val.q_mm3_s - predict_static(wo_in.model, d_val, wo_in.effects)) / s_val)
+        improvement = 1.0 - r_with / r_wo if r_wo > 0 else 0.0
+        if p >= alpha or improvement < min_improvement:
+            kept = others
+    if len(kept) == len(selected):
+        return current, selected, findings
+    final = fit_static(base.model, data, sigma, effects=kept, geometry=sides)
+    names = {(x.name, x.side) for x in kept}
+    return final, kept, [f for f in findings if (f.name, f.side) in names]
 
 
 def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected, f_obs, *, n_perm, rng):
@@ -293,7 +357,7 @@ def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected
         q_star = q_hat + sigma * rng.permutation(z)
         d_star = FlowData(data.side, data.theta_deg, data.p_supply_mpag, data.p_head_mpag,
                           data.p_tank_mpag, data.run_index, data.approach, q_star)
-        cur = fit_static(current.model, d_star, sigma, effects=selected)
+        cur = fit_static(current.model, d_star, sigma, effects=selected, geometry=current.geometry)
         # grid-searched parameters (drift's period and phase) are searched
         # again on each replicate, as they were on the data
         new, _ = fit_candidate(cur, d_star, sigma, spec.unsearched(), selected)

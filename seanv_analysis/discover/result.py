@@ -107,6 +107,9 @@ class Discovery:
     #: runs), "position_control_shift" (shifted-flow RMSE on held-out run tails,
     #: position-only data) or "closed_loop" (validate's flow RMSE, base vs augmented)
     heldout_source: str = "flow_step"
+    #: sides whose needle centre y_c (eq. 4, not published) the data moved from
+    #: the rig file's: part of the base model, never an effect
+    geometry: dict | None = None
 
     @property
     def improvement(self) -> float:
@@ -125,6 +128,8 @@ class Discovery:
                "trend_variable": self.trend_variable,
                # where the held-out numbers come from
                "heldout_source": self.heldout_source}
+        if self.geometry:
+            out["base_geometry"] = self.geometry
         if self.position_control:
             out["position_control"] = self.position_control
         if self.validation:
@@ -192,6 +197,12 @@ class Discovery:
         else:
             lines.append("Discovery: nothing found. The residual of the base flow model is "
                          "consistent with noise; no candidate effect lowers the error materially.")
+        if self.geometry:
+            sides = ", ".join(f"{s} y_c {g['needle_y_c_mm']:.1f} mm (rig file {g['rig_file_mm']:.1f})"
+                              for s, g in self.geometry.items())
+            lines.append("The needle geometry (eq. 4's centre, not published) differs from the "
+                         f"rig file's and is part of the base model: {sides}. "
+                         "`seanv-analyze identify` gives it with intervals.")
         what = {"closed_loop": "closed-loop flow RMSE (validate: controller re-run on the plant)",
                 "position_control_shift": "flow RMSE of actual flow shifted by the nominal "
                                           "vs the estimated lag"}.get(self.heldout_source,

@@ -14,10 +14,10 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..models import ValveModel, side_pressures
+from ..models import ValveModel, fluid_force_n, side_pressures
 from ..models import effects as fx
 
-__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static"]
+__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static", "geometry_sides"]
 
 
 @dataclass(frozen=True)
@@ -169,6 +169,7 @@ class StaticFit:
     message: str
     covariance: np.ndarray | None = None
     param_names: tuple[str, ...] = ()
+    geometry: tuple[str, ...] = ()          # sides whose needle centre y_c was fitted
 
     def param_ci95(self) -> dict[str, tuple[float, float]]:
         """Wald 95 % intervals from the scaled Jacobian covariance (NaN if singular)."""
@@ -183,23 +184,52 @@ class StaticFit:
         return out
 
     def _values(self) -> list[float]:
-        vals = [self.model.supply.z0_mm, self.model.supply.c_flow,
-                self.model.drain.z0_mm, self.model.drain.c_flow]
+        base = {}
+        for s in ("supply", "drain"):
+            side = self.model.side(s)
+            base.update({f"{s}.z0_mm": side.z0_mm, f"{s}.C": side.c_flow,
+                         f"{s}.y_c_mm": side.geometry.needle_y_c_mm})
+        vals = [float(base[n]) for n in self.param_names if n in base]
         for _spec, v in self.effects.values():
             vals.extend(float(x) for x in v)
         return vals
 
 
+def geometry_sides(model: ValveModel, data: FlowData, *, min_force_span_n: float = 1.5
+                   ) -> tuple[str, ...]:
+    """Sides whose runs span enough fluid force (eq. 1, > ``min_force_span_n``
+    [N]) for the threshold's pressure dependence, i.e. the needle centre y_c
+    of eq. (4), to be fitted with z0 and C (the unpublished geometry is part
+    of the base model, so it cannot pass for an effect)."""
+    out = []
+    for s in ("supply", "drain"):
+        m = data.side == s
+        if m.sum() < 8:
+            continue
+        p1, dp = side_pressures(s, data.p_supply_mpag[m], data.p_head_mpag[m], data.p_tank_mpag[m])
+        f = fluid_force_n(p1, dp, model.side(s).geometry)
+        f = f[np.isfinite(f)]
+        if f.size and float(np.ptp(f)) > min_force_span_n:
+            out.append(s)
+    return tuple(out)
+
+
 def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
                effects: list[EffectSpec] = (), loss: str = "soft_l1",
-               fit_sides: tuple[str, ...] = ("supply", "drain")) -> StaticFit:
-    """Fit z0 and C of both sides (and the effects' parameters) to ``data``.
+               fit_sides: tuple[str, ...] = ("supply", "drain"),
+               geometry: tuple[str, ...] = ()) -> StaticFit:
+    """Fit z0 and C of both sides (and the effects' parameters) to ``data``;
+    with them the needle centre y_c (eq. 4) of the ``geometry`` sides (the
+    rig's unpublished geometry; :func:`geometry_sides` tells which sides the
+    data can say it for).
 
     Residuals are weighted by ``sigma`` (flow noise model [mm^3/s]); the loss
     is robust (``soft_l1`` with f_scale = 2, i.e. residuals beyond ~2 sigma
     count less) so a few bad runs cannot drag C.
     """
     present = [s for s in fit_sides if np.any(data.side == s)]
+    geometry = tuple(geometry)
+    with_geom = [s for s in present if s in geometry]
     names = []
     x0, lo, hi = [], [], []
     for s in present:
@@ -209,6 +239,12 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
         x0 += [vs.z0_mm, vs.c_flow]
         lo += [vs.z0_mm - 1.0, -50 * c_abs if vs.c_flow < 0 else 0.0]
         hi += [vs.z0_mm + 1.0, 0.0 if vs.c_flow < 0 else 50 * c_abs]
+        if s in with_geom:
+            y = vs.geometry.needle_y_c_mm
+            names.append(f"{s}.y_c_mm")
+            x0.append(y)
+            lo.append(-80.0 if y < 0 else 4.0)
+            hi.append(-4.0 if y < 0 else 80.0)
     for spec in effects:
         names += [f"{spec.label}.{p}" for p in spec.params]
         x0 += list(spec.x0)
@@ -222,6 +258,10 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
         for s in present:
             m = m.with_side(s, z0_mm=float(x[k]), c_flow=float(x[k + 1]))
             k += 2
+            if s in with_geom:
+                geom = replace(m.side(s).geometry, needle_y_c_mm=float(x[k]))
+                m = m.with_side(s, geometry=geom)
+                k += 1
         eff = {}
         for spec in effects:
             npar = len(spec.params)
@@ -231,7 +271,10 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
 
     def resid(x):
         m, eff = unpack(x)
-        return (data.q_mm3_s - predict_static(m, data, eff)) / sigma
+        try:
+            return (data.q_mm3_s - predict_static(m, data, eff)) / sigma
+        except ValueError:      # eq. (4) not monotonic for this y_c: far off
+            return np.full(len(data), 1e3)
 
     sol = least_squares(resid, x0, bounds=(lo, hi), loss=loss, f_scale=2.0,
                         x_scale="jac", max_nfev=400)
@@ -248,5 +291,5 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
     except np.linalg.LinAlgError:
         cov = None
     return StaticFit(m, eff, wr * sigma, wr, float(np.sum(wr ** 2)), len(sol.x),
-                     bool(sol.success), str(sol.message), cov, tuple(names))
+                     bool(sol.success), str(sol.message), cov, tuple(names), tuple(with_geom))
 

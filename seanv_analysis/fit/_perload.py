@@ -2,7 +2,9 @@
 
 (a) per side and load level: Q = alpha (theta - theta_d)^2 on the open side;
 (b) z0 so that the eq. (3)+(4) thresholds match the per-load theta_d;
-(c) C from alpha = C dp^n (n = 0.5: eq. 5).
+(c) C from alpha = C dp^n (n = 0.5: eq. 5);
+
+and the lack-of-fit test of a fitted side (:func:`lack_of_fit_test`).
 
 Units: deg, MPa, mm^3/s, mm; alpha in mm^3/(s deg^2).
 """
@@ -13,11 +15,13 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
+from scipy.stats import f as f_dist
 
 from ..models import ValveSide, signed_power
 
 __all__ = ["LoadFit", "group_loads", "fit_load", "NoiseModel", "fit_noise_model",
-           "two_step", "side_flow"]
+           "two_step", "side_flow", "LackOfFit", "lack_of_fit_test", "LOF_P_MAX", "LOF_RATIO_MIN",
+           "LOF_SYSTEMATIC_MIN"]
 
 #: sqrt(2/pi): E|r| / sigma for Gaussian noise
 _ABS_MEAN = math.sqrt(2.0 / math.pi)
@@ -216,3 +220,126 @@ def _weights(se: np.ndarray) -> np.ndarray:
         return np.ones_like(se)
     w = 1.0 / se ** 2
     return w / w.mean()
+
+
+#: Lack of fit is flagged when it is significant (p < LOF_P_MAX), large next
+#: to the repeats' scatter (ratio > LOF_RATIO_MIN) *and* material next to the
+#: flow (systematic misfit > LOF_SYSTEMATIC_MIN of the weighted RMS flow): on
+#: very clean data (the simulator's repeats agree to ~1 mm^3/s) a systematic
+#: term of 0.1 % of the flow is significant and many times the repeats'
+#: scatter, yet immaterial. 1 % is twice the flow-scale calibration
+#: uncertainty (0.5 %, 95 %).
+LOF_P_MAX = 0.01
+LOF_RATIO_MIN = 1.5
+LOF_SYSTEMATIC_MIN = 0.01
+
+
+@dataclass(frozen=True)
+class LackOfFit:
+    """Classical lack-of-fit F test of a fitted model against the repeats.
+
+    Attributes
+    ----------
+    flagged : True when p < :data:`LOF_P_MAX`, ratio > :data:`LOF_RATIO_MIN`
+        and systematic > :data:`LOF_SYSTEMATIC_MIN` (when known); None when
+        the test cannot be made (``reason`` says why)
+    ratio : sqrt(F): scatter of the conditions' mean residuals (scaled to
+        one run) / scatter of the repeats about their condition's mean [-];
+        ~1 when the model describes the runs
+    p_value : P(F(df_lof, df_pe) >= F)
+    f_stat : F = (SS_lof / df_lof) / (SS_pe / df_pe)
+    systematic : systematic misfit (the lack of fit less the noise expected in
+        it) as a fraction of the flow, both RMS with the same weights [-]; NaN
+        without ``flow_mm3_s``
+    df_lof, df_pe : degrees of freedom (conditions - parameters; runs - conditions)
+    n_conditions, n_repeated : conditions, and those with >= 2 runs
+    reason : why there is no test (None when tested)
+    """
+
+    flagged: bool | None
+    ratio: float = math.nan
+    p_value: float = math.nan
+    f_stat: float = math.nan
+    systematic: float = math.nan
+    df_lof: int = 0
+    df_pe: int = 0
+    n_conditions: int = 0
+    n_repeated: int = 0
+    reason: str | None = None
+
+
+def lack_of_fit_test(residual_mm3_s, conditions, *, sigma_mm3_s=None, flow_mm3_s=None,
+                     n_params: int = 2) -> LackOfFit:
+    """Lack-of-fit F test from the residuals (measured - model) of a fitted model.
+
+    The weighted residual sum of squares splits exactly into pure error
+    (repeats about their condition's weighted mean residual) and lack of fit
+    (the conditions' mean residuals)::
+
+        SS_pe  = sum_ij w_ij (r_ij - rbar_i)^2,   df_pe  = N - m
+        SS_lof = sum_i W_i rbar_i^2,              df_lof = m - n_params
+        F = (SS_lof / df_lof) / (SS_pe / df_pe)
+
+    with w = 1 / sigma^2 (equal weights without ``sigma_mm3_s``), W_i the sum
+    of w over condition i, N runs, m conditions. Working on residuals rather
+    than on the measured flows lets repeats differ a little in their
+    covariates (pressures, measured cam angle): the model accounts for that.
+    The systematic part, sum_i W_i b_i^2 ~ SS_lof - df_lof SS_pe / df_pe, is
+    compared with sum w Q^2 (``systematic``).
+
+    Parameters
+    ----------
+    residual_mm3_s : measured - model per run [mm^3/s]
+    conditions : one label per run (runs with the same label are repeats)
+    sigma_mm3_s : per-run noise scale [mm^3/s] (weights 1/sigma^2); None: equal
+    flow_mm3_s : model flow per run [mm^3/s], for ``systematic``; None: not judged
+    n_params : parameters fitted (z0 and C: 2)
+
+    Returns
+    -------
+    LackOfFit; ``flagged`` None (with ``reason``) when no condition is
+    repeated, there are too few conditions for the parameters, or the
+    repeats agree exactly.
+
+    Examples
+    --------
+    >>> r = [1.0, -1.0, 1.0, -1.0, 1.0, -1.0]          # repeats scatter, means on the model
+    >>> lack_of_fit_test(r, ["a", "a", "b", "b", "c", "c"], n_params=1).flagged
+    False
+    """
+    r = np.asarray(residual_mm3_s, dtype=float)
+    w = np.ones_like(r) if sigma_mm3_s is None else 1.0 / np.asarray(sigma_mm3_s, float) ** 2
+    q = np.full_like(r, np.nan) if flow_mm3_s is None else np.asarray(flow_mm3_s, float)
+    labels = np.asarray([str(c) for c in conditions], dtype=object)
+    ok = np.isfinite(r) & np.isfinite(w) & (w > 0)
+    r, w, q, labels = r[ok], w[ok], q[ok], labels[ok]
+    if not r.size:
+        return LackOfFit(None, reason="no residuals")
+    _, inv = np.unique(labels.astype(str), return_inverse=True)
+    m = int(inv.max()) + 1
+    counts = np.bincount(inv, minlength=m)
+    wsum = np.bincount(inv, weights=w, minlength=m)
+    rbar = np.bincount(inv, weights=w * r, minlength=m) / wsum
+    ss_pe = float(np.sum(w * (r - rbar[inv]) ** 2))
+    ss_lof = float(np.sum(wsum * rbar ** 2))
+    df_pe, df_lof = int(r.size - m), int(m - n_params)
+    base = {"df_lof": max(df_lof, 0), "df_pe": df_pe, "n_conditions": m,
+            "n_repeated": int(np.sum(counts >= 2))}
+    if df_pe <= 0:
+        return LackOfFit(None, reason="no repeated condition (load level x commanded cam): "
+                                      "no repeats' scatter to compare with", **base)
+    if df_lof <= 0:
+        return LackOfFit(None, reason=f"{m} condition(s) for {n_params} parameters: no "
+                                      "degree of freedom left for lack of fit", **base)
+    if not ss_pe > 0:
+        return LackOfFit(None, reason="repeats agree exactly: no repeats' scatter", **base)
+    ms_pe = ss_pe / df_pe
+    f_stat = (ss_lof / df_lof) / ms_pe
+    p = float(f_dist.sf(f_stat, df_lof, df_pe))
+    ratio = math.sqrt(f_stat)
+    flow2 = float(np.sum(w * q ** 2))
+    systematic = (math.sqrt(max(ss_lof - df_lof * ms_pe, 0.0) / flow2)
+                  if math.isfinite(flow2) and flow2 > 0 else math.nan)
+    material = ratio > LOF_RATIO_MIN and not systematic <= LOF_SYSTEMATIC_MIN
+    return LackOfFit(bool(p < LOF_P_MAX and material), ratio, p, float(f_stat), systematic,
+                     **base)

@@ -38,6 +38,25 @@ the piston area and the velocity estimate) and cam zero (``cam_u95_deg``,
 (``z0_ci95_stat``, ``c_ci95_stat``). When the fit's covariance is singular
 (e.g. the runs do not pin down the threshold) the intervals are NaN
 (``null`` in JSON) and the message says so.
+
+Lack of fit (per side, :attr:`SideFit.lack_of_fit`): the intervals assume
+eq. (5) describes the runs. A classical lack-of-fit F test checks it: the
+scatter of the conditions' mean residuals about the model against the
+scatter of the repeats about their condition's mean (pure error), residuals
+weighted by the noise model 1/sigma^2, two parameters (z0, C)
+(:func:`~._perload.lack_of_fit_test`), on the joint fit's residuals (with
+``procedure='two_step'`` too: the question is the model's, not the
+procedure's). ``lack_of_fit`` is true when
+p < 0.01, the ratio sqrt(F) > 1.5 and the systematic misfit exceeds 1 % of
+the flow (on very clean data a tiny systematic term is significant and many
+times the repeats' scatter, yet immaterial); the side's message then says so
+and points to ``seanv-analyze discover``. Nothing is widened: the intervals
+stay what the bootstrap and the calibration terms give. Without repeated
+conditions there is no pure error: ``lack_of_fit`` is None (``null``) and
+``lack_of_fit_detail['reason']`` says why. A drift through time also
+spreads the repeats (they are taken at different times), so it shows only
+where it moves the conditions apart more than the repeats: on the paper's
+protocol (three sweeps per load) it does.
 Residual sign everywhere: measured - model.
 """
 from __future__ import annotations
@@ -55,7 +74,17 @@ from ..errors import ConfigError, DataError, FitError
 from ..models import SIDES, ValveModel, signed_power
 from ..models.valve import MIN_DP_MPA
 from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
-from ._perload import fit_load, fit_noise_model, group_loads, two_step
+from ._perload import (
+    LOF_P_MAX,
+    LOF_RATIO_MIN,
+    LOF_SYSTEMATIC_MIN,
+    LackOfFit,
+    fit_load,
+    fit_noise_model,
+    group_loads,
+    lack_of_fit_test,
+    two_step,
+)
 
 __all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "UNITS",
            "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
@@ -110,7 +139,16 @@ class SideFit:
     joint, two_step : both procedures' estimates (dicts with z0_mm, c_flow, standard errors)
     ci_method : how the intervals were made
     noise : noise model {floor_mm3_s, rel}: sigma = floor + rel |Q|
-    success, message : whether the fit worked; why not, or notes
+    lack_of_fit : True when eq. (5) does not describe the runs (lack-of-fit F
+        test against the repeats: significant and material), False when it
+        does, None when it cannot be tested (no repeated condition)
+    lack_of_fit_ratio : sqrt(F): scatter of the conditions' mean residuals
+        (per run) / scatter of the repeats [-], ~1 without lack of fit; NaN untested
+    lack_of_fit_p : p-value of the F test; NaN untested
+    lack_of_fit_detail : F, degrees of freedom, conditions, systematic misfit
+        [% of the flow], criteria, and the reason when untested
+    success, message : whether the fit worked; why not, or notes (the
+        lack-of-fit sentence when flagged)
     """
 
     side: str
@@ -130,13 +168,20 @@ class SideFit:
     noise: dict = field(default_factory=dict)
     success: bool = False
     message: str = ""
+    lack_of_fit: bool | None = None
+    lack_of_fit_ratio: float = math.nan
+    lack_of_fit_p: float = math.nan
+    lack_of_fit_detail: dict = field(default_factory=dict)
 
     def to_json(self) -> dict[str, Any]:
         """The ``--json`` contract for one side (NaN -> null)."""
         return {"z0_mm": _json_num(self.z0_mm), "C": _json_num(self.c_flow),
                 "z0_ci95": [_json_num(v) for v in self.z0_ci95],
                 "C_ci95": [_json_num(v) for v in self.c_ci95],
-                "rmse_mm3_s": _json_num(self.rmse_mm3_s), "n_runs": int(self.n_runs)}
+                "rmse_mm3_s": _json_num(self.rmse_mm3_s), "n_runs": int(self.n_runs),
+                "lack_of_fit": None if self.lack_of_fit is None else bool(self.lack_of_fit),
+                "lack_of_fit_ratio": _json_num(self.lack_of_fit_ratio),
+                "lack_of_fit_p": _json_num(self.lack_of_fit_p)}
 
     def to_dict(self) -> dict[str, Any]:
         """Everything (JSON-ready)."""
@@ -145,8 +190,50 @@ class SideFit:
                  C_ci95_stat=[_json_num(v) for v in self.c_ci95_stat])
         d.update(side=self.side, procedure=self.procedure, success=self.success,
                  message=self.message, ci_method=self.ci_method, n_boot_ok=self.n_boot_ok,
-                 noise=self.noise, joint=_clean(self.joint), two_step=_clean(self.two_step))
+                 noise=self.noise, joint=_clean(self.joint), two_step=_clean(self.two_step),
+                 lack_of_fit_detail=_clean(self.lack_of_fit_detail))
         return d
+
+    @property
+    def status(self) -> str:
+        """'failed', 'lack of fit' or 'ok'."""
+        if not self.success:
+            return "failed"
+        return "lack of fit" if self.lack_of_fit else "ok"
+
+    def lack_of_fit_line(self) -> str:
+        """One line on the lack-of-fit check (empty when it was not run)."""
+        d = self.lack_of_fit_detail
+        if not d:
+            return ""
+        if self.lack_of_fit is None:
+            return f"lack-of-fit check: not possible ({d.get('reason') or 'untested'})"
+        verdict = "LACK OF FIT" if self.lack_of_fit else "none material"
+        sys_pct = d.get("systematic_pct")
+        sys_txt = (f", systematic misfit {sys_pct:.2g} % of the flow"
+                   if sys_pct is not None and math.isfinite(sys_pct) else "")
+        return (f"lack-of-fit check: {verdict} (residual scatter {self.lack_of_fit_ratio:.1f}x "
+                f"the repeats' scatter, p = {_fmt_p(self.lack_of_fit_p)}{sys_txt}; "
+                f"{d.get('n_repeated', 0)}/{d.get('n_conditions', 0)} conditions repeated)")
+
+
+def _fmt_p(p: float) -> str:
+    """p-value for a sentence: 0.03, 2e-9."""
+    if not math.isfinite(p):
+        return "n/a"
+    if p >= 1e-3:
+        return f"{p:.2g}"
+    mant, exp = f"{p:.0e}".split("e")
+    return f"{mant}e{int(exp)}"
+
+
+def _lack_of_fit_sentence(lof: LackOfFit) -> str:
+    """The message of a side whose runs eq. (5) does not describe."""
+    sys_txt = (f", systematic misfit {100 * lof.systematic:.2g} % of the flow"
+               if math.isfinite(lof.systematic) else "")
+    return (f"residual scatter {lof.ratio:.1f}x the repeats' scatter (p = {_fmt_p(lof.p_value)}"
+            f"{sys_txt}): eq. (5) does not describe these runs (drift, or another effect); "
+            "the intervals assume it does. Run `seanv-analyze discover`.")
 
 
 def _clean(d: dict) -> dict:
@@ -208,8 +295,11 @@ class FlowFit:
         """Human-readable summary."""
         lines = ["Flow-model fit (paper eq. 3-5), residual = measured - model"]
         for s, f in self.sides.items():
-            lines.append(f"{s}: {'ok' if f.success else 'FAILED'}"
-                         + (f" ({f.message})" if f.message else ""))
+            if f.status == "lack of fit":
+                lines.append(f"{s}: lack of fit: {f.message}")
+            else:
+                lines.append(f"{s}: {'ok' if f.success else 'FAILED'}"
+                             + (f" ({f.message})" if f.message else ""))
             if not math.isfinite(f.z0_mm):
                 continue
             lines.append(f"  z0 = {f.z0_mm:.4f} mm  95% [{f.z0_ci95[0]:.4f}, {f.z0_ci95[1]:.4f}]")
@@ -227,6 +317,8 @@ class FlowFit:
             if f.noise:
                 lines.append(f"  noise model: sigma = {f.noise['floor_mm3_s']:.1f} + "
                              f"{f.noise['rel']:.3f} |Q| mm^3/s")
+            if f.lack_of_fit_line() and not f.lack_of_fit:  # flagged: said above
+                lines.append(f"  {f.lack_of_fit_line()}")
         ex = ", ".join(f"{k} {v}" for k, v in self.excluded.items())
         lines.append(f"excluded runs: {ex}")
         for w in self.warnings:
@@ -367,6 +459,16 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
     q_model = base.with_side(side_name, z0_mm=result.z0_mm, c_flow=result.c_flow) \
         .side(side_name).flow(theta, p1, dp)
     result.rmse_mm3_s = float(np.sqrt(np.mean((q - q_model) ** 2)))
+    # a condition = load level x commanded cam; its runs are repeats (lack of
+    # fit: their scatter is the pure error; bootstrap: resampled together)
+    clusters = [f"{lv:.4g}|{c:.3f}" for lv, c in zip(level, rows["cam_deg"].to_numpy(float))]
+    # the test asks whether eq. (5) describes the runs, so it takes the best
+    # eq. (5) fit: the joint one (two-step parameters are biased when dp
+    # changes with the opening, a misfit of the procedure, not of the model)
+    joint_ok = math.isfinite(jf.z0_mm) and math.isfinite(jf.c_flow)
+    lof = lack_of_fit_test(jf.residual_mm3_s if joint_ok else q - q_model, clusters,
+                           sigma_mm3_s=sigma, flow_mm3_s=jf.q_model_mm3_s if joint_ok else q_model)
+    _set_lack_of_fit(result, lof)
 
     # uncertainty: bootstrap over runs, unless the covariance is singular
     singular = not (math.isfinite(jf.z0_se_mm) and math.isfinite(jf.c_se))
@@ -374,8 +476,6 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
         result.message = "covariance singular: no confidence intervals"
         warns.append(f"{side_name}: {result.message}")
     elif n_boot > 0:
-        cmd = rows["cam_deg"].to_numpy(float)
-        clusters = [f"{lv:.4g}|{c:.3f}" for lv, c in zip(level, cmd)]
         boot = _bootstrap(side, theta, p1, dp, q_load, q, sigma, level, procedure=procedure,
                           x_hat=(result.z0_mm, result.c_flow), f_scale=jf.f_scale,
                           n_boot=n_boot, seed=seed, load_tol_mpag=load_tol_mpag,
@@ -402,7 +502,23 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
             warns.append(f"{side_name}: {msg}")
     else:
         result.ci_method = "none (n_boot = 0)"
+    if lof.flagged:
+        result.message = "; ".join(m for m in (result.message, _lack_of_fit_sentence(lof)) if m)
     return result, per_load, sigma, warns
+
+
+def _set_lack_of_fit(result: SideFit, lof: LackOfFit) -> None:
+    result.lack_of_fit = lof.flagged
+    result.lack_of_fit_ratio, result.lack_of_fit_p = lof.ratio, lof.p_value
+    result.lack_of_fit_detail = {
+        "test": "lack-of-fit F test: conditions' mean residuals vs repeats (pure error), "
+                "weights 1/sigma^2, 2 parameters",
+        "f_stat": lof.f_stat, "df_lof": lof.df_lof, "df_pe": lof.df_pe,
+        "n_conditions": lof.n_conditions, "n_repeated": lof.n_repeated,
+        "systematic_pct": 100.0 * lof.systematic,
+        "criteria": f"p < {LOF_P_MAX:g}, ratio > {LOF_RATIO_MIN:g}, systematic misfit > "
+                    f"{100 * LOF_SYSTEMATIC_MIN:g} % of the flow",
+        "reason": lof.reason}
 
 
 def _threshold_slope(side, z0_mm: float, p1, dp) -> float:

@@ -214,7 +214,12 @@ def _flowfit(r) -> str:
     rows = []
     for side, f in fit.sides.items():
         ref_z0, ref_c = _rig_side_values(r.rig, side)
-        status = "<span class='ok'>ok</span>" if f.success else "<span class='bad'>failed</span>"
+        if not f.success:
+            status = "<span class='bad'>failed</span>"
+        elif getattr(f, "lack_of_fit", None):  # eq. (5) does not describe the runs: not "ok"
+            status = "<span class='warn'>lack of fit</span>"
+        else:
+            status = "<span class='ok'>ok</span>"
         rows.append(
             f"<tr><td class='l'>{_e(side)}</td><td>{_fmt(f.z0_mm, 5)}</td><td>{_ci(f.z0_ci95, 5)}</td>"
             f"<td>{_fmt(ref_z0, 5)}</td>"
@@ -228,6 +233,10 @@ def _flowfit(r) -> str:
              "<th>C paper/rig</th><th>RMSE [mm^3/s]</th><th>runs used</th><th class='l'>status</th>"
              "</tr>" + "".join(rows) + "</table>")
     notes = [f"Residual = measured &minus; model. Intervals: {_e('; '.join(methods) or 'n/a')}."]
+    for side, f in fit.sides.items():  # lack-of-fit check (a flagged side says it under status)
+        line = f.lack_of_fit_line() if hasattr(f, "lack_of_fit_line") else ""
+        if line and not getattr(f, "lack_of_fit", None):
+            notes.append(f"{_e(side)}: {_e(line)}")
     notes += [f"<span class='warn'>warning:</span> {_e(w)}" for w in getattr(fit, "warnings", [])]
     per_load = getattr(fit, "per_load", None)
     pl = ""
@@ -235,6 +244,52 @@ def _flowfit(r) -> str:
         pl = "<details><summary>per load level (threshold angle and quadratic coefficient)</summary>" \
              + _table(per_load, left=("side",)) + "</details>"
     return table + "".join(f"<p>{n}</p>" for n in notes) + pl + _figure_links(r, "flowfit")
+
+
+def _identify(r) -> str:
+    ident = getattr(r, "identify", None)
+    if ident is None:
+        why = r.stage_errors.get("identify", "stage not in this pipeline")
+        return (f"<p>The rig was not identified ({_e(why)}): validate and discover simulate the "
+                "rig file's constants, including those the paper does not publish.</p>")
+    rows = []
+    for c in ident.constants:
+        status = ("<span class='ok'>identified</span>" if c.identified
+                  else "<span class='warn'>rig file</span>")
+        rows.append(f"<tr><td class='l'>{_e(c.name)}</td><td class='l'>{_e(c.key or '(reported)')}"
+                    f"</td><td>{_fmt(c.value)}</td><td>{_ci(c.ci95)}</td><td>{_fmt(c.default)}</td>"
+                    f"<td class='l'>{_e(c.unit)}</td><td class='l'>{status} {_e(c.constrained_by)}"
+                    f"{'; ' + _e(c.note) if c.note else ''}</td></tr>")
+    table = ("<table><tr><th class='l'>constant</th><th class='l'>rig key</th><th>identified</th>"
+             "<th>95 % interval</th><th>rig file</th><th class='l'>unit</th>"
+             "<th class='l'>from</th></tr>" + "".join(rows) + "</table>")
+    fit_rows = []
+    for part, f in ident.fits.items():
+        subs = ([(f"{part} ({k})", v) for k, v in f.items() if isinstance(v, dict)]
+                if "metric" not in f else [(part, f)])
+        for label, g in subs:
+            if not any(k in g for k in ("train", "heldout")):
+                continue
+            fit_rows.append(f"<tr><td class='l'>{_e(label)}</td><td class='l'>{_e(g.get('metric', ''))}"
+                            f"</td><td>{_fmt(g.get('train_default'))}</td><td>{_fmt(g.get('train'))}</td>"
+                            f"<td>{_fmt(g.get('heldout_default'))}</td><td>{_fmt(g.get('heldout'))}"
+                            "</td></tr>")
+    fits = ("<h3>Training and held-out error: rig file's constants vs identified</h3>"
+            "<table><tr><th class='l'>part</th><th class='l'>measure</th><th>training, rig file</th>"
+            "<th>training, identified</th><th>held-out, rig file</th><th>held-out, identified</th>"
+            "</tr>" + "".join(fit_rows) + "</table>") if fit_rows else ""
+    cl = ident.fits.get("closed_loop") or {}
+    closed = ""
+    if "heldout" in cl:
+        closed = (f"<p>Held-out position-control runs re-simulated in closed loop: position fit "
+                  f"{_fmt(cl.get('heldout_default'), 3)} % with the rig file's twin, "
+                  f"{_fmt(cl.get('heldout'), 3)} % with the identified one; flow fit "
+                  f"{_fmt(cl.get('heldout_default_flow'), 3)} % &rarr; "
+                  f"{_fmt(cl.get('heldout_flow'), 3)} %.</p>")
+    notes = "".join(f"<div class='note'>{_e(n)}</div>" for n in ident.notes)
+    return ("<p>The constants the paper does not publish, identified from this data set's own "
+            "logs; what the data cannot tell keeps the rig file's value. Validation and discovery "
+            "below simulate the identified twin.</p>" + table + closed + fits + notes)
 
 
 def _rig_side_values(rig: Any, side: str) -> tuple[Any, Any]:
@@ -457,8 +512,9 @@ def render_report(result: Any) -> str:
           ``rig`` (rig config: ``rig["valve"][side]["z0_mm"]``, ``.to_dict()``)
         - ``runs_found``, ``runs_read``, ``summary`` (per-run DataFrame),
           ``excluded`` ({reason: count}), ``failed`` (objects with ``.to_json()``)
-        - ``flowfit``, ``tracking``, ``validation``, ``validation_augmented``,
-          ``discovery``: stage results, None when the stage did not run
+        - ``flowfit``, ``identify`` (optional attribute), ``tracking``, ``validation``,
+          ``validation_augmented``, ``discovery``: stage results, None when the
+          stage did not run
         - ``figures``: {registered figure name: written paths}
         - ``stage_errors``, ``stage_notes`` ({stage: one line}), ``warnings``
         - ``input_hashes`` ({file: sha256}), ``manifest_path`` (or None),
@@ -470,6 +526,7 @@ def render_report(result: Any) -> str:
     r = result
     sections = [("overview", "Overview", _overview(r)),
                 ("flowfit", "Identified flow model (eq. 5)", _flowfit(r)),
+                ("identify", "The rig identified from its logs", _identify(r)),
                 ("tracking", "Flow tracking during position control (Sec. III-C)", _tracking(r)),
                 ("validation", "Closed-loop validation", _validation(r)),
                 ("discovery", "Discovery: what the model misses", _discovery(r)),

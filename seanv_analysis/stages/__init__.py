@@ -8,6 +8,8 @@ lists them in the order a pipeline runs them:
 ============  ===============================================================
 ``ingest``    read, validate, summarise every run; the paper's filters
 ``flowfit``   z0, C per side with 95 % intervals (eq. 3-5)
+``identify``  the rig's unpublished constants (needle geometry, servo, friction,
+              line) from its logs; later stages simulate the identified twin
 ``tracking``  flow delay and tracking RMSE of the position-control runs
 ``validate``  the controller re-run on the simulated plant, fit %
 ``discover``  residual -> missing effect -> refit, error before/after
@@ -32,16 +34,16 @@ from __future__ import annotations
 
 from types import ModuleType
 
-from . import dataset, discover, figures, flowfit, report, tracking, validate
+from . import dataset, discover, figures, flowfit, identify, report, tracking, validate
 from .base import Context, FailedRun, RunMapper, RunOutcome, serial_map
 
 __all__ = ["STAGES", "Context", "FailedRun", "RunMapper", "RunOutcome", "serial_map", "dataset",
-           "flowfit", "tracking", "validate", "discover", "figures", "report", "describe_stages",
+           "flowfit", "identify", "tracking", "validate", "discover", "figures", "report", "describe_stages",
            "run_stages"]
 
 #: {name: stage module}, in run order
-STAGES: dict[str, ModuleType] = {m.NAME: m for m in (dataset, flowfit, tracking, validate,
-                                                     discover, figures, report)}
+STAGES: dict[str, ModuleType] = {m.NAME: m for m in (dataset, flowfit, identify, tracking,
+                                                     validate, discover, figures, report)}
 
 
 def describe_stages() -> str:

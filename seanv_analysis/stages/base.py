@@ -207,9 +207,20 @@ class Context:
         return self.results.get(name)
 
     @property
+    def plant_rig(self) -> RigConfig:
+        """The rig the twin is simulated with: the identified one when the
+        ``identify`` stage ran, else :attr:`rig`."""
+        ident = self.results.get("identify")
+        return ident.rig if ident is not None and ident.rig is not None else self.rig
+
+    @property
     def model(self) -> ValveModel | None:
-        """The valve model later stages use: the flow fit's when it succeeded,
-        else the one the context started with (None: none given)."""
+        """The valve model later stages use: ``identify``'s (refitted with the
+        identified needle geometry) when it ran, else the flow fit's when it
+        succeeded, else the one the context started with (None: none given)."""
+        ident = self.results.get("identify")
+        if ident is not None and ident.model is not None:
+            return ident.model
         fit = self.results.get("flowfit")
         if fit is not None and getattr(fit, "success", False) and fit.model is not None:
             return fit.model
@@ -222,6 +233,9 @@ class Context:
 
     @property
     def model_source(self) -> str:
+        ident = self.results.get("identify")
+        if ident is not None and ident.model is not None:
+            return "identify (this data set, identified needle geometry)"
         fit = self.results.get("flowfit")
         if fit is not None and getattr(fit, "success", False) and fit.model is not None:
             return "flowfit (this data set)"

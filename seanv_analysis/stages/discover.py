@@ -122,7 +122,7 @@ def closed_loop(ctx: Context, discovery) -> DiscoverResult:
         return DiscoverResult(discovery)
     note = ""
     try:
-        augmented, specs = discovery.augmented_model_and_effects(ctx.rig)
+        augmented, specs = discovery.augmented_model_and_effects(ctx.plant_rig)
     except SeanvError as exc:
         note = f"effects not simulated in the closed-loop check: {one_line(exc)}"
         augmented, specs = discovery.model, []
@@ -149,7 +149,7 @@ def run(ctx: Context, options: Mapping[str, Any]) -> DiscoverResult:
     """
     opts = {**OPTIONS, **options}
     ds = ctx.result("ingest")
-    disc = discover_runs(position_runs(ctx), ds.summary, rig=ctx.rig, model=ctx.valve,
+    disc = discover_runs(position_runs(ctx), ds.summary, rig=ctx.plant_rig, model=ctx.valve,
                          holdout=opts["holdout"], seed=opts["seed"])
     return closed_loop(ctx, disc)
 

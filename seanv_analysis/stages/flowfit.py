@@ -3,6 +3,9 @@
 Q = C (theta - theta_d(p1, dp; z0))^2 sqrt(dp), eq. (5), fitted on the
 flow-step runs the filters kept (:func:`seanv_analysis.fit.fit_flow`). The
 fitted model is what the later stages (tracking, validate, discover) use.
+Each side carries a lack-of-fit check against the repeats (``lack_of_fit``,
+``lack_of_fit_ratio``, ``lack_of_fit_p`` in ``flowfit.json``; the test's
+details in ``flowfit_details.json``).
 """
 from __future__ import annotations
 

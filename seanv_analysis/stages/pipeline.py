@@ -42,7 +42,7 @@ def _stages():
 
 
 #: Stage names in the order they run (a pipeline lists a subset, in this order).
-STAGE_NAMES = ("ingest", "flowfit", "tracking", "validate", "discover", "figures", "report")
+STAGE_NAMES = ("ingest", "flowfit", "identify", "tracking", "validate", "discover", "figures", "report")
 
 
 def stage_options() -> dict[str, dict[str, Any]]:

@@ -107,10 +107,13 @@ def validate_model(ctx: Context, model, effects: Sequence[str] = (), *, seed: in
     opts = {**OPTIONS, **(options or {})}
     paths = position_paths(ctx)
     params = {"model": model.to_dict(), "effects": list(effects), "seed": seed}
+    if ctx.plant_rig is not ctx.rig:      # the identified twin: part of the cache key
+        params["plant_rig"] = ctx.plant_rig.to_dict()
     if opts != OPTIONS:
         params.update(opts)
     res = ctx.map_runs(stage, validate_one, paths, rig=ctx.rig, params=params,
-                       kwargs={"rig": ctx.rig, "model": model.to_dict(), "effects": tuple(effects),
+                       kwargs={"rig": ctx.plant_rig, "model": model.to_dict(),
+                               "effects": tuple(effects),
                                "seed": seed, "threshold_pct": opts["threshold_pct"],
                                "controller_model": opts["controller_model"]})
     results, skipped, notes, failed = [], {}, [], []

@@ -1,0 +1,95 @@
+"""``seanv-analyze identify``: the rig's unpublished constants from its own logs."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+
+from . import cli
+from ._common import (
+    check_out_dir,
+    default_out_dir,
+    echo_bad_runs,
+    sim_default_dataset,
+    stage_context,
+    unusable,
+    write_command_manifest,
+)
+
+__all__ = ["identify_cmd"]
+
+_PARTS = ("geometry", "servo", "friction", "flow_path")
+
+
+@cli.command("identify", short_help="Identify the rig (needle geometry, servo, friction, line) "
+                                    "from its logs.")
+@click.argument("data", nargs=-1, type=click.Path(exists=True, file_okay=False, path_type=Path))
+@click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
+              help="Rig config TOML to start from (its values stay where the data cannot tell). "
+                   "Default: the shipped one.")
+@click.option("--part", "parts", type=click.Choice(_PARTS), multiple=True,
+              help="Identify only this part (repeatable). Default: all.")
+@click.option("--n-boot", type=click.IntRange(min=0), default=100, show_default=True,
+              help="Bootstrap resamples of the z0/C refit with the identified geometry.")
+@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+              help="Output folder. Default: outputs/<dataset>/identify/.")
+@click.option("--json", "as_json", is_flag=True, help="Print identify.json on stdout.")
+@click.option("-q", "--quiet", is_flag=True, help="No progress lines on stderr.")
+def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
+    """Identify what the paper does not publish about the rig in DATA, from its own logs.
+
+    DATA: one or more data set folders; flow-step runs give the needle
+    geometry (eq. 4's centre, with z0 and C refitted) and the friction,
+    position-control runs give the servo (dead time, time constant, rate
+    limit, from its logs) and the line (its bulk modulus, fitted so the
+    re-simulated closed loop moves like the runs). Each constant comes with
+    a 95 % interval, what constrains it and its training vs held-out error
+    with the rig file's value and the identified one; what the data cannot
+    tell keeps the rig file's value and says why.
+
+    \b
+    Writes: rig-identified.toml (only the identified keys, the rig file's
+    schema: give it to any command with --rig), identify.json,
+    identify.txt, manifest.json.
+    Example: seanv-analyze identify data/flow data/position
+             seanv-analyze validate data/position --rig outputs/flow/identify/rig-identified.toml
+    """
+    from ..config import load_rig
+    from ..errors import DataError
+    from ..stages import dataset, identify
+
+    rig = load_rig(rig_file)
+    if not data:
+        data = (sim_default_dataset("paper-flowsteps-small"), sim_default_dataset("paper-position"))
+        click.echo("no DATA given: using the built-in simulated flow-step and position-control "
+                   f"data sets ({data[0]}, {data[1]})", err=True)
+    out = Path(out_dir) if out_dir else default_out_dir(data[0], "identify")
+    for d in data:
+        check_out_dir(d, out)
+    options = {"n_boot": n_boot}
+    if parts:
+        options["parts"] = list(parts)
+    log = (lambda msg: None) if quiet or as_json else (lambda msg: click.echo(msg, err=True))
+    with stage_context(list(data), rig=rig, out_dir=out) as ctx:
+        ctx.log = log
+        ds = dataset.collect(ctx, {})
+        if ds.runs_read == 0:
+            return unusable(data[0], ds.failed)
+        ctx.add("ingest", ds)
+        try:
+            result = identify.run(ctx, options)
+            if result is None:
+                raise DataError("no flow_step or position_control run to identify from",
+                                path=data[0])
+        except DataError as exc:
+            return unusable(data[0], ds.failed, exc)
+        identify.write(result, out)
+    write_command_manifest(out, ctx, extra={"parts": list(parts) or list(_PARTS),
+                                            "n_boot": n_boot})
+    if as_json:
+        click.echo(json.dumps(result.to_json()))
+    else:
+        click.echo(result.report())
+        click.echo(f"outputs: {out}  (use --rig {out / 'rig-identified.toml'})")
+    return echo_bad_runs(ds.failed)

@@ -1,0 +1,228 @@
+"""Identify the rig's unpublished constants from its own logs.
+
+Order (each part uses what the ones before found):
+
+0. the supply pressure the runs were made at (logged; the twin runs at it),
+   and whether the controller holds the cam once converged (its logs);
+1. needle geometry (:mod:`.geometry`): the sealing threshold's dependence
+   on the pressures, from the flow steps; then z0 and C refitted with it
+   (flowfit's joint fit, bootstrap intervals);
+2. servo (:mod:`.servo`): dead time, time constant, rate limit from the
+   servo logs of the position-control runs (of the flow steps when there are
+   none), by simulation error with the simulator's own servo step;
+3. friction (:mod:`.friction`): Coulomb and viscous from the flow steps'
+   steady force balance;
+4. flow path (:mod:`.flowpath`): the lag from valve flow to actuator flow in
+   position control, turned into the simulator's line bulk modulus.
+
+Runs are split into training and held-out ones (position-control runs in
+time order, every other one held out; flow steps: every third); the fits
+report both, with the rig file's constants and with the identified ones.
+"""
+from __future__ import annotations
+
+from typing import Any, Sequence
+
+import pandas as pd
+
+from ..models import SIDES
+from .controller import controller_constants
+from .flowpath import closed_loop_fits, flow_path_constants
+from .friction import friction_constants
+from .geometry import geometry_constants
+from .result import Constant, Identification
+from .servo import servo_constants, servo_data
+
+__all__ = ["identify_rig", "PARTS", "split_runs"]
+
+#: the parts of the rig ``identify`` looks at, in order
+PARTS = ("geometry", "servo", "friction", "flow_path")
+
+
+def split_runs(runs: Sequence[Any]) -> tuple[list[Any], list[Any]]:
+    """(training, held-out) position-control runs: in time order, every other
+    run held out (the second, fourth, ...); one run: trained on, none held out."""
+    order = sorted(runs, key=lambda r: (str(r.meta.started_at), r.run_id))
+    return order[0::2], order[1::2]
+
+
+def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (),
+                 flow_runs: Sequence[Any] = (), parts: Sequence[str] = PARTS,
+                 n_boot: int = 100, seed: int = 0, log=lambda msg: None) -> Identification:
+    """Identify the rig constants the paper does not publish.
+
+    Parameters
+    ----------
+    summary : the data set's per-run summary with the filters applied
+        (``stages.dataset.run(...).summary``)
+    rig : the rig config the data were read with (its values are the
+        starting point and stay for what the data cannot tell)
+    position_runs : position-control runs (:class:`~seanv_analysis.io.run.Run`)
+    flow_runs : flow-step runs, used for the servo only when no
+        position-control run has servo feedback
+    parts : which of :data:`PARTS` to identify
+    n_boot : bootstrap resamples of the z0/C refit
+
+    Returns
+    -------
+    Identification
+    """
+    from ..fit import fit_flow
+    from ..models import ValveModel
+
+    unknown = set(parts) - set(PARTS)
+    if unknown:
+        raise ValueError(f"parts: unknown {sorted(unknown)}; expected some of {list(PARTS)}")
+    constants: list[Constant] = []
+    fits: dict[str, Any] = {}
+    notes: list[str] = []
+    current = rig
+    model = None
+    c = _supply_pressure(summary, position_runs, rig)
+    if c is not None:
+        constants.append(c)
+        current = current.with_overrides(_nest([c]), where="identify")
+    has_steps = bool((summary["kind"] == "flow_step").any())
+    if "geometry" in parts and has_steps:
+        log("identify: needle geometry from the flow steps")
+        base_fit = fit_flow(summary, rig, n_boot=0)
+        c, f, n = geometry_constants(base_fit.per_run, base_fit.model, rig)
+        constants += c
+        fits["geometry"] = f
+        notes += n
+        current = current.with_overrides(_nest(c), where="identify")
+        refit = fit_flow(summary, current, n_boot=n_boot, seed=seed)
+        if refit.success:
+            model = refit.model
+            for side in SIDES:
+                sf = refit.sides[side]
+                constants += [
+                    Constant(f"valve.{side}.z0_mm", f"{side} z0", sf.z0_mm,
+                             float(rig["valve"][side]["z0_mm"]), "mm", True,
+                             "flowfit with the identified geometry", tuple(sf.z0_ci95)),
+                    Constant(f"valve.{side}.c_flow", f"{side} C", sf.c_flow,
+                             float(rig["valve"][side]["c_flow"]), "mm^3/(s deg^2 MPa^0.5)", True,
+                             "flowfit with the identified geometry", tuple(sf.c_ci95))]
+            current = current.with_overrides(_nest(constants[-4:]), where="identify")
+        else:
+            notes.append(f"geometry: flowfit with the identified geometry failed: {refit.message}")
+    elif "geometry" in parts:
+        notes.append("geometry: no flow-step runs")
+    valve = model if model is not None else ValveModel.from_rig(current)
+
+    train_pos, held_pos = split_runs(position_runs)
+    if position_runs:
+        c, f, n = controller_constants(position_runs, valve, current)
+        constants += c
+        fits["controller"] = f
+        notes += n
+        current = current.with_overrides(_nest(c), where="identify")
+    if "servo" in parts:
+        log("identify: servo from its logs")
+        tr = [d for d in (servo_data(r) for r in train_pos) if d is not None]
+        he = [d for d in (servo_data(r) for r in held_pos) if d is not None]
+        if not tr:
+            steps = [d for d in (servo_data(r) for r in flow_runs) if d is not None]
+            tr, he = steps[0::2][:40], steps[1::2][:20]
+            if tr:
+                notes.append("servo: from the flow steps' logs (no position-control run with "
+                             "cam feedback); the command instant is known to half a servo "
+                             "sample only")
+        c, f, n = servo_constants(tr, he, current)
+        constants += c
+        fits["servo"] = f
+        notes += n
+        current = current.with_overrides(_nest(c), where="identify")
+    if "friction" in parts:
+        log("identify: friction from the flow steps' force balance")
+        c, f, n = friction_constants(summary, current, runs=position_runs)
+        constants += c
+        fits["friction"] = f
+        notes += n
+        current = current.with_overrides(_nest(c), where="identify")
+    if "flow_path" in parts:
+        log("identify: flow-path lag from the position-control runs")
+        c, f, n = flow_path_constants(train_pos, held_pos, current, valve)
+        constants += c
+        fits["flow_path"] = f
+        notes += n
+        current = current.with_overrides(_nest(c), where="identify")
+    if position_runs and {"servo", "flow_path", "friction"} & set(parts):
+        log("identify: closed-loop check on the training and held-out runs")
+        fits["closed_loop"] = closed_loop_fits(train_pos, held_pos, valve, rig, current)
+    constants.append(_mass(position_runs, rig, current))
+    return Identification(constants, current, model, fits, notes)
+
+
+def _mass(runs, rig, current) -> Constant:
+    """The moving mass is not identified; the note says how small m a is
+    next to the friction in these runs (95th percentile of |a|)."""
+    import numpy as np
+
+    from ..errors import DataError
+    from ..signals.derive import derive_samples
+
+    mass = float(rig["actuator"]["moving_mass_kg"])
+    acc = []
+    for r in runs:
+        try:
+            d = derive_samples(r)
+        except DataError:
+            continue
+        t, v = d["t_s"].to_numpy(float), d["velocity_mm_s"].to_numpy(float)
+        ok = np.isfinite(v)
+        if ok.sum() > 10:
+            acc.append(np.abs(np.gradient(v[ok], t[ok])))
+    coulomb = float(current["actuator"]["coulomb_friction_n"])
+    if acc:
+        a95 = float(np.percentile(np.concatenate(acc), 95))
+        force = mass * a95 * 1e-3
+        verdict = ("too small to tell the mass" if force < 0.2 * coulomb else
+                   "large enough to matter, but identify does not fit the mass yet")
+        note = (f"m a reaches {force:.2g} N (95th percentile |a| {a95:.0f} mm/s^2 x {mass:g} kg) "
+                f"against {coulomb:.3g} N of Coulomb friction: {verdict}")
+    else:
+        note = "no position-control run to see accelerations in"
+    return Constant("actuator.moving_mass_kg", "moving mass", mass, mass, "kg", False,
+                    "acceleration transients", note=note)
+
+
+def _supply_pressure(summary, runs, rig) -> Constant | None:
+    """The supply pressure the runs were made at [MPaG]: the median of the
+    logged p_supply over the position-control runs and the supply flow steps
+    (95 % interval: bootstrap over runs). The simulated twin runs at it."""
+    import numpy as np
+
+    per_run = []
+    for r in runs:
+        p = r.tables.get("pressure")
+        if p is not None and "p_supply_mpag" in p:
+            v = p["p_supply_mpag"].to_numpy(float)
+            v = v[np.isfinite(v)]
+            if v.size:
+                per_run.append(float(np.median(v)))
+    if "p1_mpa" in summary:
+        sup = summary[(summary["kind"] == "flow_step") & (summary["side"] == "supply")]
+        per_run += [float(v) for v in sup["p1_mpa"].to_numpy(float) if np.isfinite(v)]
+    if len(per_run) < 2:
+        return None
+    x = np.asarray(per_run)
+    rng = np.random.default_rng(0)
+    boot = [float(np.median(rng.choice(x, x.size))) for _ in range(400)]
+    default = float(rig["supply"]["pressure_mpag"])
+    return Constant("supply.pressure_mpag", "supply pressure", float(np.median(x)), default,
+                    "MPaG", True, f"logged p_supply of {x.size} runs",
+                    (float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))))
+
+
+def _nest(constants: Sequence[Constant]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for c in constants:
+        if not (c.identified and c.key):
+            continue
+        d = out
+        parts = c.key.split(".")
+        for p in parts[:-1]:
+            d = d.setdefault(p, {})
+        d[parts[-1]] = float(f"{c.value:.6g}")
+    return out

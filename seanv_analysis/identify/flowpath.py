@@ -1,0 +1,277 @@
+"""The flow path's lag: from the valve's flow to the actuator's motion.
+
+In position control the valve's steady flow (eq. 5 at the measured cam
+angle and pressures, the identified valve) reaches the actuator through the
+line's compliance: the measured flow Q = v A follows it with a lag. Fitted
+by simulation error on the training runs:
+
+    tau dQ/dt = q_valve(t - d) - Q          (first-order lag, dead time d)
+
+(``scipy.signal.lfilter``, exact for a signal held over each 2 ms sample;
+``soft_l1`` loss, so stick-slip stretches and end stops pull little). The
+95 % intervals come from the Jacobian with the residuals' autocorrelation
+taken into account (effective sample size n (1 - rho) / (1 + rho)).
+
+The simulator has no "lag" constant: its line is a 20 m tube whose
+compliance is V / B (``tube.effective_bulk_modulus_mpa``), and the lag seen
+between the valve's flow at the measured pressures and the actuator is only
+part of what the line does (the pressures themselves move with it). So B
+is fitted by simulation error in closed loop (:func:`fit_bulk_modulus`):
+each training position-control run is re-simulated with its own reference
+and load steps on the twin (servo, friction and valve already identified)
+and the measured vs simulated actuator flow error is minimised over log B.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.signal import lfilter
+
+from .result import Constant
+
+__all__ = ["FlowPathData", "flow_path_data", "fit_lag", "fit_bulk_modulus",
+           "flow_path_constants", "closed_loop_fits"]
+
+_GRID_S = 0.002
+_MAX_DEAD_S = 0.5
+
+
+@dataclass(frozen=True)
+class FlowPathData:
+    """One run on a uniform 2 ms grid: valve flow (eq. 5) and measured flow [mm^3/s]."""
+
+    run_id: str
+    t: np.ndarray
+    q_valve: np.ndarray
+    q: np.ndarray
+
+
+def flow_path_data(run, model) -> FlowPathData | None:
+    """Valve flow at the measured cam angle and pressures, and the measured
+    flow Q = v A, of one run on a 2 ms grid; None when the run has no cam
+    feedback or no motion."""
+    from ..errors import DataError
+    from ..signals.derive import derive_samples
+
+    try:
+        d = derive_samples(run)
+    except DataError:
+        return None
+    need = ("cam_deg", "p_supply_mpag", "p_head_mpag", "q_mm3_s")
+    if any(c not in d for c in need):
+        return None
+    t = d["t_s"].to_numpy(float)
+    cam = d["cam_deg"].to_numpy(float)
+    ok = np.isfinite(cam) & np.isfinite(d["q_mm3_s"].to_numpy(float))
+    if ok.sum() < 200:
+        return None
+    pt = d["p_tank_mpag"].to_numpy(float) if "p_tank_mpag" in d else \
+        np.full(t.size, float(run.rig["supply"]["tank_pressure_mpag"]))
+    pt = np.where(np.isfinite(pt), pt, 0.0)
+    qv = model.net_flow(cam, d["p_supply_mpag"].to_numpy(float), d["p_head_mpag"].to_numpy(float),
+                        pt)
+    grid = np.arange(t[ok][0], t[ok][-1], _GRID_S)
+    q = np.interp(grid, t[ok], d["q_mm3_s"].to_numpy(float)[ok])
+    qvg = np.interp(grid, t[ok], np.asarray(qv, float)[ok])
+    if np.ptp(q) < 100.0:
+        return None
+    return FlowPathData(run.run_id, grid, qvg, q)
+
+
+def _simulate(d: FlowPathData, tau, dead):
+    u = np.interp(d.t - dead, d.t, d.q_valve, left=d.q_valve[0])
+    a = math.exp(-_GRID_S / max(tau, 1e-4))
+    y, _ = lfilter([1.0 - a], [1.0, -a], u, zi=[a * d.q[0]])
+    return y
+
+
+def _residual(data, tau, dead, scale):
+    return np.concatenate([(_simulate(d, tau, dead) - d.q) / scale for d in data])
+
+
+def fit_lag(data: Sequence[FlowPathData], *, start=(0.15, 0.0)) -> dict[str, Any]:
+    """(tau [s], d [s]) of the first-order lag with dead time; 95 % intervals."""
+    q_all = np.concatenate([d.q for d in data])
+    scale = max(0.02 * float(np.percentile(np.abs(q_all), 95)), 1.0)
+
+    def fun(p):
+        return _residual(data, math.exp(p[0]), p[1], scale)
+
+    best = None
+    for tau0 in (0.03, 0.1, 0.3):       # a few starts (cheap), the best kept
+        p0 = [math.log(tau0), min(max(start[1], 0.0), _MAX_DEAD_S)]
+        sol = least_squares(fun, p0, bounds=([math.log(1e-3), 0.0], [math.log(3.0), _MAX_DEAD_S]),
+                            loss="soft_l1", f_scale=2.0, diff_step=[1e-3, 1e-3])
+        if best is None or sol.cost < best.cost:
+            best = sol
+    tau, dead = math.exp(best.x[0]), float(best.x[1])
+    r = best.fun
+    rho = float(np.corrcoef(r[:-1], r[1:])[0, 1]) if r.size > 3 else 0.0
+    rho = min(max(rho, 0.0), 0.999)
+    n_eff = max(r.size * (1 - rho) / (1 + rho), 3.0)
+    s2 = float(np.sum(r ** 2)) / max(n_eff - 2, 1.0) * (n_eff / r.size)
+    ci_tau, ci_dead = (math.nan, math.nan), (math.nan, math.nan)
+    try:
+        cov = np.linalg.inv(best.jac.T @ best.jac) * s2 * (r.size / n_eff)
+        h0, h1 = 1.96 * math.sqrt(max(cov[0, 0], 0)), 1.96 * math.sqrt(max(cov[1, 1], 0))
+        ci_tau = (tau * math.exp(-h0), tau * math.exp(h0))
+        ci_dead = (max(dead - h1, 0.0), dead + h1)
+    except np.linalg.LinAlgError:
+        pass
+    rmse = float(np.sqrt(np.mean(_residual(data, tau, dead, 1.0) ** 2)))
+    return {"tau_s": tau, "tau_ci95": ci_tau, "dead_s": dead, "dead_ci95": ci_dead,
+            "rmse_mm3_s": rmse, "n_eff": n_eff}
+
+
+def lag_rmse(data: Sequence[FlowPathData], tau, dead) -> float:
+    if not data:
+        return math.nan
+    return float(np.sqrt(np.mean(_residual(data, tau, dead, 1.0) ** 2)))
+
+
+def _closed_loop(runs, valve, rig, bulk_mpa: float | None = None) -> list[Any]:
+    """:func:`~seanv_analysis.analysis.validate.validate_run` of each run on
+    the twin ``rig`` (with the line's bulk modulus ``bulk_mpa`` when given)."""
+    from ..analysis.validate import validate_run
+    from ..errors import DataError
+
+    r = rig if bulk_mpa is None else rig.with_overrides(
+        {"tube": {"effective_bulk_modulus_mpa": float(bulk_mpa)}}, where="identify")
+    out = []
+    for run in runs:
+        try:
+            out.append(validate_run(run, valve, rig=r))
+        except DataError:
+            continue
+    return out
+
+
+def _flow_sse(validations) -> tuple[float, float]:
+    """(sum of squared flow errors [(mm^3/s)^2], effective sample count) of
+    measured vs simulated actuator flow, NaN samples left out."""
+    sse, n_eff = 0.0, 0.0
+    for v in validations:
+        r = (v.overlay["q_mm3_s"] - v.overlay["q_sim_mm3_s"]).to_numpy(float)
+        r = r[np.isfinite(r)]
+        if r.size < 10:
+            continue
+        sse += float(np.sum(r * r))
+        n_eff += r.size / _integrated_autocorrelation(r)
+    return sse, n_eff
+
+
+def _integrated_autocorrelation(r: np.ndarray) -> float:
+    """1 + 2 sum of the residual's autocorrelation up to its first zero (>= 1)."""
+    x = r - r.mean()
+    f = np.fft.rfft(x, 2 * x.size)
+    acf = np.fft.irfft(f * np.conj(f))[:x.size]
+    acf = acf / acf[0] if acf[0] > 0 else acf
+    below = np.flatnonzero(acf <= 0)
+    k = int(below[0]) if below.size else x.size
+    return max(1.0, 1.0 + 2.0 * float(np.sum(acf[1:k])))
+
+
+def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
+    """The line's effective bulk modulus [MPa] that makes the twin's closed
+    loop move like the measured runs: the flow error of the re-simulated
+    runs minimised over log B (grid, then golden section); 95 % profile
+    interval with the residuals' effective sample size."""
+    b0 = float(rig["tube"]["effective_bulk_modulus_mpa"])
+    cache: dict[float, tuple[float, float]] = {}
+
+    def cost(logb: float) -> float:
+        key = round(logb, 6)
+        if key not in cache:
+            cache[key] = _flow_sse(_closed_loop(runs, valve, rig, math.exp(logb)))
+        return cache[key][0]
+
+    grid = math.log(b0) + np.linspace(-math.log(10.0), math.log(10.0), 9)
+    costs = [cost(g) for g in grid]
+    k = int(np.argmin(costs))
+    a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
+    g = (math.sqrt(5) - 1) / 2
+    c, d = b - g * (b - a), a + g * (b - a)
+    for _ in range(10):
+        if cost(c) < cost(d):
+            b = d
+        else:
+            a = c
+        c, d = b - g * (b - a), a + g * (b - a)
+    best = min(cache, key=lambda kk: cache[kk][0])
+    sse_min, n_eff = cache[best]
+    lim = sse_min * (1.0 + 3.84 / max(n_eff - 1.0, 1.0))
+    inside = [kk for kk, (s_, _) in cache.items() if s_ <= lim]
+    ci = (math.exp(min(inside)), math.exp(max(inside)))
+    at_edge = best <= grid[0] + 1e-9 or best >= grid[-1] - 1e-9
+    return {"bulk_mpa": math.exp(best), "ci95": ci, "sse": sse_min, "n_eff": n_eff,
+            "evaluations": len(cache), "at_edge": at_edge}
+
+
+def _fits(validations) -> dict[str, Any]:
+    if not validations:
+        return {}
+    rows = [v.row for v in validations]
+    return {"fit_position_pct": float(np.mean([r["fit_position_pct"] for r in rows])),
+            "fit_flow_pct": float(np.mean([r["fit_flow_pct"] for r in rows])),
+            "runs": {r["run_id"]: {"fit_position_pct": r["fit_position_pct"],
+                                   "fit_flow_pct": r["fit_flow_pct"]} for r in rows}}
+
+
+def flow_path_constants(train_runs, held_runs, rig, valve
+                        ) -> tuple[list[Constant], dict[str, Any], list[str]]:
+    """The flow path's lag (reported), the line's bulk modulus that makes
+    the twin's closed loop match the training runs (a rig key), the
+    closed-loop fit on the training and held-out runs with the rig file's
+    line and the identified one, and notes."""
+    b0 = float(rig["tube"]["effective_bulk_modulus_mpa"])
+    tr = [d for d in (flow_path_data(r, valve) for r in train_runs) if d is not None]
+    he = [d for d in (flow_path_data(r, valve) for r in held_runs) if d is not None]
+    if not tr:
+        why = "no position-control run with cam feedback and motion"
+        return ([Constant("tube.effective_bulk_modulus_mpa", "line bulk modulus (effective)", b0, b0,
+                          "MPa", False, "position-control runs", note=why)], {},
+                [f"flow path: {why}"])
+    f = fit_lag(tr)
+    by = f"valve flow -> actuator flow in {len(tr)} training position-control run(s)"
+    fb = fit_bulk_modulus(train_runs, valve, rig)
+    ok = not fb["at_edge"]
+    bulk = fb["bulk_mpa"] if ok else b0
+    lo, hi = f["tau_ci95"]
+    lag_ok = math.isfinite(lo) and hi / max(lo, 1e-12) < 4.0
+    why = "" if lag_ok else ("the time constant and the dead time are not told apart by these "
+                             f"runs (their sum {f['tau_s'] + f['dead_s']:.3f} s is)")
+    consts = [
+        Constant(None, "flow-path lag (time constant)", f["tau_s"], math.nan, "s", lag_ok, by,
+                 f["tau_ci95"] if lag_ok else (math.nan, math.nan), note=why),
+        Constant(None, "flow-path dead time", f["dead_s"], math.nan, "s", lag_ok, by,
+                 f["dead_ci95"] if lag_ok else (math.nan, math.nan),
+                 note=why or ("beyond the servo: a transport delay the simulator's line does "
+                              "not have" if f["dead_s"] > 0.03 else "")),
+        Constant("tube.effective_bulk_modulus_mpa", "line bulk modulus (effective)", bulk, b0,
+                 "MPa", ok, f"closed-loop flow of {len(train_runs)} training position-control "
+                 f"run(s) re-simulated ({fb['evaluations']} simulations)",
+                 fb["ci95"] if ok else (math.nan, math.nan),
+                 note="" if ok else "the best value lies at the edge of 0.1-10x the rig file's"),
+    ]
+    fits = {"metric": "actuator flow RMSE [mm^3/s] of the lag model (valve flow -> actuator)",
+            "train": f["rmse_mm3_s"], "heldout": lag_rmse(he, f["tau_s"], f["dead_s"]),
+            "n_train_runs": len(tr), "n_heldout_runs": len(he)}
+    return consts, fits, []
+
+
+def closed_loop_fits(train_runs, held_runs, valve, rig_default, rig_identified) -> dict[str, Any]:
+    """Position and flow fit % of the re-simulated position-control runs,
+    training and held-out, on the rig file's twin and the identified one."""
+    out = {"metric": "closed-loop position fit [%] (flow fit in 'runs')"}
+    for part, runs in (("train", train_runs), ("heldout", held_runs)):
+        for which, r in (("_default", rig_default), ("", rig_identified)):
+            f = _fits(_closed_loop(runs, valve, r))
+            if f:
+                out[part + which] = f["fit_position_pct"]
+                out[part + which + "_flow"] = f["fit_flow_pct"]
+                out[part + which + "_runs"] = f["runs"]
+    return out

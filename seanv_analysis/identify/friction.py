@@ -1,0 +1,205 @@
+"""Actuator friction from the force balance of the flow steps' steady motion.
+
+While the piston moves at a steady speed v = Q / A the head pressure holds
+the load and the seal friction (inertia is nil):
+
+    p_head A - p_load A_load = F_c sign(v) + b v           [N]
+
+(A: water-actuator piston area, A_load: pneumatic load piston area, both
+from the rig file; p_head from the run's steady window: p1 - dp on the
+supply side, p1 on the drain side). The head pressure is measured at the
+valve end of the line (as on the paper's rig and in the simulator), so the
+line's laminar resistance R adds R A^2 v to the measured force: R comes
+from the line's published length and bore (rig ``tube``, ``fluid``) and is
+taken off the slope before it is called seal friction. Supply runs extend (v > 0), drain runs
+retract (v < 0), so F_c is the jump between them and b the slope:
+a robust linear fit (``soft_l1``) with 95 % intervals from its Jacobian.
+
+The breakaway force is read where the piston starts to move after it was
+held (:func:`breakaway_events`): while it is held no flow passes the line,
+so p_head A - p_load A_load is the force on it, and it moves when that force
+reaches the breakaway force. Without such events the rig file's
+breakaway/Coulomb ratio is kept (and said so). The moving mass is not
+identified: at the accelerations of these runs its force is far below the
+friction (the report gives the ratio).
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from ..sim.plant import tube_constants
+from .result import Constant
+
+__all__ = ["friction_constants", "fit_friction", "breakaway_events"]
+
+#: a hold: the position stays within this many encoder steps for at least _HOLD_S
+_HOLD_STEPS = 2
+_HOLD_S = 0.15
+#: the force at breakaway: median over this window before the first move [s]
+_FORCE_WINDOW_S = 0.01
+
+
+def fit_friction(v_mm_s, f_net_n) -> dict[str, Any]:
+    """(F_c [N], b [N s/mm]) of F = F_c sign(v) + b v, robust, with 95 % intervals."""
+    v, f = np.asarray(v_mm_s, float), np.asarray(f_net_n, float)
+    s = np.sign(v)
+    A = np.column_stack([s, v])
+    x0, *_ = np.linalg.lstsq(A, f, rcond=None)
+    r0 = f - A @ x0
+    scale = max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-3)
+
+    def fun(x):
+        return (A @ x - f) / scale
+
+    sol = least_squares(fun, x0, loss="soft_l1", f_scale=2.0)
+    dof = max(v.size - 2, 1)
+    s2 = float(np.sum(sol.fun ** 2)) / dof
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac) * s2
+        half = 1.96 * np.sqrt(np.maximum(np.diag(cov), 0.0))
+    except np.linalg.LinAlgError:
+        half = np.array([math.nan, math.nan])
+    return {"coulomb_n": float(sol.x[0]), "viscous_n_s_per_mm": float(sol.x[1]),
+            "coulomb_ci95": (float(sol.x[0] - half[0]), float(sol.x[0] + half[0])),
+            "viscous_ci95": (float(sol.x[1] - half[1]), float(sol.x[1] + half[1])),
+            "rmse_n": float(np.sqrt(np.mean((A @ sol.x - f) ** 2)))}
+
+
+def breakaway_events(run, rig) -> list[float]:
+    """|p_head A - p_load A_load| [N] at each start from a hold (the position
+    held within 2 encoder steps for >= 0.15 s, then leaving by > 3 steps),
+    the median over the 10 ms before the start."""
+    from ..errors import DataError
+    from ..signals.align import align_run
+
+    try:
+        d = align_run(run)
+    except DataError:
+        return []
+    if not {"position_mm", "p_head_mpag", "p_load_mpag"} <= set(d.columns):
+        return []
+    t = d["t_s"].to_numpy(float)
+    x = d["position_mm"].to_numpy(float)
+    f = (d["p_head_mpag"].to_numpy(float) * rig.piston_area_mm2
+         - d["p_load_mpag"].to_numpy(float) * rig.load_area_mm2)
+    steps = np.diff(np.unique(np.round(x[np.isfinite(x)], 6)))
+    res = float(np.min(steps[steps > 0])) if np.any(steps > 0) else 0.0
+    if res <= 0 or t.size < 100:
+        return []
+    out = []
+    i, n = 0, t.size
+    while i < n - 1:
+        # grow a hold from i while the position stays within the band
+        j = i
+        lo = hi = x[i]
+        while j + 1 < n and max(hi, x[j + 1]) - min(lo, x[j + 1]) <= _HOLD_STEPS * res + 1e-12:
+            j += 1
+            lo, hi = min(lo, x[j]), max(hi, x[j])
+        if t[j] - t[i] >= _HOLD_S:
+            ref = 0.5 * (lo + hi)
+            k = j + 1
+            while k < n and abs(x[k] - ref) <= 3 * res and t[k] - t[j] < 0.05:
+                k += 1
+            if k < n and abs(x[k] - ref) > 3 * res:
+                w = (t >= t[j] - _FORCE_WINDOW_S) & (t <= t[j])
+                fw = f[w]
+                fw = fw[np.isfinite(fw)]
+                if fw.size:
+                    out.append(float(abs(np.median(fw))))
+        i = j + 1
+    return out
+
+
+def _breakaway(runs, rig, coulomb: float) -> dict[str, Any] | None:
+    forces = []
+    for r in runs:
+        forces += breakaway_events(r, rig)
+    forces = np.asarray([v for v in forces if v >= 0.5 * coulomb])
+    if forces.size < 3:
+        return None
+    rng = np.random.default_rng(0)
+    boot = [float(np.median(rng.choice(forces, forces.size))) for _ in range(400)]
+    return {"static_n": float(np.median(forces)), "ci95": (float(np.percentile(boot, 2.5)),
+                                                          float(np.percentile(boot, 97.5))),
+            "n_events": int(forces.size)}
+
+
+def _force_rmse(v, f, coulomb, viscous) -> float:
+    if not np.size(v):
+        return math.nan
+    return float(np.sqrt(np.mean((coulomb * np.sign(v) + viscous * v - f) ** 2)))
+
+
+def friction_constants(summary, rig, runs=()) -> tuple[list[Constant], dict[str, Any], list[str]]:
+    """Coulomb and viscous friction from the flow-step rows of the data-set
+    summary that passed the filters, and the breakaway force from the starts
+    after a hold in ``runs`` (position-control runs)."""
+    act = rig["actuator"]
+    d_c, d_b = float(act["coulomb_friction_n"]), float(act["viscous_friction_n_s_per_mm"])
+    d_s = float(act["static_friction_n"])
+    keys = (("actuator.coulomb_friction_n", "Coulomb friction", d_c, "N"),
+            ("actuator.viscous_friction_n_s_per_mm", "viscous friction", d_b, "N s/mm"),
+            ("actuator.static_friction_n", "breakaway friction", d_s, "N"))
+    df = summary[(summary["kind"] == "flow_step") & (summary["excluded"].fillna("") == "")]
+    df = df[np.isfinite(df["q_mm3_s"]) & np.isfinite(df["p1_mpa"]) & np.isfinite(df["dp_mpa"])
+            & np.isfinite(df["load_mpag"].astype(float))].sort_values("run_index")
+    area, load_area = float(rig.piston_area_mm2), float(rig.load_area_mm2)
+    sup = (df["side"] == "supply").to_numpy()
+    p1, dp = df["p1_mpa"].to_numpy(float), df["dp_mpa"].to_numpy(float)
+    p_head = np.where(sup, p1 - dp, p1)
+    f_net = p_head * area - df["load_mpag"].to_numpy(float) * load_area
+    v = df["q_mm3_s"].to_numpy(float) / area
+    line_r = float(tube_constants(rig)["R"]) * area ** 2      # N s/mm of the line's resistance
+    f_net = f_net - line_r * v
+    n_up, n_down = int(np.sum(v > 0)), int(np.sum(v < 0))
+    if n_up < 3 or n_down < 3:
+        why = (f"steady motion in both directions is needed ({n_up} extending, {n_down} "
+               "retracting flow steps)")
+        return ([Constant(k, n, d, d, u, False, "flow-step force balance", note=why)
+                 for k, n, d, u in keys], {}, [f"friction: {why}"])
+    pick = np.arange(v.size) % 3 == 2
+    fr = fit_friction(v[~pick], f_net[~pick])
+    by = (f"force balance of {int((~pick).sum())} training flow steps (speeds "
+          f"{np.min(v):.2g}..{np.max(v):.2g} mm/s)")
+    coulomb, viscous = fr["coulomb_n"], fr["viscous_n_s_per_mm"]
+    notes = [f"friction: the line's laminar resistance ({line_r:.3g} N s/mm at the piston) is "
+             "taken off the measured force before fitting"]
+    ok_c = coulomb > 0 and math.isfinite(fr["coulomb_ci95"][0])
+    ok_b = math.isfinite(fr["viscous_ci95"][0]) and np.ptp(np.abs(v)) > 0.5
+    if viscous < 0:
+        ok_b, why_b = False, f"fitted slope {viscous:.3g} N s/mm is negative"
+    else:
+        why_b = "" if ok_b else "the speeds do not spread enough"
+    ratio = d_s / d_c if d_c > 0 else 1.0
+    consts = [
+        Constant(keys[0][0], keys[0][1], coulomb if ok_c else d_c, d_c, "N", ok_c, by,
+                 fr["coulomb_ci95"] if ok_c else (math.nan, math.nan),
+                 note="" if ok_c else f"fitted {coulomb:.3g} N is not a friction force"),
+        Constant(keys[1][0], keys[1][1], viscous if ok_b else d_b, d_b, "N s/mm", ok_b, by,
+                 fr["viscous_ci95"] if ok_b else (math.nan, math.nan), note=why_b),
+    ]
+    brk = _breakaway(runs, rig, coulomb if ok_c else d_c)
+    if brk is not None and brk["static_n"] >= (coulomb if ok_c else 0.0):
+        consts.append(Constant(keys[2][0], keys[2][1], brk["static_n"], d_s, "N", True,
+                               f"force at {brk['n_events']} starts after a hold (position-control "
+                               "runs)", brk["ci95"]))
+    elif ok_c:
+        lo, hi = fr["coulomb_ci95"]
+        consts.append(Constant(keys[2][0], keys[2][1], coulomb * ratio, d_s, "N", True,
+                               "Coulomb friction x the rig file's breakaway/Coulomb ratio "
+                               f"{ratio:.3g}", (lo * ratio, hi * ratio),
+                               note="steady motion does not show the breakaway force"))
+    else:
+        consts.append(Constant(*keys[2][:2], d_s, d_s, "N", False, "flow-step force balance",
+                               note="needs the Coulomb friction"))
+    fits = {"metric": "force-balance RMSE [N]",
+            "train_default": _force_rmse(v[~pick], f_net[~pick], d_c, d_b),
+            "train": fr["rmse_n"],
+            "heldout_default": _force_rmse(v[pick], f_net[pick], d_c, d_b),
+            "heldout": _force_rmse(v[pick], f_net[pick], consts[0].value, consts[1].value),
+            "n_train_runs": int((~pick).sum()), "n_heldout_runs": int(pick.sum())}
+    return consts, fits, notes

@@ -1,0 +1,148 @@
+"""What ``identify`` found: one entry per rig constant, and the whole result.
+
+Each :class:`Constant` names a key of the rig file (``servo.dead_time_s``,
+``valve.supply.needle_y_c_mm``, ...), its identified value with a 95 %
+interval, the rig file's value beside it, what in the data constrains it,
+and whether it was identified at all: a constant the data cannot tell is
+kept at the rig file's value and says why (``identified = False``).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+__all__ = ["Constant", "Identification", "json_num"]
+
+
+def json_num(x: Any) -> float | None:
+    """A finite float, or None (JSON null) for NaN/inf/None."""
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        return None
+    return v if math.isfinite(v) else None
+
+
+@dataclass
+class Constant:
+    """One rig constant as identified from the data.
+
+    Attributes
+    ----------
+    key : dotted rig-file key, e.g. 'servo.time_constant_s' (None: a derived
+        number with no rig key, reported only)
+    value : identified value in the key's unit (the rig file's when not identified)
+    ci95 : 95 % interval (NaN when unavailable)
+    default : the rig file's value
+    unit : unit of value
+    identified : False when the data cannot tell it (value = default)
+    constrained_by : what in the data fixes it (one phrase)
+    note : why not identified, or anything a user should know
+    """
+
+    key: str | None
+    name: str
+    value: float
+    default: float
+    unit: str
+    identified: bool
+    constrained_by: str
+    ci95: tuple[float, float] = (math.nan, math.nan)
+    note: str = ""
+
+    def to_json(self) -> dict[str, Any]:
+        return {"key": self.key, "value": json_num(self.value),
+                "ci95": [json_num(v) for v in self.ci95], "default": json_num(self.default),
+                "unit": self.unit, "identified": bool(self.identified),
+                "constrained_by": self.constrained_by, "note": self.note}
+
+    def line(self) -> str:
+        """One line of the text report."""
+        lo, hi = self.ci95
+        ci = f" [{lo:.4g}, {hi:.4g}]" if math.isfinite(lo) and math.isfinite(hi) else ""
+        head = f"{self.name:<34} {self.value:>10.4g}{ci} {self.unit}"
+        if not self.identified:
+            src = "rig file; " if self.key else ""
+            return f"{head}  ({src}not identified: {self.note})"
+        extra = f"; {self.note}" if self.note else ""
+        ref = f"rig file {self.default:.4g}; " if self.key else ""
+        return f"{head}  ({ref}from {self.constrained_by}{extra})"
+
+
+@dataclass
+class Identification:
+    """Result of :func:`seanv_analysis.identify.identify_rig`.
+
+    Attributes
+    ----------
+    constants : every constant looked at, identified or not
+    rig : the rig config with the identified constants applied (what
+        ``validate`` and ``discover`` simulate with)
+    model : the valve model refitted with the identified geometry (or None)
+    fits : per part ('geometry', 'servo', 'friction', 'flow_path'): training
+        and held-out error with the rig file's constants and the identified ones
+    notes : what a user should know (data that could not be used, ...)
+    """
+
+    constants: list[Constant]
+    rig: Any
+    model: Any = None
+    fits: dict[str, dict[str, Any]] = field(default_factory=dict)
+    notes: list[str] = field(default_factory=list)
+    success: bool = True
+
+    def identified(self) -> list[Constant]:
+        return [c for c in self.constants if c.identified and c.key]
+
+    def overrides(self) -> dict[str, Any]:
+        """Nested {section: {key: value}} of the identified constants (rig-file schema)."""
+        out: dict[str, Any] = {}
+        for c in self.identified():
+            parts = c.key.split(".")
+            d = out
+            for p in parts[:-1]:
+                d = d.setdefault(p, {})
+            d[parts[-1]] = float(f"{c.value:.6g}")
+        return out
+
+    def to_json(self) -> dict[str, Any]:
+        return {"schema": "seanv-identify/1",
+                "constants": [c.to_json() for c in self.constants],
+                "identified_keys": [c.key for c in self.identified()],
+                "fits": _clean(self.fits), "notes": list(self.notes)}
+
+    def report(self) -> str:
+        lines = ["identify: the rig's unpublished constants from its own logs",
+                 f"  {len(self.identified())} of {len(self.constants)} constants identified "
+                 "(95 % intervals; the others keep the rig file's value)"]
+        lines += ["  " + c.line() for c in self.constants]
+        for part, f in self.fits.items():
+            subs = [(f"{part} ({k})", v) for k, v in f.items() if isinstance(v, dict)] \
+                if "metric" not in f else [(part, f)]
+            for label, g in subs:
+                lines.append(f"  {label}: {g.get('metric', '')}: training "
+                             f"{_fmt(g.get('train_default'))} -> {_fmt(g.get('train'))}, held-out "
+                             f"{_fmt(g.get('heldout_default'))} -> {_fmt(g.get('heldout'))} "
+                             "(rig file -> identified)")
+        lines += [f"  note: {n}" for n in self.notes]
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        return (f"<Identification: {len(self.identified())}/{len(self.constants)} constants "
+                f"identified: {', '.join(c.key for c in self.identified()) or 'none'}>")
+
+
+def _fmt(v: Any) -> str:
+    v = json_num(v)
+    return "n/a" if v is None else f"{v:.4g}"
+
+
+def _clean(x: Any) -> Any:
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_clean(v) for v in x]
+    if isinstance(x, float):
+        return json_num(x)
+    return x

@@ -1,0 +1,64 @@
+"""The simulator's servo alone, driven by a logged command (for identification).
+
+The servo of the plant (:mod:`.kernel`) acts on the command of ``dead_time``
+earlier and follows it with a rate-limited first-order lag, solved exactly
+over each step by :func:`.rosenbrock.servo_step`. :func:`servo_response`
+runs that same compiled step on a recorded command (held between its
+samples), so identifying the servo from a log fits the simulator's own
+equations, not a copy of them.
+
+Units: s, deg, deg/s.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from ._pp import _SERVO_RATE, _SERVO_TAU, PP_SIZE
+from .rosenbrock import servo_step
+
+__all__ = ["servo_response"]
+
+
+@njit(cache=True, nogil=True)
+def _track(t_cmd, cmd, t0, h, n, dead_s, pp, theta0):
+    out = np.empty(n)
+    theta = theta0
+    j = 0
+    m = t_cmd.size
+    for i in range(n):
+        t_eff = t0 + i * h - dead_s
+        while j + 1 < m and t_cmd[j + 1] <= t_eff:
+            j += 1
+        target = cmd[j] if t_cmd[j] <= t_eff else cmd[0]
+        theta = servo_step(theta, target, h, pp)
+        out[i] = theta
+    return out
+
+
+def servo_response(t_cmd_s, cmd_deg, t_out_s, *, dead_time_s: float, time_constant_s: float,
+                   max_rate_deg_s: float, theta0_deg: float | None = None,
+                   step_s: float = 5e-4) -> np.ndarray:
+    """Servo angle [deg] at ``t_out_s`` for the command ``cmd_deg`` logged at
+    ``t_cmd_s`` (held between samples; before the first sample: its value).
+
+    The servo acts on the command of ``dead_time_s`` earlier and follows it
+    with d(theta)/dt = clip((target - theta) / tau, -rate, rate), integrated
+    exactly on a ``step_s`` grid (the simulator's step) and interpolated
+    linearly at ``t_out_s``. ``theta0_deg``: angle at the first instant
+    (default: the first command).
+    """
+    t_cmd = np.ascontiguousarray(t_cmd_s, dtype=float)
+    cmd = np.ascontiguousarray(cmd_deg, dtype=float)
+    t_out = np.asarray(t_out_s, dtype=float)
+    if t_cmd.size == 0 or t_out.size == 0:
+        return np.full(t_out.shape, np.nan)
+    t0 = float(min(t_cmd[0], t_out[0]))
+    n = int(np.ceil((float(t_out[-1]) - t0) / step_s)) + 2
+    pp = np.zeros(PP_SIZE)
+    pp[_SERVO_TAU] = max(float(time_constant_s), 1e-6)
+    pp[_SERVO_RATE] = max(float(max_rate_deg_s), 1e-6)
+    theta0 = float(cmd[0]) if theta0_deg is None else float(theta0_deg)
+    y = _track(t_cmd, cmd, t0, float(step_s), n, float(dead_time_s), pp, theta0)
+    grid = t0 + step_s * np.arange(1, n + 1)
+    return np.interp(t_out, grid, y)
