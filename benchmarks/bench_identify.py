@@ -5,7 +5,9 @@ servo fit against the obvious alternative.
    constant its own (``own_rig``): 240 flow steps (5 loads x 3 repeats x
    16 angles) and 2 position-control runs of 60 s. Wall time of
    ``identify_rig`` on the ingested data (target < 60 s on the 2-core machine).
-2. Truth recovery over seeds (a process pool): threshold angle over the
+2. Truth recovery over seeds (a process pool), and ``discover`` on the same
+   clean flow steps with the default rig file (verdict ``none`` expected: the
+   unknown geometry is part of its base model): threshold angle over the
    tested pressures (0.15 deg), servo dead time + time constant (15 %),
    Coulomb and breakaway friction (20 %), share of seeds whose truth lies in
    the 95 % interval; the closed-loop position/flow fit of the held-out run.
@@ -73,6 +75,10 @@ def _one(args) -> dict:
         t0 = time.perf_counter()
         res = identify_rig(ctx.result("ingest").summary, ctx.rig, position_runs=position_runs(ctx))
         wall = time.perf_counter() - t0
+        from seanv_analysis.discover import discover_flow_steps
+
+        disc = discover_flow_steps(ctx.result("ingest").summary, model=ValveModel.from_rig(ctx.rig),
+                                   seed=seed)
     c = {k.key: k for k in res.constants if k.key}
     ident = ValveModel.from_rig(res.rig)
     base = ValveModel.from_rig(load_rig())
@@ -94,6 +100,8 @@ def _one(args) -> dict:
     dead, tau = c["servo.dead_time_s"].value, c["servo.time_constant_s"].value
     cl = res.fits.get("closed_loop", {})
     return {"seed": seed, "flow_steps": n_steps, "identify_wall_s": wall,
+            "discover_clean_verdict": disc.verdict,
+            "discover_found": [(e.name, e.side) for e in disc.effects],
             "threshold_err_deg": thr,
             "servo_sum_rel_err": (dead + tau) / (truth.servo_dead_s + truth.servo_tau_s) - 1,
             "coulomb_rel_err": c["actuator.coulomb_friction_n"].value / truth.coulomb_n - 1,
@@ -179,6 +187,9 @@ def main() -> dict:
         "coulomb_within_20pct_rate": sum(abs(r["coulomb_rel_err"]) < 0.2 for r in rows) / n,
         "breakaway_within_20pct_rate": sum(abs(r["static_rel_err"]) < 0.2 for r in rows) / n,
         "truth_in_ci95_rate": {k: sum(r["in_ci"][k] for r in rows) / n for k in keys},
+        "discover_clean_none_rate": sum(r["discover_clean_verdict"] == "none" for r in rows) / n,
+        "discover_clean_misses": [(r["seed"], r["discover_clean_verdict"], r["discover_found"])
+                                  for r in rows if r["discover_clean_verdict"] != "none"],
         "closed_loop_heldout": [r["closed_loop_heldout"] for r in rows],
         "servo_fit_vs_solve_ivp": _servo_baseline(quick),
     }

@@ -110,6 +110,9 @@ class Discovery:
     #: sides whose needle centre y_c (eq. 4, not published) the data moved from
     #: the rig file's: part of the base model, never an effect
     geometry: dict | None = None
+    #: rig keys the closed-loop search refitted with the effect found (e.g. the
+    #: line's bulk modulus), applied to the twin of the closed-loop check
+    twin_overrides: dict | None = None
 
     @property
     def improvement(self) -> float:
@@ -150,7 +153,7 @@ class Discovery:
         shifted-flow RMSE, which a delay in the loop makes a poor predictor
         (see :mod:`.dynamic`); flow-step held-out numbers stay as they are."""
         changes: dict[str, Any] = {"validation": {"before": before, "after": after}}
-        if self.heldout_source != "flow_step":
+        if self.heldout_source == "position_control_shift":
             b_, a_ = before or {}, after or {}
             ctrl = "flow_model" if "flow_model" in b_ else next(iter(b_), None)
             try:
@@ -204,13 +207,22 @@ class Discovery:
                          f"rig file's and is part of the base model: {sides}. "
                          "`seanv-analyze identify` gives it with intervals.")
         what = {"closed_loop": "closed-loop flow RMSE (validate: controller re-run on the plant)",
+                "closed_loop_heldout": "closed-loop flow RMSE on held-out position-control runs "
+                                       "(controller re-run on the identified twin)",
                 "position_control_shift": "flow RMSE of actual flow shifted by the nominal "
                                           "vs the estimated lag"}.get(self.heldout_source,
                                                                      "flow RMSE")
         lines.append(f"Held-out runs ({self.holdout}, n = {self.n_heldout_runs}): {what} "
                      f"{self.rmse_before_mm3_s:.0f} mm^3/s before, {self.rmse_after_mm3_s:.0f} mm^3/s "
                      f"after ({-self.improvement:+.0%} error, residual = measured - model).")
-        if self.position_control:
+        if self.position_control and self.position_control.get("method"):
+            pc = self.position_control
+            lines.append(f"Position control (n = {pc['n_runs']} runs, {pc.get('n_heldout_runs', 0)} "
+                         f"held out): {pc['method']}: {pc.get('message', '')}; "
+                         + ("an effect is added to the twin." if pc.get("found") else
+                            "none kept (significant on training runs and >= 10 % lower held-out "
+                            "closed-loop flow error are both needed)."))
+        elif self.position_control:
             pc = self.position_control
             lines.append(f"Position control (n = {pc['n_runs']} runs; lag from the first 70 % of "
                          f"each run, confirmed on the last 30 %): {pc.get('message', '')}; "

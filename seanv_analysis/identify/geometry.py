@@ -179,7 +179,8 @@ def geometry_constants(per_run, model, rig) -> tuple[list[Constant], dict[str, A
         by = (f"threshold vs fluid force over {g.n_loads} load levels ({g.n_runs} flow steps, "
               f"F_w span {g.force_span_n:.1f} N)")
         consts.append(Constant(key, f"{name} needle centre y_c", g.y_c_mm if g.identified else
-                               default, default, "mm", g.identified, by, g.y_c_ci95, note=g.note))
+                               default, default, "mm", g.identified, by,
+                               g.y_c_ci95 if g.identified else (math.nan, math.nan), note=g.note))
         thr_default = threshold_span(side, rows["p1_mpa"], rows["dp_mpa"])
         thr_new = threshold_span(_with(side, g.z0_mm, g.c_flow, g.y_c_mm), rows["p1_mpa"],
                                  rows["dp_mpa"])

@@ -4,7 +4,10 @@ Flow-step runs drive the static model (eq. 5) and its candidate effects
 (:func:`seanv_analysis.discover.discover_flow_steps`; every effect of the
 registry in :mod:`seanv_analysis.models.effects`); position-control runs with
 Q_ref the delay check against the nominal lag
-(:func:`seanv_analysis.discover.dynamic.discover_delay`). When an effect is
+(:func:`seanv_analysis.discover.dynamic.discover_delay`), or, when the
+``identify`` stage ran, the dynamic candidates (delay, backlash) fitted in
+closed loop on the identified twin
+(:func:`seanv_analysis.identify.dynamic.closed_loop_effects`). When an effect is
 found and the data holds position-control runs, the closed-loop check re-runs
 them with the base and with the augmented model (the ``validate`` stage's
 work) and the held-out error quoted is the closed-loop one.
@@ -72,9 +75,12 @@ def _usable_flow_steps(summary) -> int:
 
 
 def discover_runs(runs, summary, *, rig, model=None, holdout: str = "chrono",
-                  nominal_lag_s: float | None = None, seed: int = 0):
+                  nominal_lag_s: float | None = None, seed: int = 0, twin: bool = False):
     """Discovery on runs already read and summarised: the static candidates on
-    the flow steps, the delay check on the position-control runs.
+    the flow steps; on the position-control runs the delay check, or with
+    ``twin`` (``rig`` is an identified twin: the ``identify`` stage ran) the
+    dynamic effects fitted in closed loop on it
+    (:func:`seanv_analysis.identify.dynamic.closed_loop_effects`).
 
     Raises
     ------
@@ -89,6 +95,9 @@ def discover_runs(runs, summary, *, rig, model=None, holdout: str = "chrono",
     analysis = rig.analysis
     lag0 = float(analysis.get("nominal_flow_lag_s", 0.25) if nominal_lag_s is None else nominal_lag_s)
     position = [r for r in runs if r.kind == "position_control"]
+    if twin and position:
+        return _closed_loop_dynamic(position, summary, rig=rig, model=model, holdout=holdout,
+                                    seed=seed)
     delay = discover_delay(position, nominal_lag_s=lag0, seed=seed) if position else None
     if _usable_flow_steps(summary) >= MIN_FLOW_RUNS:
         result = discover_flow_steps(summary, model=model, holdout=holdout, seed=seed,
@@ -115,6 +124,55 @@ def discover_runs(runs, summary, *, rig, model=None, holdout: str = "chrono",
     return dataclasses.replace(result, **change)
 
 
+def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
+    """Static discovery on the flow steps (if enough) plus the dynamic
+    candidates fitted in closed loop on the identified twin; a dynamic effect
+    found makes the held-out closed-loop flow RMSE the headline."""
+    from ..discover import Discovery, EffectFinding, discover_flow_steps
+    from ..identify import split_runs
+    from ..identify.dynamic import closed_loop_effects
+
+    analysis = rig.analysis
+    train, held = split_runs(position)
+    findings, base_held = closed_loop_effects(train, held, model, rig)
+    named = [f for f in findings if f.named]
+    if _usable_flow_steps(summary) >= MIN_FLOW_RUNS:
+        result = discover_flow_steps(summary, model=model, holdout=holdout, seed=seed,
+                                     leakage_mm3_s=float(analysis.get("leakage_flow_mm3_s", 50.0)))
+    else:
+        rmse = base_held.get("rmse_flow_mm3_s", float("nan"))
+        result = Discovery(verdict="none", effects=[], n_heldout_runs=len(held),
+                           rmse_before_mm3_s=rmse, rmse_after_mm3_s=rmse, trend_variable=None,
+                           base_model=model, model=model,
+                           holdout="position-control runs: every other one held out",
+                           heldout_source="closed_loop_heldout")
+    msg = "; ".join(f"{f.name} {f.param} {f.value:g} (p = {f.p_value:.2g}"
+                    + (f", held-out flow RMSE {-f.heldout_improvement:+.0%}" if f.heldout_before
+                       else "") + ")" for f in findings)
+    change: dict[str, Any] = {"position_control": {
+        "method": "dynamic effects fitted in closed loop on the identified twin",
+        "n_runs": len(position), "n_heldout_runs": len(held), "found": bool(named),
+        "message": msg or "no candidate", "candidates": [f.to_json() for f in findings],
+        "heldout_twin": base_held}}
+    for f in named:
+        change["effects"] = [*result.effects, EffectFinding(
+            f.name, "both", {f.param: f.value}, {f.param: f.ci95}, p_value=f.p_value,
+            f_p_value=f.p_value, evidence=CLOSED_LOOP_EVIDENCE)]
+        change["twin_overrides"] = {"tube": {"effective_bulk_modulus_mpa": f.bulk_mpa}}
+        if result.verdict != "effect_found":
+            change.update(verdict="effect_found", trend_variable=None,
+                          rmse_before_mm3_s=f.heldout_before["rmse_flow_mm3_s"],
+                          rmse_after_mm3_s=f.heldout_after["rmse_flow_mm3_s"],
+                          n_heldout_runs=len(held), heldout_source="closed_loop_heldout",
+                          holdout="position-control runs: every other one held out")
+    return dataclasses.replace(result, **change)
+
+
+#: the report's clause on a dynamic effect found in closed loop
+CLOSED_LOOP_EVIDENCE = ("fitted in closed loop on the identified twin (training runs, "
+                        "p = {p_value:.2g}) and confirmed on held-out runs")
+
+
 def closed_loop(ctx: Context, discovery) -> DiscoverResult:
     """The closed-loop check of a discovery: the position-control runs
     validated with the base model and with the augmented model and effects."""
@@ -123,13 +181,15 @@ def closed_loop(ctx: Context, discovery) -> DiscoverResult:
     note = ""
     try:
         augmented, specs = discovery.augmented_model_and_effects(ctx.plant_rig)
+        twin = getattr(discovery, "twin_overrides", None)
     except SeanvError as exc:
         note = f"effects not simulated in the closed-loop check: {one_line(exc)}"
         augmented, specs = discovery.model, []
     given = ctx.result("validate")
     try:
         before = given or validate_model(ctx, ctx.valve)
-        after = validate_model(ctx, augmented, specs, stage="validate_augmented")
+        after = validate_model(ctx, augmented, specs, stage="validate_augmented",
+                               plant_overrides=twin)
     except SeanvError as exc:
         return DiscoverResult(discovery, note=("closed-loop check with the augmented model "
                                                f"failed: {one_line(exc)}"))
@@ -150,7 +210,8 @@ def run(ctx: Context, options: Mapping[str, Any]) -> DiscoverResult:
     opts = {**OPTIONS, **options}
     ds = ctx.result("ingest")
     disc = discover_runs(position_runs(ctx), ds.summary, rig=ctx.plant_rig, model=ctx.valve,
-                         holdout=opts["holdout"], seed=opts["seed"])
+                         holdout=opts["holdout"], seed=opts["seed"],
+                         twin=ctx.result("identify") is not None)
     return closed_loop(ctx, disc)
 
 

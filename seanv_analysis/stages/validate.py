@@ -87,9 +87,11 @@ def position_paths(ctx: Context) -> list[Path]:
 
 
 def validate_model(ctx: Context, model, effects: Sequence[str] = (), *, seed: int = 0,
-                   options: Mapping[str, Any] | None = None, stage: str = NAME):
+                   options: Mapping[str, Any] | None = None, stage: str = NAME,
+                   plant_overrides: Mapping[str, Any] | None = None):
     """Validation of every position-control run with ``model`` (and the
-    simulator's ``effects``), and the runs that failed.
+    simulator's ``effects``) on the context's twin (:attr:`Context.plant_rig`,
+    with ``plant_overrides`` applied), and the runs that failed.
 
     Returns
     -------
@@ -106,13 +108,16 @@ def validate_model(ctx: Context, model, effects: Sequence[str] = (), *, seed: in
 
     opts = {**OPTIONS, **(options or {})}
     paths = position_paths(ctx)
+    plant = ctx.plant_rig
+    if plant_overrides:
+        plant = plant.with_overrides(dict(plant_overrides), where="discover")
     params = {"model": model.to_dict(), "effects": list(effects), "seed": seed}
-    if ctx.plant_rig is not ctx.rig:      # the identified twin: part of the cache key
-        params["plant_rig"] = ctx.plant_rig.to_dict()
+    if plant is not ctx.rig:      # the identified twin: part of the cache key
+        params["plant_rig"] = plant.to_dict()
     if opts != OPTIONS:
         params.update(opts)
     res = ctx.map_runs(stage, validate_one, paths, rig=ctx.rig, params=params,
-                       kwargs={"rig": ctx.plant_rig, "model": model.to_dict(),
+                       kwargs={"rig": plant, "model": model.to_dict(),
                                "effects": tuple(effects),
                                "seed": seed, "threshold_pct": opts["threshold_pct"],
                                "controller_model": opts["controller_model"]})

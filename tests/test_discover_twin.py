@@ -1,0 +1,36 @@
+"""Dynamic effects found in closed loop on the identified twin (the
+``identify`` stage ran before ``discover``).
+
+An extra transport delay between the servo and the needle does not show in
+the servo's feedback: identify's line (bulk modulus) takes part of it, and
+discover must still name it, refitting the line with the candidate, and
+cut the held-out closed-loop flow error.
+"""
+from __future__ import annotations
+
+import pytest
+
+from seanv_analysis.sim import simulate_scenario
+from seanv_analysis.stages import run_stages
+
+
+@pytest.fixture(scope="module")
+def delayed_position(tmp_path_factory):
+    root = tmp_path_factory.mktemp("twin") / "position"
+    simulate_scenario("paper-position", root, seed=3, effects=["delay:delay_s=0.1"])
+    return root
+
+
+def test_extra_delay_named_on_the_identified_twin(delayed_position):
+    ctx = run_stages(delayed_position, ["ingest", "identify", "discover"],
+                     options={"identify": {"parts": ["servo", "flow_path"]}})
+    d = ctx.result("discover").discovery
+    assert d.verdict == "effect_found"
+    assert [(e.name, e.side) for e in d.effects] == [("delay", "both")]
+    assert d.effects[0].params["delay_s"] >= 0.03
+    assert d.heldout_source == "closed_loop_heldout"
+    assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
+    pc = d.position_control
+    assert pc["found"] and pc["n_heldout_runs"] == 1
+    # the closed-loop check runs the twin with the line refitted with the effect
+    assert d.twin_overrides["tube"]["effective_bulk_modulus_mpa"] > 0
