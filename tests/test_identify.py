@@ -145,3 +145,32 @@ def test_discover_does_not_blame_the_unknown_geometry(foreign_own):
     assert set(doc["base_geometry"]) == {"supply", "drain"}
     h = doc["heldout"]
     assert h["rmse_after_mm3_s"] < 0.5 * h["rmse_before_mm3_s"]   # the geometry's share
+
+
+def test_flow_steps_only_says_what_it_cannot_tell(foreign_own, tmp_path):
+    """Without position-control runs the servo, breakaway and line keep the
+    rig file's values, each saying why; the geometry is still identified."""
+    root, _, _ = foreign_own
+    res = CliRunner().invoke(cli, ["identify", str(root / "flow"), "--out", str(tmp_path / "o"),
+                                   "--json", "--n-boot", "0", "--part", "geometry",
+                                   "--part", "friction"])
+    assert res.exit_code == 0, res.output
+    doc = json.loads(res.stdout)
+    assert _const(doc, "valve.supply.needle_y_c_mm")["identified"]
+    static = _const(doc, "actuator.static_friction_n")
+    assert "x the rig file's breakaway/Coulomb ratio" in static["constrained_by"]
+    assert not _const(doc, "actuator.moving_mass_kg")["identified"]
+    assert not any(c["key"] and c["key"].startswith("servo.") for c in doc["constants"])
+
+
+def test_bad_data_is_one_line(tmp_path):
+    """As every command: a data set whose runs are all bad lists them (exit 1);
+    a single bad run folder is one line (exit 2)."""
+    (tmp_path / "d" / "r1").mkdir(parents=True)
+    (tmp_path / "d" / "r1" / "run.json").write_text("{broken")
+    res = CliRunner().invoke(cli, ["identify", str(tmp_path / "d"), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 1
+    assert "Traceback" not in res.output and "r1/run.json: not valid JSON" in res.output
+    res = CliRunner().invoke(cli, ["identify", str(tmp_path / "d" / "r1"),
+                                   "--out", str(tmp_path / "o")])
+    assert res.exit_code == 2 and len(res.output.strip().splitlines()) == 1

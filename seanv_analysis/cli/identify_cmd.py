@@ -40,10 +40,12 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
     """Identify what the paper does not publish about the rig in DATA, from its own logs.
 
     DATA: one or more data set folders; flow-step runs give the needle
-    geometry (eq. 4's centre, with z0 and C refitted) and the friction,
-    position-control runs give the servo (dead time, time constant, rate
-    limit, from its logs) and the line (its bulk modulus, fitted so the
-    re-simulated closed loop moves like the runs). Each constant comes with
+    geometry (eq. 4's centre, with z0 and C refitted) and the Coulomb and
+    viscous friction, position-control runs give the servo (dead time, time
+    constant, rate limit, from its logs), the breakaway force, whether the
+    controller holds once converged, and the line (its bulk modulus, fitted
+    so the re-simulated closed loop moves like the runs); both give the
+    supply pressure the runs were made at. Each constant comes with
     a 95 % interval, what constrains it and its training vs held-out error
     with the rig file's value and the identified one; what the data cannot
     tell keeps the rig file's value and says why.

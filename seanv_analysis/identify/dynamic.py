@@ -33,6 +33,8 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import stats
 
+from .noise import integrated_autocorrelation
+
 __all__ = ["DYNAMIC_CANDIDATES", "DynamicFinding", "closed_loop_effects"]
 
 #: candidate: (parameter, grid of values) [s / deg]
@@ -92,8 +94,6 @@ def _validate(runs, valve, rig, effects=()):
 
 def _sse(validations) -> tuple[float, float, int]:
     """(sum of squared flow errors, effective sample count, samples)."""
-    from .flowpath import _integrated_autocorrelation
-
     sse, n_eff, n = 0.0, 0.0, 0
     for v in validations:
         r = (v.overlay["q_mm3_s"] - v.overlay["q_sim_mm3_s"]).to_numpy(float)
@@ -101,7 +101,7 @@ def _sse(validations) -> tuple[float, float, int]:
         if r.size < 10:
             continue
         sse += float(np.sum(r * r))
-        n_eff += r.size / _integrated_autocorrelation(r)
+        n_eff += r.size / integrated_autocorrelation(r)
         n += r.size
     return sse, n_eff, n
 

@@ -31,6 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
+from .noise import integrated_autocorrelation
 from .result import Constant
 
 __all__ = ["FlowPathData", "flow_path_data", "fit_lag", "fit_bulk_modulus",
@@ -160,19 +161,8 @@ def _flow_sse(validations) -> tuple[float, float]:
         if r.size < 10:
             continue
         sse += float(np.sum(r * r))
-        n_eff += r.size / _integrated_autocorrelation(r)
+        n_eff += r.size / integrated_autocorrelation(r)
     return sse, n_eff
-
-
-def _integrated_autocorrelation(r: np.ndarray) -> float:
-    """1 + 2 sum of the residual's autocorrelation up to its first zero (>= 1)."""
-    x = r - r.mean()
-    f = np.fft.rfft(x, 2 * x.size)
-    acf = np.fft.irfft(f * np.conj(f))[:x.size]
-    acf = acf / acf[0] if acf[0] > 0 else acf
-    below = np.flatnonzero(acf <= 0)
-    k = int(below[0]) if below.size else x.size
-    return max(1.0, 1.0 + 2.0 * float(np.sum(acf[1:k])))
 
 
 def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:

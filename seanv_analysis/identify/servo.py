@@ -11,9 +11,12 @@ units of the servo's resolution):
   rate), then dead time, time constant and rate limit together (time
   constant and rate as logs; the dead time's finite-difference step is 2 ms
   since the cost is a step function below the integration step);
-- 95 % intervals: the dead time's where the cost (the others held) rises by
+- 95 % intervals (the residual variance scaled by the residuals'
+  integrated autocorrelation time: they are correlated in time): the dead
+  time's where the cost (the others held) rises by
   the chi-square(1) quantile, widened by the command-timing uncertainty
-  (half a servo-log sample, below); the others from the Jacobian. The rate limit
+  (half a servo-log sample, below); the others from the Jacobian, widened
+  to their refits with the dead time at its interval's ends. The rate limit
   is identified only when the data drive the servo into it; otherwise it
   keeps the rig file's value.
 
@@ -37,6 +40,7 @@ from scipy import stats
 from scipy.optimize import least_squares
 
 from ..sim.servo import servo_response
+from .noise import integrated_autocorrelation
 from .result import Constant
 
 __all__ = ["ServoData", "servo_data", "fit_servo", "servo_constants"]
@@ -121,6 +125,22 @@ def _fit_all(data, x0, scale, fit_rate: bool, rate_fixed: float):
     return unpack(sol.x), sol
 
 
+def _fit_dead_fixed(data, dead, x0, scale, fit_rate: bool, rate_fixed: float):
+    """(dead, tau, rate) with the dead time held at ``dead``."""
+    def unpack(p):
+        return dead, math.exp(p[0]), (math.exp(p[1]) if fit_rate else rate_fixed)
+
+    def fun(p):
+        return _residual(data, *unpack(p), scale)
+
+    p0 = [math.log(x0[0])] + ([math.log(x0[1])] if fit_rate else [])
+    lo = [math.log(1e-3)] + ([math.log(5.0)] if fit_rate else [])
+    hi = [math.log(2.0)] + ([math.log(1e4)] if fit_rate else [])
+    p0 = np.clip(p0, np.add(lo, 1e-9), np.subtract(hi, 1e-9))
+    sol = least_squares(fun, p0, bounds=(lo, hi), diff_step=2e-3, max_nfev=40)
+    return unpack(sol.x), sol
+
+
 @dataclass
 class ServoFit:
     dead_time_s: float
@@ -165,7 +185,10 @@ def fit_servo(data: Sequence[ServoData], *, start: tuple[float, float, float],
                      "(< 1 %): the data do not constrain it")
         (dead, tau, rate), sol = _fit_all(data, (dead, tau, start[2]), scale, False, start[2])
     npar = 3 if rate_identified else 2
-    s2 = 2.0 * sol.cost / max(n - npar, 1)
+    # residuals are correlated in time (quantised feedback, timing): scale
+    # the variance by the integrated autocorrelation time of each run's part
+    tau_int = _tau_int(data, sol.fun)
+    s2 = 2.0 * sol.cost / max(n - npar, 1) * tau_int
     # dead time: conditional profile on a fine grid (cost rise of chi2(1, 0.95) x s2)
     fine = dead + np.arange(-15, 16) * _FINE_S
     fine = fine[(fine >= 0.0) & (fine <= _DEAD_MAX_S)]
@@ -185,9 +208,28 @@ def fit_servo(data: Sequence[ServoData], *, start: tuple[float, float, float],
     cov = _cov(sol.jac, s2)
     tau_ci = _log_ci(tau, cov, 1)
     rate_ci = _log_ci(rate, cov, 2) if rate_identified else (math.nan, math.nan)
+    # the dead time's uncertainty (timing) moves the others: their intervals
+    # span the refits with the dead time held at its interval's ends
+    for d_end in dead_ci:
+        if not math.isfinite(d_end):
+            continue
+        (_, t_e, r_e), _ = _fit_dead_fixed(data, d_end, (tau, rate), scale, rate_identified, rate)
+        tau_ci = (min(tau_ci[0], t_e), max(tau_ci[1], t_e))
+        if rate_identified:
+            rate_ci = (min(rate_ci[0], r_e), max(rate_ci[1], r_e))
     rmse = float(np.sqrt(2.0 * sol.cost / n)) * scale
     return ServoFit(float(dead), dead_ci, tau, tau_ci, rate, rate_ci, rate_identified, rate_note,
                     rmse, len(data), n, sorted({d.timing for d in data}))
+
+
+def _tau_int(data, r) -> float:
+    """Sample-weighted integrated autocorrelation time of the per-run residuals."""
+    out, k = 0.0, 0
+    for d in data:
+        part = r[k:k + d.fb.size]
+        k += d.fb.size
+        out += integrated_autocorrelation(part) * part.size
+    return out / max(k, 1)
 
 
 def _fraction_rate_limited(data, dead, tau, rate) -> float:
