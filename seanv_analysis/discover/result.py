@@ -220,7 +220,7 @@ class Discovery:
             lines.append(f"Position control (n = {pc['n_runs']} runs, {pc.get('n_heldout_runs', 0)} "
                          f"held out): {pc['method']}: {pc.get('message', '')}; "
                          + ("an effect is added to the twin." if pc.get("found") else
-                            "none kept (significant on training runs and >= 10 % lower held-out "
+                            "none kept (significant on training runs and >= 20 % lower held-out "
                             "closed-loop flow error are both needed)."))
         elif self.position_control:
             pc = self.position_control

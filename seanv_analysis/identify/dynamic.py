@@ -19,7 +19,8 @@ up to three times): the candidate must beat the base twin with its constants fre
   sample size) beats the chi-square(1) 99.9 % quantile with a Bonferroni
   factor for the candidates, and
 - on the held-out runs (never used to fit) the closed-loop flow RMSE drops
-  by at least ``min_improvement``.
+  by at least ``min_improvement`` (20 %: a twin whose line is not the
+  rig's gains ~10 % from a spurious delay on clean data).
 
 The headline numbers are the held-out closed-loop errors (flow RMSE and
 position fit) before and after.
@@ -117,7 +118,7 @@ def _summary(validations) -> dict[str, float]:
 
 def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *,
                         candidates: Sequence[str] = tuple(DYNAMIC_CANDIDATES),
-                        alpha: float = 1e-3, min_improvement: float = 0.10
+                        alpha: float = 1e-3, min_improvement: float = 0.20
                         ) -> tuple[list[DynamicFinding], dict[str, float]]:
     """Fit each dynamic candidate on ``train`` (the twin ``rig`` with the
     valve ``valve``) and check it on ``held``; returns every candidate's
