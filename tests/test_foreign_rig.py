@@ -139,11 +139,14 @@ def test_run_paper_pipeline(foreign):
         got = doc["flowfit"][side]
         assert abs(got["z0_mm"] - z0) < 0.01 and got["C"] == pytest.approx(c, rel=0.03)
     assert abs(doc["tracking"]["lag_s"] - truth.delay_s) < 0.02
-    # the only thing the paper's model misses on this rig is the longer delay
-    # (0.3 s vs the nominal 0.25 s): no static effect on clean flow steps
+    # this rig's 0.3 s delay sits before the servo feedback (the logged cam is
+    # the delayed command): identify takes it as the servo's dead time, so the
+    # identified twin has it and discover names nothing, static or dynamic
+    const = {c["key"]: c for c in doc["identify"]["constants"] if c["key"]}
+    dead, tau = const["servo.dead_time_s"], const["servo.time_constant_s"]
+    assert dead["identified"] and abs(dead["value"] + tau["value"] - truth.delay_s) < 0.03, \
+        (dead, tau)
     disc = doc["discovery"]
-    assert disc["verdict"] == "effect_found"
-    assert [e["name"] for e in disc["effects"]] == ["delay"], disc["effects"]
-    lo, hi = disc["position_control"]["lag_ci95_s"]
-    assert lo <= truth.delay_s <= hi
+    assert disc["verdict"] == "none", disc["effects"]
+    assert disc["position_control"]["method"].startswith("dynamic effects fitted in closed loop")
     assert (root / "out" / "run" / "report.html").is_file()

@@ -46,7 +46,7 @@ from .result import Constant
 __all__ = ["ServoData", "servo_data", "fit_servo", "servo_constants"]
 
 #: dead-time profile grid [s]: coarse, then fine around the best node
-_DEAD_MAX_S = 0.25
+_DEAD_MAX_S = 0.5
 _COARSE_S = 0.005
 _FINE_S = 0.001
 
