@@ -67,6 +67,7 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     -------
     Identification
     """
+    from ..errors import FitError
     from ..fit import fit_flow
     from ..models import ValveModel
 
@@ -83,30 +84,44 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         constants.append(c)
         current = current.with_overrides(_nest([c]), where="identify")
     has_steps = bool((summary["kind"] == "flow_step").any())
+    base_fit = None
     if "geometry" in parts and has_steps:
         log("identify: needle geometry from the flow steps")
-        base_fit = fit_flow(summary, rig, n_boot=0)
+        try:
+            base_fit = fit_flow(summary, rig, n_boot=0)
+        except FitError as exc:
+            notes.append(f"geometry: no flow fit to start from ({exc})")
+    if base_fit is not None:
         c, f, n = geometry_constants(base_fit.per_run, base_fit.model, rig)
         constants += c
         fits["geometry"] = f
         notes += n
         current = current.with_overrides(_nest(c), where="identify")
         refit = fit_flow(summary, current, n_boot=n_boot, seed=seed)
-        if refit.success:
-            model = refit.model
-            for side in SIDES:
-                sf = refit.sides[side]
-                constants += [
+        added = []
+        for side in SIDES:
+            sf = refit.sides.get(side)
+            if sf is not None and sf.success:
+                added += [
                     Constant(f"valve.{side}.z0_mm", f"{side} z0", sf.z0_mm,
                              float(rig["valve"][side]["z0_mm"]), "mm", True,
                              "flowfit with the identified geometry", tuple(sf.z0_ci95)),
                     Constant(f"valve.{side}.c_flow", f"{side} C", sf.c_flow,
                              float(rig["valve"][side]["c_flow"]), "mm^3/(s deg^2 MPa^0.5)", True,
                              "flowfit with the identified geometry", tuple(sf.c_ci95))]
-            current = current.with_overrides(_nest(constants[-4:]), where="identify")
-        else:
-            notes.append(f"geometry: flowfit with the identified geometry failed: {refit.message}")
-    elif "geometry" in parts:
+                continue
+            # no z0 to go with a new centre: the rig file's centre stays
+            for k in constants:
+                if k.key == f"valve.{side}.needle_y_c_mm" and k.identified:
+                    k.identified, k.value, k.ci95 = False, k.default, (float("nan"), float("nan"))
+                    k.note = "flowfit with it failed on this side"
+            notes.append(f"geometry ({side}): flowfit with the identified geometry failed"
+                         + (f": {sf.message}" if sf is not None else ""))
+        constants += added
+        current = rig.with_overrides(_nest([k for k in constants if k.key and k.key.startswith(
+            ("valve.", "supply."))]), where="identify")
+        model = ValveModel.from_rig(current) if added else None
+    elif "geometry" in parts and not has_steps:
         notes.append("geometry: no flow-step runs")
     valve = model if model is not None else ValveModel.from_rig(current)
 
