@@ -34,7 +34,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import stats
 
-from .noise import integrated_autocorrelation
+from .closedloop import flow_sse, validate_on_twin, with_bulk
 
 __all__ = ["DYNAMIC_CANDIDATES", "DynamicFinding", "closed_loop_effects"]
 
@@ -80,33 +80,6 @@ class DynamicFinding:
                 "heldout_before": self.heldout_before, "heldout_after": self.heldout_after}
 
 
-def _validate(runs, valve, rig, effects=()):
-    from ..analysis.validate import validate_run
-    from ..errors import DataError
-
-    out = []
-    for run in runs:
-        try:
-            out.append(validate_run(run, valve, rig=rig, effects=tuple(effects)))
-        except DataError:
-            continue
-    return out
-
-
-def _sse(validations) -> tuple[float, float, int]:
-    """(sum of squared flow errors, effective sample count, samples)."""
-    sse, n_eff, n = 0.0, 0.0, 0
-    for v in validations:
-        r = (v.overlay["q_mm3_s"] - v.overlay["q_sim_mm3_s"]).to_numpy(float)
-        r = r[np.isfinite(r)]
-        if r.size < 10:
-            continue
-        sse += float(np.sum(r * r))
-        n_eff += r.size / integrated_autocorrelation(r)
-        n += r.size
-    return sse, n_eff, n
-
-
 def _summary(validations) -> dict[str, float]:
     if not validations:
         return {}
@@ -124,8 +97,8 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
     valve ``valve``) and check it on ``held``; returns every candidate's
     finding (``named`` True for the kept one, at most one) and the held-out
     closed-loop numbers of the twin without effects."""
-    base_train = _sse(_validate(train, valve, rig))
-    base_held_v = _validate(held, valve, rig)
+    base_train = flow_sse(validate_on_twin(train, valve, rig))
+    base_held_v = validate_on_twin(held, valve, rig)
     base_held = _summary(base_held_v)
     if base_train[2] == 0:
         return [], base_held
@@ -134,9 +107,15 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
     m = len(candidates)
     b0 = float(rig["tube"]["effective_bulk_modulus_mpa"])
 
-    def with_bulk(b):
-        return rig.with_overrides({"tube": {"effective_bulk_modulus_mpa": float(b)}},
-                                  where="discover")
+    seen: dict[tuple[str, float], float] = {}
+
+    def cost(spec: str, bulk: float) -> float:
+        """Training flow SSE with the effect ``spec`` at bulk modulus ``bulk``
+        (each pair simulated once: the descent revisits its current point)."""
+        if (spec, bulk) not in seen:
+            twin = with_bulk(rig, bulk, where="discover")
+            seen[(spec, bulk)] = flow_sse(validate_on_twin(train, valve, twin, [spec]))[0]
+        return seen[(spec, bulk)]
 
     for name in candidates:
         param, grid = DYNAMIC_CANDIDATES[name]
@@ -145,14 +124,10 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         # have taken part of it), up to three times
         bulk = b0
         for _ in range(3):
-            r = with_bulk(bulk)
-            costs = [(_sse(_validate(train, valve, r, [f"{name}:{param}={v:g}"]))[0], v)
-                     for v in grid]
+            costs = [(cost(f"{name}:{param}={v:g}", bulk), v) for v in grid]
             sse1, best = min(costs)
-            b_costs = [(_sse(_validate(train, valve, with_bulk(bulk * k),
-                                       [f"{name}:{param}={best:g}"]))[0], bulk * k)
-                       for k in _BULK_FACTORS]
-            sse_b, bulk_new = min(b_costs)
+            sse_b, bulk_new = min((cost(f"{name}:{param}={best:g}", bulk * k), bulk * k)
+                                  for k in _BULK_FACTORS)
             if bulk_new == bulk:
                 break
             bulk, sse1 = bulk_new, sse_b
@@ -171,8 +146,8 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         if f.p_value >= alpha / m:
             break
         f.heldout_before = base_held
-        f.heldout_after = (_summary(_validate(held, valve, with_bulk(f.bulk_mpa), [f.spec]))
-                           if held else {})
+        twin = with_bulk(rig, f.bulk_mpa, where="discover")
+        f.heldout_after = _summary(validate_on_twin(held, valve, twin, [f.spec])) if held else {}
         imp = f.heldout_improvement
         f.named = bool(held) and math.isfinite(imp) and imp >= min_improvement
     return findings, base_held

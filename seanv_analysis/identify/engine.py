@@ -30,7 +30,7 @@ from .controller import controller_constants
 from .flowpath import closed_loop_fits, flow_path_constants
 from .friction import friction_constants
 from .geometry import geometry_constants
-from .result import Constant, Identification
+from .result import Constant, Identification, nest_constants
 from .servo import servo_constants, servo_data
 
 __all__ = ["identify_rig", "PARTS", "split_runs"]
@@ -79,10 +79,19 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     notes: list[str] = []
     current = rig
     model = None
+
+    def take(part: str, found) -> Any:
+        """Keep a part's (constants, fits, notes); the twin with its identified keys."""
+        c, f, n = found
+        constants.extend(c)
+        fits[part] = f
+        notes.extend(n)
+        return current.with_overrides(nest_constants(c), where="identify")
+
     c = _supply_pressure(summary, position_runs, rig)
     if c is not None:
         constants.append(c)
-        current = current.with_overrides(_nest([c]), where="identify")
+        current = current.with_overrides(nest_constants([c]), where="identify")
     has_steps = bool((summary["kind"] == "flow_step").any())
     base_fit = None
     if "geometry" in parts and has_steps:
@@ -92,11 +101,7 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         except FitError as exc:
             notes.append(f"geometry: no flow fit to start from ({exc})")
     if base_fit is not None:
-        c, f, n = geometry_constants(base_fit.per_run, base_fit.model, rig)
-        constants += c
-        fits["geometry"] = f
-        notes += n
-        current = current.with_overrides(_nest(c), where="identify")
+        current = take("geometry", geometry_constants(base_fit.per_run, base_fit.model, rig))
         refit = fit_flow(summary, current, n_boot=n_boot, seed=seed)
         added = []
         for side in SIDES:
@@ -118,8 +123,8 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
             notes.append(f"geometry ({side}): flowfit with the identified geometry failed"
                          + (f": {sf.message}" if sf is not None else ""))
         constants += added
-        current = rig.with_overrides(_nest([k for k in constants if k.key and k.key.startswith(
-            ("valve.", "supply."))]), where="identify")
+        valve_keys = [k for k in constants if k.key and k.key.startswith(("valve.", "supply."))]
+        current = rig.with_overrides(nest_constants(valve_keys), where="identify")
         model = ValveModel.from_rig(current) if added else None
     elif "geometry" in parts and not has_steps:
         notes.append("geometry: no flow-step runs")
@@ -127,11 +132,7 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
 
     train_pos, held_pos = split_runs(position_runs)
     if position_runs:
-        c, f, n = controller_constants(position_runs, valve, current)
-        constants += c
-        fits["controller"] = f
-        notes += n
-        current = current.with_overrides(_nest(c), where="identify")
+        current = take("controller", controller_constants(position_runs, valve, current))
     if "servo" in parts:
         log("identify: servo from its logs")
         tr = [d for d in (servo_data(r) for r in train_pos) if d is not None]
@@ -143,25 +144,13 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
                 notes.append("servo: from the flow steps' logs (no position-control run with "
                              "cam feedback); the command instant is known to half a servo "
                              "sample only")
-        c, f, n = servo_constants(tr, he, current)
-        constants += c
-        fits["servo"] = f
-        notes += n
-        current = current.with_overrides(_nest(c), where="identify")
+        current = take("servo", servo_constants(tr, he, current))
     if "friction" in parts:
         log("identify: friction from the flow steps' force balance")
-        c, f, n = friction_constants(summary, current, runs=position_runs)
-        constants += c
-        fits["friction"] = f
-        notes += n
-        current = current.with_overrides(_nest(c), where="identify")
+        current = take("friction", friction_constants(summary, current, runs=position_runs))
     if "flow_path" in parts:
         log("identify: flow-path lag from the position-control runs")
-        c, f, n = flow_path_constants(train_pos, held_pos, current, valve)
-        constants += c
-        fits["flow_path"] = f
-        notes += n
-        current = current.with_overrides(_nest(c), where="identify")
+        current = take("flow_path", flow_path_constants(train_pos, held_pos, current, valve))
     if position_runs and {"servo", "flow_path", "friction"} & set(parts):
         log("identify: closed-loop check on the training and held-out runs")
         fits["closed_loop"] = closed_loop_fits(train_pos, held_pos, valve, rig, current)
@@ -228,16 +217,3 @@ def _supply_pressure(summary, runs, rig) -> Constant | None:
     return Constant("supply.pressure_mpag", "supply pressure", float(np.median(x)), default,
                     "MPaG", True, f"logged p_supply of {x.size} runs",
                     (float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))))
-
-
-def _nest(constants: Sequence[Constant]) -> dict[str, Any]:
-    out: dict[str, Any] = {}
-    for c in constants:
-        if not (c.identified and c.key):
-            continue
-        d = out
-        parts = c.key.split(".")
-        for p in parts[:-1]:
-            d = d.setdefault(p, {})
-        d[parts[-1]] = float(f"{c.value:.6g}")
-    return out

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
-from .noise import integrated_autocorrelation
+from .closedloop import flow_sse, validate_on_twin, with_bulk
 from .result import Constant
 
 __all__ = ["FlowPathData", "flow_path_data", "fit_lag", "fit_bulk_modulus",
@@ -135,34 +135,9 @@ def lag_rmse(data: Sequence[FlowPathData], tau, dead) -> float:
 
 
 def _closed_loop(runs, valve, rig, bulk_mpa: float | None = None) -> list[Any]:
-    """:func:`~seanv_analysis.analysis.validate.validate_run` of each run on
-    the twin ``rig`` (with the line's bulk modulus ``bulk_mpa`` when given)."""
-    from ..analysis.validate import validate_run
-    from ..errors import DataError
-
-    r = rig if bulk_mpa is None else rig.with_overrides(
-        {"tube": {"effective_bulk_modulus_mpa": float(bulk_mpa)}}, where="identify")
-    out = []
-    for run in runs:
-        try:
-            out.append(validate_run(run, valve, rig=r))
-        except DataError:
-            continue
-    return out
-
-
-def _flow_sse(validations) -> tuple[float, float]:
-    """(sum of squared flow errors [(mm^3/s)^2], effective sample count) of
-    measured vs simulated actuator flow, NaN samples left out."""
-    sse, n_eff = 0.0, 0.0
-    for v in validations:
-        r = (v.overlay["q_mm3_s"] - v.overlay["q_sim_mm3_s"]).to_numpy(float)
-        r = r[np.isfinite(r)]
-        if r.size < 10:
-            continue
-        sse += float(np.sum(r * r))
-        n_eff += r.size / integrated_autocorrelation(r)
-    return sse, n_eff
+    """The runs re-run on the twin ``rig`` (with the line's bulk modulus
+    ``bulk_mpa`` when given)."""
+    return validate_on_twin(runs, valve, rig if bulk_mpa is None else with_bulk(rig, bulk_mpa))
 
 
 def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
@@ -176,7 +151,7 @@ def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
     def cost(logb: float) -> float:
         key = round(logb, 6)
         if key not in cache:
-            cache[key] = _flow_sse(_closed_loop(runs, valve, rig, math.exp(logb)))
+            cache[key] = flow_sse(_closed_loop(runs, valve, rig, math.exp(logb)))[:2]
         return cache[key][0]
 
     grid = math.log(b0) + np.linspace(-math.log(10.0), math.log(10.0), 7)

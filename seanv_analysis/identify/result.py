@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-__all__ = ["Constant", "Identification", "json_num"]
+__all__ = ["Constant", "Identification", "json_num", "nest_constants"]
 
 
 def json_num(x: Any) -> float | None:
@@ -70,6 +70,22 @@ class Constant:
         return f"{head}  ({ref}from {self.constrained_by}{extra})"
 
 
+def nest_constants(constants) -> dict[str, Any]:
+    """Nested {section: {key: value}} (rig-file schema) of the identified
+    constants that have a rig key, each to 6 significant digits (as
+    rig-identified.toml holds them, so the twin in memory is the file's)."""
+    out: dict[str, Any] = {}
+    for c in constants:
+        if not (c.identified and c.key):
+            continue
+        parts = c.key.split(".")
+        d = out
+        for p in parts[:-1]:
+            d = d.setdefault(p, {})
+        d[parts[-1]] = float(f"{c.value:.6g}")
+    return out
+
+
 @dataclass
 class Identification:
     """Result of :func:`seanv_analysis.identify.identify_rig`.
@@ -97,14 +113,7 @@ class Identification:
 
     def overrides(self) -> dict[str, Any]:
         """Nested {section: {key: value}} of the identified constants (rig-file schema)."""
-        out: dict[str, Any] = {}
-        for c in self.identified():
-            parts = c.key.split(".")
-            d = out
-            for p in parts[:-1]:
-                d = d.setdefault(p, {})
-            d[parts[-1]] = float(f"{c.value:.6g}")
-        return out
+        return nest_constants(self.constants)
 
     def to_json(self) -> dict[str, Any]:
         return {"schema": "seanv-identify/1",
