@@ -38,8 +38,20 @@ def _portable(obj, replace: dict[str, str]):
     return obj
 
 
+#: relative tolerance of floats by path prefix (first match wins). The last
+#: bits differ between CPUs and numpy/scipy releases (a fresh venv takes the
+#: newest): plain fits move ~1e-8. Identification's closed-loop searches
+#: (golden section on the line's bulk modulus, stopped at ~1e-4 in log) turn
+#: such bits into ~1e-4 (seen: 7e-5 between two scipy/numpy releases).
+REL_TOL = (("/identify/", 1e-3), ("/validation/", 1e-3), ("", 1e-6))
+
+
+def _rel_tol(where: str) -> float:
+    return next(tol for prefix, tol in REL_TOL if where.startswith(prefix))
+
+
 def _compare(got, want, where: str = "") -> list[str]:
-    """Differences between two JSON documents; floats equal to 1e-9 relative
+    """Differences between two JSON documents; floats equal to :data:`REL_TOL`
     (the last bits may differ between CPUs, the numbers must not)."""
     if isinstance(want, dict) and isinstance(got, dict):
         out = [f"{where}/{k}: missing" for k in want if k not in got]
@@ -55,7 +67,7 @@ def _compare(got, want, where: str = "") -> list[str]:
     if isinstance(want, float) and isinstance(got, (int, float)) and not isinstance(got, bool):
         if math.isnan(want) and math.isnan(got):
             return []
-        if math.isclose(got, want, rel_tol=1e-9, abs_tol=1e-12):
+        if math.isclose(got, want, rel_tol=_rel_tol(where), abs_tol=1e-12):
             return []
     elif got == want and type(got) is type(want):
         return []
