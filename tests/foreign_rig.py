@@ -57,6 +57,10 @@ Opt-in: a rig that owns every constant the paper does not publish
   may be 0), the valve sees the servo's angle, and the logged ``cam_deg`` is
   that angle quantised (so it lags ``cam_cmd_deg`` by about
   ``delay_s + servo_dead_s + servo_tau_s``).
+- between the servo and the needle, in position control only, what the cam
+  feedback does not see: ``needle_delay_s`` (a pure delay) and
+  ``cam_backlash_deg`` (total play; the needle lags half of it behind the
+  servo in the direction it last moved). Both 0 by default.
 - flow path ``flow_path``: ``"first_order"`` (above) or ``"tube"``, a lumped
   hydraulic line, in flow steps and position control alike. Its one state is
   the pressure p_l of the line volume at the valve port (compliance
@@ -162,6 +166,12 @@ class ForeignTruth:
     line_resistance_mpa_s_per_mm3: float = 4.5e-5
     # breakaway force [N]; None = no stiction
     static_n: float | None = None
+    # position control only, effects the cam feedback does not see: a pure
+    # delay between the servo's (logged) angle and the needle, and a play of
+    # this total width between them (the needle lags width/2 behind the servo
+    # in the direction it last moved)
+    needle_delay_s: float = 0.0
+    cam_backlash_deg: float = 0.0
     runs: list = field(default_factory=list)
 
     def __post_init__(self):
@@ -172,8 +182,9 @@ class ForeignTruth:
                              f"({self.coulomb_n} N)")
         if min(self.servo_tau_s, self.servo_rate_deg_s, self.line_compliance_mm3_per_mpa,
                self.line_resistance_mpa_s_per_mm3) <= 0 or self.servo_dead_s < 0 \
-                or self.delay_s < 0:
-            raise ValueError("servo/line constants must be > 0 (dead time and delay >= 0)")
+                or min(self.delay_s, self.needle_delay_s, self.cam_backlash_deg) < 0:
+            raise ValueError("servo/line constants must be > 0 (dead times, delays and play "
+                             ">= 0)")
 
     @property
     def _simple_plant(self) -> bool:
@@ -673,6 +684,28 @@ def write_flowsteps(out: str | Path, *, plan: Iterable[Step] | None = None, seed
 # position control
 # ---------------------------------------------------------------------------
 
+class _Transmission:
+    """Servo angle -> needle angle in position control: ``needle_delay_s`` of
+    pure delay, then ``cam_backlash_deg`` of play (identity when both are 0)."""
+
+    def __init__(self, tr: ForeignTruth, h: float, theta0: float):
+        self.hist = [theta0] * (int(round(tr.needle_delay_s / h)) + 1)
+        self.half = 0.5 * tr.cam_backlash_deg
+        self.needle = theta0
+        self.i = 0
+
+    def step(self, servo_deg: float) -> float:
+        n = len(self.hist)
+        self.hist[self.i % n] = servo_deg
+        self.i += 1
+        delayed = self.hist[self.i % n]  # written n - 1 steps ago (theta0 before)
+        if delayed > self.needle + self.half:
+            self.needle = delayed - self.half
+        elif delayed < self.needle - self.half:
+            self.needle = delayed + self.half
+        return self.needle
+
+
 def _controller_model(tr: ForeignTruth):
     """The foreign controller's eq. (6) model: this rig's z0, C and needle
     geometry (the same the valve has)."""
@@ -707,6 +740,7 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
     sup, drn = needles["supply"], needles["drain"]
     lo, hi = tr.stroke_mm
     servo = _Servo(tr, h, -12.0) if tr.servo_in_position else None
+    to_needle = _Transmission(tr, h, -12.0)
     for i in range(n):
         ti = t[i]
         load_sp = loads[np.searchsorted(t_load, ti, side="right") - 1]
@@ -727,7 +761,8 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
         if servo is not None:  # the servo follows the (delayed) command
             cam_valve = servo.step(cam_valve)
         # pure delay: the valve sees the command of delay_s ago, flow is instantaneous
-        q = sup.flow1(cam_valve, ps, ps - ph, sup.c) + drn.flow1(cam_valve, ph, ph - p_tank, drn.c)
+        needle = to_needle.step(cam_valve)
+        q = sup.flow1(needle, ps, ps - ph, sup.c) + drn.flow1(needle, ph, ph - p_tank, drn.c)
         x = min(max(x + q / ACTUATOR_AREA_MM2 * h, lo), hi)
         X[i], Q[i], PS[i], PH[i], PL[i], CAM[i] = x, q, ps, ph, load_reg, cam_valve
     return t, X, Q, PS, PH, PL, cam_hist, CAM, (np.array(ctrl_t), np.array(ctrl_x),
@@ -748,6 +783,7 @@ def _simulate_position_plant(tr: ForeignTruth, needles, model, *, refs, t_ref, l
     load_reg = loads[0]
     plant = _Plant(tr, needles, x=5.0, load_mpag=load_reg, tau_s=0.0)
     servo = _Servo(tr, h, -12.0) if tr.servo_in_position else None
+    to_needle = _Transmission(tr, h, -12.0)
     X, Q, PS, PH, PL, CAM = ([0.0] * n for _ in range(6))
     ctrl_t, ctrl_x, ctrl_q = [], [], []
     cam_hist = [-12.0] * n
@@ -770,7 +806,7 @@ def _simulate_position_plant(tr: ForeignTruth, needles, model, *, refs, t_ref, l
         cam_valve = cam_hist[i - nd] if i >= nd else -12.0
         if servo is not None:
             cam_valve = servo.step(cam_valve)
-        plant.step(cam_valve, ps, p_tank, load_reg, h, cs, cd)
+        plant.step(to_needle.step(cam_valve), ps, p_tank, load_reg, h, cs, cd)
         X[i], Q[i], PS[i], PH[i], PL[i], CAM[i] = plant.x, plant.q, ps, plant.p, load_reg, \
             cam_valve
     arr = np.asarray

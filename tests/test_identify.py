@@ -147,6 +147,33 @@ def test_discover_does_not_blame_the_unknown_geometry(foreign_own):
     assert h["rmse_after_mm3_s"] < 0.5 * h["rmse_before_mm3_s"]   # the geometry's share
 
 
+def test_needle_delay_named_in_closed_loop(foreign_own, tmp_path):
+    """A transport delay between the servo and the needle (0.15 s, invisible in
+    the cam feedback) in the foreign rig's position-control runs: with its
+    flow steps, identify + discover name a delay (refined off the grid, its
+    interval a profile of the training error), and the held-out
+    closed-loop flow error drops by >= 30 %. (Named for position seeds 1, 2
+    and 5 of 1, 2, 3, 5; seed 3's held-out drop is 14 %, below discover's
+    20 % bar: the twin's flow fit on this rig is ~62 % without the delay.)"""
+    from seanv_analysis.stages import run_stages
+
+    root, _, _ = foreign_own
+    write_position(tmp_path / "position", seed=1, truth=own_rig(needle_delay_s=0.15),
+                   n_runs=2, duration_s=40.0)
+    ctx = run_stages([root / "flow", tmp_path / "position"],
+                     ["ingest", "flowfit", "identify", "discover"],
+                     options={"identify": {"n_boot": 0}})
+    d = ctx.result("discover").discovery
+    assert [(e.name, e.side) for e in d.effects] == [("delay", "both")], d.position_control["message"]
+    found = d.effects[0].params["delay_s"]
+    assert 0.06 <= found <= 0.2
+    assert d.heldout_source == "closed_loop_heldout"
+    assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
+    kept = next(c for c in d.position_control["candidates"] if c["named"])
+    lo, hi = kept["ci95"]
+    assert lo < found < hi and hi - lo < 0.1
+
+
 def test_flow_steps_only_says_what_it_cannot_tell(foreign_own, tmp_path):
     """Without position-control runs the servo, breakaway and line keep the
     rig file's values, each saying why; the geometry is still identified."""

@@ -22,6 +22,13 @@ up to three times): the candidate must beat the base twin with its constants fre
   by at least ``min_improvement`` (20 %: a twin whose line is not the
   rig's gains ~10 % from a spurious delay on clean data).
 
+The grid only brackets the value: the best grid point is refined by a
+bounded scalar search between its neighbours (at the refitted bulk
+modulus), and the kept candidate's 95 % interval is the profile of the
+training SSE (the values whose SSE stays within the chi-square(1) 95 %
+quantile of the residual variance above the minimum, bulk modulus held),
+found by root finding on each side.
+
 The headline numbers are the held-out closed-loop errors (flow RMSE and
 position fit) before and after.
 """
@@ -32,7 +39,7 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
-from scipy import stats
+from scipy import optimize, stats
 
 from .closedloop import flow_sse, validate_on_twin, with_bulk
 
@@ -108,6 +115,7 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
     b0 = float(rig["tube"]["effective_bulk_modulus_mpa"])
 
     seen: dict[tuple[str, float], float] = {}
+    profiles: dict[str, tuple[Any, float, Sequence[float]]] = {}
 
     def cost(spec: str, bulk: float) -> float:
         """Training flow SSE with the effect ``spec`` at bulk modulus ``bulk``
@@ -131,23 +139,54 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
             if bulk_new == bulk:
                 break
             bulk, sse1 = bulk_new, sse_b
+        def at(v: float, name=name, param=param, bulk=bulk) -> float:
+            return cost(f"{name}:{param}={v:.4g}", bulk)
+
+        lo, hi = _bracket(grid, best)
+        r = optimize.minimize_scalar(at, bounds=(lo, hi), method="bounded",
+                                     options={"xatol": 0.01 * (hi - lo)})
+        if r.fun < sse1:
+            best, sse1 = float(f"{r.x:.4g}"), float(r.fun)
         s2 = sse1 / max(n_eff - 1.0, 1.0)
         stat = (sse0 - sse1) / s2 if s2 > 0 else 0.0
         p = float(stats.chi2.sf(max(stat, 0.0), 1))
         lim = sse1 + stats.chi2.ppf(0.95, 1) * s2
-        inside = [v for c, v in costs if c <= lim]
-        ci = (min(inside), max(inside)) if inside else (math.nan, math.nan)
-        f = DynamicFinding(name, param, float(best), ci, p, (sse0 - sse1) / sse0
-                           if sse0 > 0 else 0.0)
+        inside = [v for c, v in costs if c <= lim] + [best]
+        f = DynamicFinding(name, param, float(best), (min(inside), max(inside)), p,
+                           (sse0 - sse1) / sse0 if sse0 > 0 else 0.0)
         f.bulk_mpa = float(bulk)
+        profiles[name] = (at, lim, grid)
         findings.append(f)
     findings.sort(key=lambda f: f.p_value)
     for f in findings[:1]:
         if f.p_value >= alpha / m:
             break
+        f.ci95 = _profile_interval(*profiles[f.name], f.value)
         f.heldout_before = base_held
         twin = with_bulk(rig, f.bulk_mpa, where="discover")
         f.heldout_after = _summary(validate_on_twin(held, valve, twin, [f.spec])) if held else {}
         imp = f.heldout_improvement
         f.named = bool(held) and math.isfinite(imp) and imp >= min_improvement
     return findings, base_held
+
+
+def _bracket(grid: Sequence[float], best: float) -> tuple[float, float]:
+    """The interval between the grid neighbours of ``best`` (0 below the
+    first point, 1.5x the last above it)."""
+    i = list(grid).index(best)
+    lo = grid[i - 1] if i > 0 else 0.0
+    hi = grid[i + 1] if i + 1 < len(grid) else 1.5 * grid[-1]
+    return float(lo), float(hi)
+
+
+def _profile_interval(cost, lim: float, grid: Sequence[float], best: float
+                      ) -> tuple[float, float]:
+    """Where ``cost`` (the training SSE at a value) crosses ``lim`` on each
+    side of ``best``, searched over [0, 1.5 x the grid's last point]; an edge
+    where it never crosses is the interval's end (the data cannot exclude it)."""
+    def side(edge: float) -> float:
+        if edge == best or cost(edge) <= lim:
+            return edge
+        return float(optimize.brentq(lambda v: cost(v) - lim, min(edge, best), max(edge, best),
+                                     xtol=0.002 * grid[-1]))
+    return side(0.0), side(1.5 * float(grid[-1]))
