@@ -14,7 +14,13 @@ module estimates that delay from the data:
   parabola through the peak and its two neighbours;
 - the 95 % interval comes from a seeded moving-block bootstrap over
   non-overlapping blocks of the record (default 5 s; the per-block sums of
-  the correlation are resampled, so each resample costs no FFT).
+  the correlation are resampled, so each resample costs no FFT). The
+  bootstrap is stratified: blocks over which the target varies and blocks
+  over which it is constant (holds) are resampled separately, each in its
+  own number, so every resample keeps the record's timing information (an
+  unstratified resample made of holds alone, a few per cent of them when a
+  record is mostly holds, "finds" a lag anywhere in the search range and
+  stretches the interval over it).
 
 Positive lag = the actual signal is *behind* the target (it must be shifted
 earlier by ``lag_s`` to line up). Units: s, and whatever unit the signals
@@ -42,7 +48,8 @@ DEFAULT_N_BOOT = 200
 
 _METHOD = ("masked Pearson cross-correlation on a uniform grid, parabolic peak "
            "interpolation; 95 % CI: moving-block bootstrap ({n_boot} resamples of "
-           "{block_s:g} s blocks, seed {seed}), percentile interval")
+           "{block_s:g} s blocks, stratified by target varying / held, seed {seed}), "
+           "percentile interval")
 
 
 @dataclass(frozen=True)
@@ -52,7 +59,7 @@ class LagEstimate:
     Attributes
     ----------
     lag_s : delay [s]; positive = actual behind target (NaN when it failed)
-    ci95_s : (lo, hi) 95 % bootstrap interval [s], or None (fewer than two blocks)
+    ci95_s : (lo, hi) 95 % bootstrap interval [s], or None (fewer than two blocks over which the target varies)
     peak_correlation : Pearson correlation at the peak [-]
     method : how it was computed (estimator, interval method, seed)
     dt_s : grid step [s]
@@ -177,6 +184,16 @@ def _pearson(s: np.ndarray, min_pairs: int = 3) -> np.ndarray:
     return r
 
 
+def _target_varies(per_block: np.ndarray, n_lag: int, rel: float = 1e-9) -> np.ndarray:
+    """Blocks whose target varies (zero-lag variance above ``rel`` of the
+    largest block's); the others are holds, constant up to rounding."""
+    n, sx, sxx = per_block[:, 0, n_lag], per_block[:, 1, n_lag], per_block[:, 3, n_lag]
+    safe = np.where(n > 0, n, 1.0)
+    var = np.where(n > 1, (sxx - sx * sx / safe) / safe, 0.0)
+    top = float(var.max()) if var.size else 0.0
+    return (var > rel * top) & (var > 0.0)
+
+
 def _peak(r: np.ndarray, lags_n: np.ndarray, dt: float) -> tuple[float, float, bool]:
     """(lag [s], peak r, at_edge) with parabolic sub-sample refinement."""
     if not np.isfinite(r).any():
@@ -255,18 +272,22 @@ def estimate_lag_segments(segments: Sequence[tuple[Any, Any, Any]], *, max_lag_s
         warnings.warn(f"estimate_lag: peak at the edge of +-{max_lag_s:g} s", stacklevel=2)
     ci = None
     nb = per_block.shape[0]
-    if success and nb >= 2 and n_boot > 0:
+    varying = np.flatnonzero(_target_varies(per_block, n_lag))
+    held = np.setdiff1d(np.arange(nb), varying)
+    if success and varying.size >= 2 and n_boot > 0:
         rng = np.random.default_rng(seed)
         boot = np.empty(n_boot)
         for j in range(n_boot):
-            pick = rng.integers(0, nb, nb)
+            pick = np.concatenate((rng.choice(varying, varying.size),
+                                   rng.choice(held, held.size) if held.size else held))
             boot[j] = _peak(_pearson(per_block[pick].sum(axis=0)), lags_n, dt)[0]
         boot = boot[np.isfinite(boot)]
         if boot.size >= 10:
             lo, hi = np.percentile(boot, [2.5, 97.5])
             ci = (float(min(lo, lag)), float(max(hi, lag)))
     elif success:
-        messages.append("fewer than two blocks: no confidence interval")
+        messages.append("fewer than two blocks over which the target varies: "
+                        "no confidence interval")
     return LagEstimate(float(lag), ci, float(peak), method, float(dt), n_pairs, nb,
                        lags_n * dt, r, success, "; ".join(messages))
 
