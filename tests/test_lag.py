@@ -88,3 +88,24 @@ def test_errors():
         estimate_lag(t, t, t, max_lag_s=0)
     with pytest.raises(DataError, match="at least one"):
         estimate_lag_segments([])
+
+
+def test_record_mostly_holds_at_different_levels():
+    """3 active 5 s blocks among 11 holds, each hold at its own level in
+    both signals (a position-control run is mostly holds, Q_ref = Kp e held
+    at a level, the flow at another). Level changes between blocks carry no
+    timing: pooled as raw sums they pulled the peak to 0.265 s with an
+    interval 0.00..0.29 s that excluded the truth, and resamples made of
+    holds alone stretched the interval over the whole search range."""
+    dt = 0.01
+    t = np.arange(0.0, 70.0, dt)
+    wave, _ = _lowpass_noise(t, 0.0, seed=7)
+    active = ((t >= 10) & (t < 15)) | ((t >= 35) & (t < 40)) | ((t >= 55) & (t < 60))
+    level = np.floor(t / 5.0) * 0.05
+    target = np.where(active, wave, level)
+    actual = np.where(active, np.interp(t - 0.3, t, wave), 0.3 * level)
+    for seed in range(3):
+        est = estimate_lag(t, target, actual, seed=seed)
+        lo, hi = est.ci95_s
+        assert abs(est.lag_s - 0.3) < 0.01, est.report()
+        assert lo - 0.01 <= 0.3 <= hi + 0.01 and hi - lo < 0.05, est.report()

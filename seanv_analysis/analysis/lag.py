@@ -6,10 +6,13 @@ module estimates that delay from the data:
 
 - both signals are put on a uniform grid (linear interpolation, NaN gaps kept
   as gaps);
-- the masked Pearson correlation r(tau) between target(t) and
-  actual(t + tau) is computed for every lag |tau| <= ``max_lag_s`` (only
-  pairs where both samples are valid count, so NaN gaps and the edges of
-  the record never enter);
+- the masked correlation r(tau) between target(t) and actual(t + tau) is
+  computed for every lag |tau| <= ``max_lag_s`` (only pairs where both
+  samples are valid count, so NaN gaps and the edges of the record never
+  enter), pooled over blocks of ``block_s`` with each block's covariance
+  taken about its own means (as Welch's method detrends each segment: the
+  levels of holds, which differ from block to block, carry no timing and
+  would otherwise bias the peak toward zero lag);
 - the lag is the peak of r(tau), refined below the sample step by a
   parabola through the peak and its two neighbours;
 - the 95 % interval comes from a seeded moving-block bootstrap over
@@ -46,7 +49,7 @@ DEFAULT_BLOCK_S = 5.0
 #: Bootstrap resamples.
 DEFAULT_N_BOOT = 200
 
-_METHOD = ("masked Pearson cross-correlation on a uniform grid, parabolic peak "
+_METHOD = ("masked cross-correlation pooled over block-detrended blocks, parabolic peak "
            "interpolation; 95 % CI: moving-block bootstrap ({n_boot} resamples of "
            "{block_s:g} s blocks, stratified by target varying / held, seed {seed}), "
            "percentile interval")
@@ -60,7 +63,7 @@ class LagEstimate:
     ----------
     lag_s : delay [s]; positive = actual behind target (NaN when it failed)
     ci95_s : (lo, hi) 95 % bootstrap interval [s], or None (fewer than two blocks over which the target varies)
-    peak_correlation : Pearson correlation at the peak [-]
+    peak_correlation : pooled within-block correlation at the peak [-]
     method : how it was computed (estimator, interval method, seed)
     dt_s : grid step [s]
     n_samples : valid (target, actual) pairs at zero lag
@@ -174,13 +177,24 @@ def _block_sums(x: np.ndarray, y: np.ndarray, n_lag: int, block_n: int) -> np.nd
     return np.array(out) if out else np.empty((0, 6, 2 * n_lag + 1))
 
 
-def _pearson(s: np.ndarray, min_pairs: int = 3) -> np.ndarray:
-    n, sx, sy, sxx, syy, sxy = s
+def _pearson(per_block: np.ndarray, min_pairs: int = 3) -> np.ndarray:
+    """Pooled within-block correlation r(tau) from per-block sums.
+
+    Each block's covariance and variances are taken about that block's own
+    means (as Welch's cross-spectrum detrends each segment) and then summed:
+    r = sum_b C_xy,b / sqrt(sum_b C_xx,b sum_b C_yy,b). Levels that differ
+    from block to block (holds at different Q_ref) carry no timing and do
+    not enter; for a single block this is the plain Pearson correlation.
+    """
+    n, sx, sy, sxx, syy, sxy = np.moveaxis(per_block, 1, 0)
+    inv = np.where(n > 0, 1.0 / np.where(n > 0, n, 1.0), 0.0)
+    cxy = np.sum(sxy - sx * sy * inv, axis=0)
+    cxx = np.sum(np.maximum(sxx - sx * sx * inv, 0.0), axis=0)
+    cyy = np.sum(np.maximum(syy - sy * sy * inv, 0.0), axis=0)
+    var = cxx * cyy
     with np.errstate(invalid="ignore", divide="ignore"):
-        cov = n * sxy - sx * sy
-        var = (n * sxx - sx * sx) * (n * syy - sy * sy)
-        r = cov / np.sqrt(np.where(var > 0, var, np.nan))
-    r[n < min_pairs] = np.nan
+        r = cxy / np.sqrt(np.where(var > 0, var, np.nan))
+    r[n.sum(axis=0) < min_pairs] = np.nan
     return r
 
 
@@ -260,7 +274,7 @@ def estimate_lag_segments(segments: Sequence[tuple[Any, Any, Any]], *, max_lag_s
         return LagEstimate(math.nan, None, math.nan, method, dt, 0, 0, lags_n * dt,
                            np.full(lags_n.size, np.nan), False, "no valid samples")
     per_block = np.concatenate(blocks)
-    r = _pearson(per_block.sum(axis=0))
+    r = _pearson(per_block)
     lag, peak, edge = _peak(r, lags_n, dt)
     messages = []
     success = math.isfinite(lag)
@@ -280,7 +294,7 @@ def estimate_lag_segments(segments: Sequence[tuple[Any, Any, Any]], *, max_lag_s
         for j in range(n_boot):
             pick = np.concatenate((rng.choice(varying, varying.size),
                                    rng.choice(held, held.size) if held.size else held))
-            boot[j] = _peak(_pearson(per_block[pick].sum(axis=0)), lags_n, dt)[0]
+            boot[j] = _peak(_pearson(per_block[pick]), lags_n, dt)[0]
         boot = boot[np.isfinite(boot)]
         if boot.size >= 10:
             lo, hi = np.percentile(boot, [2.5, 97.5])
