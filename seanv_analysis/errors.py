@@ -5,7 +5,8 @@ and an exit code (2 for bad input).
 """
 from __future__ import annotations
 
-__all__ = ["SeanvError", "DataError", "ConfigError", "FitError"]
+__all__ = ["SeanvError", "DataError", "ConfigError", "FitError", "OutputError",
+           "os_error_line"]
 
 
 class SeanvError(Exception):
@@ -41,3 +42,17 @@ class ConfigError(SeanvError):
 
 class FitError(SeanvError):
     """A fit cannot be done (too few points, no convergence)."""
+
+
+class OutputError(SeanvError):
+    """An output cannot be written: the output folder is not writable, lies
+    under a file, or the disk is full. The message names the path."""
+
+
+def os_error_line(exc: OSError) -> str:
+    """One line for an operating-system error: the path(s), then why
+    (``Permission denied``, ``No space left on device``...)."""
+    paths = " -> ".join(str(p) for p in (exc.filename, exc.filename2) if p is not None)
+    why = exc.strerror or str(exc) or type(exc).__name__
+    line = f"{paths}: {why}" if paths else why
+    return " ".join(line.split())

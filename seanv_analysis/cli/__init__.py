@@ -13,7 +13,7 @@ import sys
 import click
 
 from .. import __version__
-from ..errors import SeanvError
+from ..errors import SeanvError, os_error_line
 
 __all__ = ["cli", "main"]
 
@@ -25,6 +25,13 @@ class _SeanvGroup(click.Group):
             rv = super().invoke(ctx)
         except SeanvError as exc:
             click.echo(f"error: {exc}", err=True)
+            ctx.exit(2)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            # output side (read-only folder, disk full, --out under a file):
+            # one line naming the path, not a traceback after all the work
+            click.echo(f"error: {os_error_line(exc)}", err=True)
             ctx.exit(2)
         except click.BadParameter as exc:
             if isinstance(exc, click.MissingParameter):

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import click
 
-__all__ = ["default_out_dir", "check_out_dir", "echo_bad_runs", "unusable", "stage_context",
+__all__ = ["default_out_dir", "check_out_dir", "probe_writable", "echo_bad_runs", "unusable", "stage_context",
            "sim_default_dataset", "write_command_manifest", "OUTPUTS_ROOT"]
 
 OUTPUTS_ROOT = Path("outputs")
@@ -22,22 +22,58 @@ def default_out_dir(data: str | Path, command: str) -> Path:
 
 
 def check_out_dir(data: str | Path | None, out: str | Path) -> None:
-    """Refuse an output folder inside (or equal to) the data folder.
+    """Refuse an output folder inside (or equal to) the data folder, or one
+    that cannot be written (:func:`probe_writable`).
 
     Raises
     ------
     DataError
         ``out`` is ``data`` or lies under it (symbolic links resolved).
+    OutputError
+        ``out`` cannot be written.
     """
     from ..errors import DataError
 
-    if data is None or not Path(data).is_dir():
-        return
-    d, o = Path(data).resolve(), Path(out).resolve()
-    if o == d or d in o.parents:
-        raise DataError(f"--out: {out} is inside the data folder; outputs never go into raw "
-                        "data: choose another --out (default: outputs/<dataset>/<command>/ under "
-                        "the current folder)", path=data)
+    if data is not None and Path(data).is_dir():
+        d, o = Path(data).resolve(), Path(out).resolve()
+        if o == d or d in o.parents:
+            raise DataError(f"--out: {out} is inside the data folder; outputs never go into raw "
+                            "data: choose another --out (default: outputs/<dataset>/<command>/ "
+                            "under the current folder)", path=data)
+    probe_writable(out)
+
+
+def probe_writable(out: str | Path) -> None:
+    """Create ``out`` (and its parents) and a probe file in it, then remove
+    the probe: a folder that cannot take the outputs is refused before any
+    work, not after it.
+
+    Raises
+    ------
+    OutputError
+        ``out`` lies under a file, is a file, or cannot be written (read-only,
+        permissions, disk full); one line naming the path.
+    """
+    import os
+    import tempfile
+
+    from ..errors import OutputError, os_error_line
+
+    out = Path(out)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".seanv-probe-", suffix=".tmp", dir=out)
+        try:
+            os.write(fd, b"probe")
+        finally:
+            os.close(fd)
+            os.unlink(probe)
+    except FileExistsError:
+        raise OutputError(f"--out: {out} is a file; expected a folder to write the outputs "
+                          "into") from None
+    except OSError as exc:
+        raise OutputError(f"--out: cannot write the outputs there ({os_error_line(exc)})") \
+            from None
 
 
 #: data sets with at least this many runs are read on all cores by a single

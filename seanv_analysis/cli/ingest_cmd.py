@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from . import cli
-from ._common import default_out_dir, echo_bad_runs
+from ._common import check_out_dir, default_out_dir, echo_bad_runs
 
 __all__ = ["ingest_cmd", "ingest"]
 
@@ -193,6 +193,7 @@ def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, as_json:
 
     rig = load_rig(rig_file)
     out = Path(out_dir) if out_dir else default_out_dir(data, "ingest")
+    check_out_dir(data, out)
     progress = not quiet and not os.environ.get("CI")
     result = ingest(data, out_dir=out, rig=rig, progress=progress)
     if as_json:

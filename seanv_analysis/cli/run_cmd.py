@@ -89,6 +89,7 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
         click.echo("no DATA given: using the built-in simulated paper data sets "
                    f"({', '.join(map(str, datas))})", err=True)
         out = Path(out_dir) if out_dir else Path("outputs") / "demo" / f"run-{pipe.name}"
+        check_out_dir(None, out)
     else:
         datas = [data]
         out = Path(out_dir) if out_dir else default_out_dir(data, f"run-{pipe.name}")

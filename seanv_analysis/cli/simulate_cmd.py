@@ -6,6 +6,7 @@ from pathlib import Path
 import click
 
 from . import cli
+from ._common import probe_writable
 
 __all__ = ["simulate_cmd"]
 
@@ -56,6 +57,7 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
     from ..sim.scenarios import simulate_scenario
 
     rig = load_rig(rig_file)
+    probe_writable(out_dir)
     try:
         parsed = parse_effects(effects)
     except ValueError as exc:  # the CLI's one-line error

@@ -24,6 +24,7 @@ the ``pipelines/`` folder of the source tree and can be given by name.
 from __future__ import annotations
 
 import copy
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +33,7 @@ from typing import Any, Mapping
 from ..errors import ConfigError
 
 __all__ = ["STAGE_NAMES", "stage_options", "Stage", "Pipeline", "load_pipeline",
-           "parse_pipeline", "shipped_pipelines", "pipelines_dir"]
+           "parse_pipeline", "shipped_pipelines", "pipelines_dir", "PIPELINE_NAME"]
 
 
 
@@ -40,6 +41,10 @@ def _stages():
     from . import STAGES
     return STAGES
 
+
+#: What a pipeline name may be (it becomes part of the folder ``run-<name>``):
+#: no separator, no "..", nothing a file system or a terminal would take apart.
+PIPELINE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
 #: Stage names in the order they run (a pipeline lists a subset, in this order).
 STAGE_NAMES = ("ingest", "flowfit", "identify", "tracking", "validate", "discover", "figures", "report")
@@ -113,6 +118,14 @@ def _check_option(where: str, stage: str, key: str, value: Any) -> Any:
             from None
 
 
+def _name_from_file(source: str | Path | None) -> str:
+    """A pipeline's name when its file gives none: the file's stem, with
+    characters a name may not hold replaced by '-'."""
+    stem = re.sub(r"[^A-Za-z0-9._-]", "-", Path(source).stem if source else "")[:64]
+    stem = stem.lstrip("._-")
+    return stem or "pipeline"
+
+
 def parse_pipeline(doc: Mapping[str, Any], *, source: str | Path | None = None) -> Pipeline:
     """Validate a pipeline document (the parsed TOML) and fill in defaults.
 
@@ -145,8 +158,14 @@ def parse_pipeline(doc: Mapping[str, Any], *, source: str | Path | None = None) 
     head = doc.get("pipeline", {})
     if not isinstance(head, Mapping):
         raise ConfigError(f"{where}: [pipeline] must be a table with name and description")
-    name = str(head.get("name") or (Path(source).stem if source else "pipeline"))
-    description = str(head.get("description", ""))
+    name = head.get("name") or _name_from_file(source)
+    if not isinstance(name, str) or not PIPELINE_NAME.fullmatch(name):
+        raise ConfigError(f"{where}: [pipeline] name = {name!r}; expected a name of letters, "
+                          "digits, '.', '_' or '-' (at most 64, starting with a letter or digit): "
+                          "it becomes part of the output folder run-<name>")
+    description = head.get("description", "")
+    if not isinstance(description, str):
+        raise ConfigError(f"{where}: [pipeline] description = {description!r}; expected a string")
     raw = doc.get("stages")
     if not isinstance(raw, list) or not raw:
         raise ConfigError(f"{where}: no [[stages]]; expected at least one of {', '.join(STAGE_NAMES)}")

@@ -8,6 +8,7 @@ excluded and failed runs, and provenance
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 from typing import Any, Mapping
@@ -22,13 +23,16 @@ WRITES = ("report.html", "manifest.json")
 DESCRIPTION = "one self-contained report.html: numbers, figures, failed runs, provenance"
 #: filename: name of the HTML file inside the output folder
 OPTIONS: dict[str, Any] = {"filename": "report.html"}
+#: what ``filename`` may be: a plain file name in the output folder
+REPORT_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,99}\.html")
 
 
 def check_option(key: str, value: Any) -> Any:
     if key == "filename":
-        if (not isinstance(value, str) or not value.endswith(".html")
-                or PurePath(value).name != value or value.startswith(".")):
-            raise ValueError("a file name ending in .html (no folder part)")
+        if not isinstance(value, str) or not REPORT_NAME.fullmatch(value) \
+                or PurePath(value).name != value:
+            raise ValueError("a file name ending in .html (letters, digits, '.', '_', '-'; "
+                             "no folder part)")
     return value
 
 
@@ -50,7 +54,23 @@ def run(ctx: Context, options: Mapping[str, Any]) -> ReportResult:
 
 
 def write(result: ReportResult, folder: Path) -> list[Path]:
-    """``report.html`` in ``folder``."""
+    """``report.html`` in ``folder``.
+
+    Raises
+    ------
+    ConfigError
+        the file name would put the report anywhere but directly in
+        ``folder`` (checked again here, after :func:`check_option`, on the
+        resolved path: a result built by hand passes no option check).
+    """
+    from ..errors import ConfigError
     from ..report import write_report
 
-    return [Path(write_report(result.record, Path(folder) / result.filename))]
+    try:
+        name = check_option("filename", result.filename)
+    except ValueError as exc:
+        raise ConfigError(f"report: filename = {result.filename!r}; expected {exc}") from None
+    target = Path(folder).resolve() / name
+    if target.parent != Path(folder).resolve():
+        raise ConfigError(f"report: {name!r} resolves outside the output folder {folder}")
+    return [Path(write_report(result.record, target))]

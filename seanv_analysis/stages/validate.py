@@ -34,8 +34,9 @@ OPTIONS: dict[str, Any] = {"threshold_pct": 80.0, "controller_model": "rig"}
 
 def check_option(key: str, value: Any) -> Any:
     if key == "threshold_pct":
-        if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
-            raise ValueError("a finite percentage")
+        if (not isinstance(value, (int, float)) or isinstance(value, bool)
+                or not math.isfinite(value) or not 0 <= value <= 100):
+            raise ValueError("a fit percentage between 0 and 100 (the NRMSE fit is at most 100 %)")
         return float(value)
     if key == "controller_model" and value not in ("rig", "plant"):
         raise ValueError("'rig' or 'plant'")
