@@ -7,6 +7,8 @@ have (e.g. the rig's valve model). A bad run is listed and skipped.
 """
 from __future__ import annotations
 
+import json
+import os
 import sys
 import time
 import traceback
@@ -20,6 +22,7 @@ import pandas as pd
 from .. import __version__
 from ..config import RigConfig
 from ..errors import ConfigError, DataError, SeanvError
+from ..io.atomic import atomic_folder, remove_stale_temps, retire_folder
 from ..stages import STAGES, Context, FailedRun, RunOutcome
 from ..stages.pipeline import Pipeline, load_pipeline
 from .cache import CACHE_DIRNAME, RunCache, run_key
@@ -28,7 +31,9 @@ from .tasks import cached_run_task
 
 __all__ = ["PipelineResult", "FailedRun", "run_pipeline", "CachedMapper"]
 
-#: where each stage writes, under the output folder
+#: where each stage writes, under the output folder; a stage with a folder of
+#: its own owns it: the folder is written anew and swapped in whole
+#: (:func:`_write_stage_folder`), "." means files directly in the output folder
 STAGE_FOLDERS = {"ingest": ".", "flowfit": "flowfit", "identify": "identify", "tracking": "tracking",
                  "validate": "validate", "discover": "discover", "figures": "figures", "report": "."}
 
@@ -86,6 +91,7 @@ class PipelineResult:
     warnings: list[str] = field(default_factory=list)
     report_path: Path | None = None
     manifest_path: Path | None = None
+    manifest_created_utc: str | None = field(default=None, repr=False)
 
     @property
     def success(self) -> bool:
@@ -269,8 +275,9 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     result.runs_found = len(ctx.run_dirs)
     ctx.record = result
     cache = RunCache(out / CACHE_DIRNAME)
-    if cache.removed_partial:
-        result.stage_notes["resume"] = (f"removed {cache.removed_partial} partial temp file(s) "
+    removed = cache.removed_partial + remove_stale_temps(out, set(STAGE_FOLDERS.values()))
+    if removed:
+        result.stage_notes["resume"] = (f"removed {removed} partial temp file(s) or folder(s) "
                                         "left by an interrupted run")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -311,22 +318,70 @@ def _run_stage(ctx: Context, name: str, options: Mapping[str, Any], result: Pipe
     except DataError:
         if name == "ingest":
             raise
-        result.stage_errors[name] = _error_line(sys.exc_info()[1])
+        _stage_failed(result, name, sys.exc_info()[1])
         return
+    except OSError:
+        raise  # output side (disk full, a folder gone read-only): ends the run, one line
     except Exception as exc:  # a bug in one stage must not lose the others' results
-        result.stage_errors[name] = _error_line(exc)
+        _stage_failed(result, name, exc)
         return
     if value is None:
         result.stage_notes[name] = "no position-control runs in the data: skipped"
+        _retire_stage_folder(result.out_dir, name)
         return
     ctx.add(name, value)
     _record(result, name, value)
-    folder = result.out_dir / STAGE_FOLDERS[name]
-    for p in mod.write(value, folder):
-        if Path(p) not in result.outputs:
-            result.outputs.append(Path(p))
+    for p in _write_stage(mod, name, value, result.out_dir):
+        if p not in result.outputs:
+            result.outputs.append(p)
     if name == "report":
         result.report_path = result.outputs[-1]
+
+
+def _stage_failed(result: PipelineResult, name: str, exc: BaseException) -> None:
+    """Record a stage that failed on the data; its folder (of an earlier run) goes."""
+    result.stage_errors[name] = _error_line(exc)
+    _retire_stage_folder(result.out_dir, name)
+
+
+def _retire_stage_folder(out: Path, name: str) -> None:
+    """Remove the folder of a stage that gave nothing this time, so no file of
+    an earlier run stands beside this run's results."""
+    if STAGE_FOLDERS[name] != ".":
+        retire_folder(out / STAGE_FOLDERS[name])
+
+
+def _write_stage(mod: Any, name: str, value: Any, out: Path) -> list[Path]:
+    """Write a stage's files; a stage with a folder of its own gets it anew
+    (written beside, then swapped in whole). Returns the final paths."""
+    if STAGE_FOLDERS[name] == ".":
+        return [Path(p) for p in mod.write(value, out)]
+    return _write_stage_folder(mod, value, out / STAGE_FOLDERS[name])
+
+
+def _write_stage_folder(mod: Any, value: Any, folder: Path) -> list[Path]:
+    """``mod.write`` into a temp folder beside ``folder``, then swapped in.
+
+    Files the stage wrote into ``folder`` while it ran (figures drawn as they
+    are made, per-run figures the cache knows by their final path) are moved
+    into the new folder first, so they stay where the cache expects them;
+    every other file of the old folder goes with it.
+    """
+    final: list[Path] = []
+    with atomic_folder(folder) as tmp:
+        for p in map(Path, mod.write(value, tmp)):
+            if p in final or not p.is_file():
+                continue  # listed twice, or nothing there to keep
+            if p.is_relative_to(tmp):
+                final.append(folder / p.relative_to(tmp))
+            elif p.is_relative_to(folder):
+                target = tmp / p.relative_to(folder)
+                target.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(p, target)
+                final.append(p)
+            else:
+                final.append(p)
+    return final
 
 
 def _record(result: PipelineResult, name: str, value: Any) -> None:
@@ -360,10 +415,12 @@ def _record(result: PipelineResult, name: str, value: Any) -> None:
             result.stage_notes[name] = "; ".join(value.problems)
 
 
-def _write_manifest(result: PipelineResult, ctx: Context) -> None:
+def _write_manifest(result: PipelineResult, ctx: Context, *, final: bool = False) -> None:
+    """``manifest.json`` with the outputs so far: once before the report (which
+    quotes it), then again at the end (``final``) listing every output."""
     from ..io.manifest import write_manifest
 
-    if result.manifest_path is not None:
+    if result.manifest_path is not None and not final:
         return
     extra = {"pipeline": result.pipeline.to_dict(),
              "pipeline_file": str(result.pipeline.source) if result.pipeline.source else None,
@@ -371,7 +428,11 @@ def _write_manifest(result: PipelineResult, ctx: Context) -> None:
              "runs_read": result.runs_read, "failed": [f.to_json() for f in result.failed],
              "excluded": result.excluded, "model_source": ctx.model_source}
     result.manifest_path = write_manifest(result.out_dir, config=ctx.rig, inputs=result.input_hashes,
-                                          command=result.command, extra=extra)
+                                          command=result.command, extra=extra,
+                                          outputs=result.outputs,
+                                          created_utc=result.manifest_created_utc)
+    if result.manifest_created_utc is None:
+        result.manifest_created_utc = json.loads(result.manifest_path.read_text())["created_utc"]
     if result.manifest_path not in result.outputs:
         result.outputs.append(result.manifest_path)
 
@@ -379,11 +440,11 @@ def _write_manifest(result: PipelineResult, ctx: Context) -> None:
 def _write_result(result: PipelineResult, ctx: Context, pipe: Pipeline, elapsed_s: float) -> None:
     from ..io.atomic import write_json_atomic
 
-    _write_manifest(result, ctx)
-    result.timings_s["total"] = elapsed_s
     path = result.out_dir / "result.json"
     if path not in result.outputs:
         result.outputs.append(path)
+    _write_manifest(result, ctx, final=True)
+    result.timings_s["total"] = elapsed_s
     write_json_atomic(path, result.to_json())
 
 

@@ -161,9 +161,12 @@ def sim_default_dataset(scenario: str, *, seed: int = 0, effects: tuple[str, ...
     return path
 
 
-def write_command_manifest(out: Path, ctx, *, extra: dict) -> Path:
+def write_command_manifest(out: Path, ctx, *, extra: dict,
+                           outputs: list[Path] | tuple[Path, ...] = ()) -> Path:
     """manifest.json of a command's output folder: version, rig, the SHA-256
-    of every input file read, the command line and the command's options."""
+    of every input file read, the command line, the command's options and
+    ``outputs``, the files it wrote (each with its SHA-256 and size: a file
+    of ``out`` not listed is not from this command)."""
     import sys
 
     from ..io.manifest import write_manifest
@@ -172,4 +175,4 @@ def write_command_manifest(out: Path, ctx, *, extra: dict) -> Path:
     inputs = dict(ds.input_hashes) if ds is not None else [str(d) for d in ctx.data]
     bad = [f.message for f in ds.failed] if ds is not None else []
     return write_manifest(out, config=ctx.rig, inputs=inputs, command=sys.argv,
-                          extra={**extra, "bad_runs": bad})
+                          extra={**extra, "bad_runs": bad}, outputs=outputs)

@@ -74,6 +74,7 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
     out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
     check_out_dir(data, out)
     model = read_model(model_file, rig=rig) if model_file else None
+    written: list[Path] = []
     with stage_context(data, rig=rig, out_dir=out, model=model) as ctx:
         ds = dataset.collect(ctx, {})
         if ds.runs_read == 0:
@@ -84,16 +85,16 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
                 ident = identify.run(ctx, {})
                 if ident is not None:
                     ctx.add("identify", ident)
-                    identify.write(ident, out / "identify")
+                    written += identify.write(ident, out / "identify")
             result = discover.run(ctx, {"holdout": holdout, "seed": seed})
         except (DataError, FitError) as exc:  # nothing usable: say which runs were bad and why
             if not ds.failed:
                 raise
             return unusable(data, ds.failed, exc)
     ctx.add("discover", result)
-    discover.write(result, out)
-    figures.draw_figures(ctx, figures.figures_of("discovery"), out)
-    write_command_manifest(out, ctx, extra={"holdout": holdout, "seed": seed,
+    written += discover.write(result, out)
+    written += figures.draw_figures(ctx, figures.figures_of("discovery"), out).all_paths()
+    write_command_manifest(out, ctx, outputs=written, extra={"holdout": holdout, "seed": seed,
                                             "identify": identify_first,
                                             "model": str(model_file) if model_file else None})
     if as_json:

@@ -111,7 +111,7 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
     ctx.add("flowfit", fit)
     paths = flowfit.write(fit, out)
     drawn = figures.draw_figures(ctx, ["fig4"], out)
-    write_command_manifest(out, ctx, extra={"flowfit": {
+    write_command_manifest(out, ctx, outputs=[*paths, *drawn.all_paths()], extra={"flowfit": {
         "data": str(data), "side": side, "method": method, **options,
         "outputs": [str(p) for p in [*paths, *drawn.all_paths()]]}})
     if as_json:

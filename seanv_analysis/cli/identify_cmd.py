@@ -86,8 +86,8 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
                                 path=data[0])
         except DataError as exc:
             return unusable(data[0], ds.failed, exc)
-        identify.write(result, out)
-    write_command_manifest(out, ctx, extra={"parts": list(parts) or list(_PARTS),
+        written = identify.write(result, out)
+    write_command_manifest(out, ctx, outputs=written, extra={"parts": list(parts) or list(_PARTS),
                                             "n_boot": n_boot})
     if as_json:
         click.echo(json.dumps(result.to_json()))

@@ -122,7 +122,8 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[st
                      excluded={k: v for k, v in ds.excluded.items() if v})
     result["rows"] = dict(writer.rows)
     manifest = write_manifest(out_dir, config=rig, inputs=ds.input_hashes, command=sys.argv,
-                              extra={"ingest": {k: v for k, v in result.items() if k != "manifest"}})
+                              extra={"ingest": {k: v for k, v in result.items() if k != "manifest"}},
+                              outputs=[*tables.values(), summary_path])
     result["manifest"] = str(manifest)
     return result
 

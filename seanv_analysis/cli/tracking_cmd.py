@@ -80,10 +80,11 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
         except DataError as exc:  # nothing usable: say which runs were bad and why
             return unusable(data, ds.failed, exc)
         ctx.add("tracking", result)
-        tracking.write(result, out)
+        written = tracking.write(result, out)
         if not no_figures:  # per-run figures on the command's workers
-            figures.draw_figures(ctx, [6, "fig6_runs", 7], out, per_run_folders=False)
-    write_command_manifest(out, ctx, extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
+            written += figures.draw_figures(ctx, [6, "fig6_runs", 7], out,
+                                            per_run_folders=False).all_paths()
+    write_command_manifest(out, ctx, outputs=written, extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
                                             "model": str(model_file) if model_file else None})
     if as_json:
         click.echo(json.dumps(result.to_json()))

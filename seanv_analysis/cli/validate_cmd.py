@@ -89,10 +89,10 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
         except DataError as exc:  # nothing usable: say which runs were bad and why
             return unusable(data, ds.failed, exc)
     ctx.add("validate", result)
-    validate.write(result, out)
+    written = validate.write(result, out)
     if not no_figures:
-        figures.draw_figures(ctx, figures.figures_of("validation"), out)
-    write_command_manifest(out, ctx, extra={"model": str(model_file) if model_file else None,
+        written += figures.draw_figures(ctx, figures.figures_of("validation"), out).all_paths()
+    write_command_manifest(out, ctx, outputs=written, extra={"model": str(model_file) if model_file else None,
                                             "threshold_pct": threshold_pct,
                                             "controller_model": controller_model})
     if as_json:

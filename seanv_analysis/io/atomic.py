@@ -1,24 +1,68 @@
 """Atomic file writes: write to a temp file in the target folder, then rename.
 
-A reader (or a resumed run) never sees a half-written output.
+A reader (or a resumed run) never sees a half-written output. Files and
+folders written here follow the process umask (like ``open`` and ``mkdir``),
+not the private 0600 / 0700 of :mod:`tempfile`. :func:`atomic_folder` swaps a
+whole folder in; :func:`remove_stale_temps` removes what a killed run left.
 """
 from __future__ import annotations
 
 import json
 import os
+import re
+import secrets
+import shutil
+import stat
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Iterable, Iterator
 
-__all__ = ["atomic_path", "write_text_atomic", "write_json_atomic", "write_bytes_atomic"]
+__all__ = ["atomic_path", "atomic_folder", "write_text_atomic", "write_json_atomic",
+           "write_bytes_atomic", "current_umask", "swap_in", "retire_folder",
+           "remove_stale_temps", "TEMP_FILE", "TEMP_FOLDER"]
+
+#: a temp file of :func:`atomic_path`: ``.<name>.<random>.tmp``
+TEMP_FILE = re.compile(r"\..+\.[a-z0-9_]+\.tmp")
+#: a temp or retired folder of :func:`atomic_folder`: ``.<name>.tmp-<random>`` / ``.<name>.old-<random>``
+TEMP_FOLDER = re.compile(r"\.(?P<name>[^/]+)\.(?:tmp|old)-[A-Za-z0-9_]+")
+
+_UMASK_LOCK = threading.Lock()
+
+
+def current_umask() -> int:
+    """The process umask, read without changing it where the system tells it
+    (Linux ``/proc/self/status``); elsewhere set and restored under a lock,
+    with the strict 077 in the instant between (never a looser mode)."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    with _UMASK_LOCK:
+        old = os.umask(0o077)
+        os.umask(old)
+    return old
+
+
+def _follow_umask(path: Path, *, folder: bool = False) -> None:
+    """Give ``path`` the mode a plain ``open`` / ``mkdir`` would have given it
+    (best effort: a file system without modes keeps its own)."""
+    try:
+        os.chmod(path, (0o777 if folder else 0o666) & ~current_umask())
+    except PermissionError:
+        pass
 
 
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temp path next to ``path``; on success rename it over ``path``.
 
-    On an exception the temp file is removed and ``path`` is untouched.
+    On an exception the temp file is removed and ``path`` is untouched. The
+    file gets the mode the umask gives new files (e.g. 0644 with umask 022).
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -27,10 +71,107 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     tmp_path = Path(tmp)
     try:
         yield tmp_path
+        _follow_umask(tmp_path)
         os.replace(tmp_path, path)
     except BaseException:
         tmp_path.unlink(missing_ok=True)
         raise
+
+
+@contextmanager
+def atomic_folder(path: str | Path) -> Iterator[Path]:
+    """Yield a fresh empty folder beside ``path`` (``.<name>.tmp-<random>``);
+    on success swap it in whole: the old ``path`` is renamed away, the new
+    one renamed in, the old one deleted. Nothing of the old folder remains.
+
+    On an exception the temp folder is removed and ``path`` is untouched.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        _follow_umask(tmp, folder=True)
+        yield tmp
+        swap_in(tmp, path)
+    except BaseException:
+        _remove(tmp)
+        raise
+
+
+def swap_in(new: Path, path: Path) -> None:
+    """Put folder ``new`` at ``path``, replacing whatever is there."""
+    old = _rename_away(path)
+    os.rename(new, path)
+    if old is not None:
+        _remove(old)
+
+
+def retire_folder(path: str | Path) -> None:
+    """Remove ``path`` (a folder, file or link) if it exists: renamed away
+    first (``.<name>.old-<random>``, which :func:`remove_stale_temps` removes
+    should a kill come between), then deleted."""
+    old = _rename_away(Path(path))
+    if old is not None:
+        _remove(old)
+
+
+def _rename_away(path: Path) -> Path | None:
+    """Rename ``path`` to a hidden ``.old-`` name beside it; None if absent."""
+    if not os.path.lexists(path):
+        return None
+    old = path.with_name(f".{path.name}.old-{secrets.token_hex(4)}")
+    os.rename(path, old)
+    return old
+
+
+def _remove(path: Path) -> None:
+    """Delete a file, link or folder tree (links not followed)."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+def remove_stale_temps(out: str | Path, folders: Iterable[str]) -> int:
+    """Remove what a killed run left in ``out``: temp files of
+    :func:`atomic_path` (``.<name>.<random>.tmp``) directly in ``out`` and
+    anywhere under its ``folders``, and temp / retired folders of
+    :func:`atomic_folder` (``.<folder>.tmp-*``, ``.<folder>.old-*``) of those
+    ``folders``. Nothing else is touched; links are not followed.
+    Returns how many entries were removed."""
+    out = Path(out)
+    names = {f for f in folders if f not in (".", "")}
+    if not out.is_dir():
+        return 0
+    n = 0
+    for entry in list(out.iterdir()):
+        m = TEMP_FOLDER.fullmatch(entry.name)
+        if m and m["name"] in names and entry.is_dir() and not entry.is_symlink():
+            _remove(entry)
+            n += 1
+    n += _remove_temp_files(out, recurse=False)
+    for name in sorted(names):
+        sub = out / name
+        if sub.is_dir() and not sub.is_symlink():
+            n += _remove_temp_files(sub, recurse=True)
+    return n
+
+
+def _remove_temp_files(folder: Path, *, recurse: bool) -> int:
+    """Remove the regular files named like :data:`TEMP_FILE` in ``folder``."""
+    n = 0
+    for dirpath, dirnames, filenames in os.walk(folder):
+        if not recurse:
+            dirnames.clear()
+        for f in filenames:
+            p = Path(dirpath) / f
+            try:
+                if TEMP_FILE.fullmatch(f) and stat.S_ISREG(os.lstat(p).st_mode):
+                    p.unlink()
+                    n += 1
+            except FileNotFoundError:
+                continue
+    return n
 
 
 def write_bytes_atomic(path: str | Path, data: bytes) -> Path:

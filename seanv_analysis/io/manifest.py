@@ -2,8 +2,10 @@
 
 Every command writes one manifest per output folder with the package
 version, the git commit of the source (when run from a checkout), the rig
-config, the SHA-256 of every input file and the command line, so a result
-can be traced to exactly what produced it. Input hashes are computed once
+config, the SHA-256 of every input file, the command line and every output
+file it wrote (path under the folder, SHA-256, size), so a result can be
+traced to exactly what produced it and outputs of different runs in one
+folder can be told apart. Input hashes are computed once
 per process (the reader hashes the bytes it reads; see
 :func:`seanv_analysis.io.file_sha256`).
 """
@@ -22,10 +24,13 @@ from .. import __version__
 from .atomic import write_json_atomic
 from .hashing import file_sha256
 
-__all__ = ["write_manifest", "build_manifest", "input_hashes", "git_sha", "MANIFEST_SCHEMA"]
+__all__ = ["write_manifest", "build_manifest", "input_hashes", "output_entries", "git_sha",
+           "MANIFEST_SCHEMA", "NOT_LISTED"]
 
 MANIFEST_SCHEMA = "seanv-manifest/1"
 _PACKAGE_DIR = Path(__file__).resolve().parent
+#: files of an output folder never listed among its outputs (they describe the run)
+NOT_LISTED = ("manifest.json", "result.json")
 
 
 def git_sha(start: str | Path | None = None) -> str | None:
@@ -95,10 +100,38 @@ def input_hashes(inputs: Mapping[str | Path, str] | Iterable[str | Path]) -> dic
     return dict(sorted(out.items()))
 
 
+def output_entries(out_dir: str | Path, outputs: Iterable[str | Path]) -> list[dict[str, Any]]:
+    """[{path, sha256, size}] of the output files, ``path`` relative to
+    ``out_dir``, sorted; each file hashed now (outputs change between runs
+    of one process, so no digest is reused). ``manifest.json`` and
+    ``result.json`` of ``out_dir``, missing files and duplicates are left out."""
+    out = Path(out_dir)
+    skip = {out / name for name in NOT_LISTED}
+    entries: dict[str, dict[str, Any]] = {}
+    for item in outputs:
+        path = Path(item)
+        if path in skip or not path.is_file():
+            continue
+        rel = str(path.relative_to(out)) if path.is_relative_to(out) else str(path)
+        entries[rel] = {"path": rel, **_digest(path)}
+    return [entries[k] for k in sorted(entries)]
+
+
+def _digest(path: Path) -> dict[str, Any]:
+    """SHA-256 and size of a file, read in chunks."""
+    h, size = hashlib.sha256(), 0
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 22):
+            h.update(chunk)
+            size += len(chunk)
+    return {"sha256": h.hexdigest(), "size": size}
+
+
 def build_manifest(*, config: Any, inputs: Mapping[str | Path, str] | Iterable[str | Path],
-                   command: str | Iterable[str], extra: Mapping[str, Any] | None = None
-                   ) -> dict[str, Any]:
-    """The manifest as a dict (see :func:`write_manifest`)."""
+                   command: str | Iterable[str], extra: Mapping[str, Any] | None = None,
+                   outputs: list[dict[str, Any]] | None = None) -> dict[str, Any]:
+    """The manifest as a dict (see :func:`write_manifest`); ``outputs`` as
+    :func:`output_entries` gives them."""
     if hasattr(config, "to_dict"):
         config = config.to_dict()
     hashes = input_hashes(inputs)
@@ -120,6 +153,7 @@ def build_manifest(*, config: Any, inputs: Mapping[str | Path, str] | Iterable[s
         "config": config,
         "inputs": [{"path": p, "sha256": h} for p, h in hashes.items()],
         "inputs_sha256": combined.hexdigest(),
+        "outputs": list(outputs or []),
     }
     if extra:
         doc["extra"] = dict(extra)
@@ -128,7 +162,8 @@ def build_manifest(*, config: Any, inputs: Mapping[str | Path, str] | Iterable[s
 
 def write_manifest(out_dir: str | Path, *, config: Any,
                    inputs: Mapping[str | Path, str] | Iterable[str | Path],
-                   command: str | Iterable[str], extra: Mapping[str, Any] | None = None) -> Path:
+                   command: str | Iterable[str], extra: Mapping[str, Any] | None = None,
+                   outputs: Iterable[str | Path] = (), created_utc: str | None = None) -> Path:
     """Write ``<out_dir>/manifest.json`` atomically and return its path.
 
     Parameters
@@ -139,13 +174,19 @@ def write_manifest(out_dir: str | Path, *, config: Any,
         ready {path: sha256} mapping (e.g. ``DatasetRead.file_sha256()``)
     command : the command line (``sys.argv``) or a string
     extra : anything else worth keeping (options, bad runs, counts)
+    outputs : the files the command wrote (this manifest and ``result.json``
+        are never listed); each is hashed now
+    created_utc : time stamp to keep when the manifest is written again at
+        the end of a run (default: now)
 
     Returns
     -------
     Path of manifest.json. Fields: schema, package, version, git_sha (None
     outside a checkout), created_utc, command, command_line, cwd, python,
     platform, config, inputs [{path, sha256}], inputs_sha256 (one digest over
-    all inputs: a cache key), extra.
+    all inputs: a cache key), outputs [{path (relative to ``out_dir``),
+    sha256, size}], extra. A file of ``out_dir`` not among the outputs was
+    not written by this command.
 
     Examples
     --------
@@ -155,5 +196,8 @@ def write_manifest(out_dir: str | Path, *, config: Any,
     >>> json.loads(p.read_text())["command_line"]
     'seanv-analyze ingest x'
     """
-    doc = build_manifest(config=config, inputs=inputs, command=command, extra=extra)
+    doc = build_manifest(config=config, inputs=inputs, command=command, extra=extra,
+                         outputs=output_entries(out_dir, outputs))
+    if created_utc is not None:
+        doc["created_utc"] = created_utc
     return write_json_atomic(Path(out_dir) / "manifest.json", doc)

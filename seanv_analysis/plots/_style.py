@@ -34,7 +34,11 @@ _RC = {"font.size": 8.5, "axes.titlesize": 9, "axes.labelsize": 8.5, "legend.fon
        "grid.linewidth": 0.5, "lines.linewidth": 1.0, "axes.linewidth": 0.7,
        "xtick.direction": "in", "ytick.direction": "in", "legend.frameon": True,
        "legend.framealpha": 0.85, "legend.edgecolor": "0.8",
-       "svg.fonttype": "none", "savefig.dpi": 150}
+       "svg.fonttype": "none", "savefig.dpi": 150,
+       "svg.hashsalt": "seanv-analysis"}  # fixed ids: the same figure gives the same SVG bytes
+#: file metadata per format: no creation date, so equal figures are equal files
+_METADATA: dict[str, dict[str, Any]] = {"svg": {"Date": None}, "pdf": {"CreationDate": None},
+                                        "ps": {"CreationDate": None}}
 
 
 @contextmanager
@@ -110,6 +114,17 @@ def check_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
     return tuple(f.lower() for f in out)
 
 
+def _fix_svg_ids() -> None:
+    """Fixed SVG ids (``svg.hashsalt``), also for figures saved outside
+    :func:`paper_style`. Set once for the process when nobody chose a salt
+    (ids stay unique within a file; only their randomness across files goes),
+    so threads saving figures never race on a temporary rc setting."""
+    import matplotlib
+
+    if matplotlib.rcParams["svg.hashsalt"] is None:
+        matplotlib.rcParams["svg.hashsalt"] = _RC["svg.hashsalt"]
+
+
 def save_figure(fig, out_dir: str | Path, stem: str, *, formats: str | Sequence[str] = DEFAULT_FORMATS,
                 dpi: float = 150, tight: bool = True) -> list[Path]:
     """Write ``fig`` as ``<out_dir>/<stem>.<format>`` for each of ``formats``, atomically.
@@ -126,7 +141,8 @@ def save_figure(fig, out_dir: str | Path, stem: str, *, formats: str | Sequence[
 
     Returns
     -------
-    the written paths, in the order of ``formats``
+    the written paths, in the order of ``formats``; the same figure gives
+    the same bytes (SVG: fixed ids, no date; PNG holds no date)
     """
     formats = check_formats(formats)
     out = Path(out_dir)
@@ -134,7 +150,10 @@ def save_figure(fig, out_dir: str | Path, stem: str, *, formats: str | Sequence[
     paths = []
     for ext in formats:
         path = out / f"{stem}.{ext}"
+        if ext == "svg":
+            _fix_svg_ids()
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, format=ext, dpi=dpi, bbox_inches="tight" if tight else None)
+            fig.savefig(tmp, format=ext, dpi=dpi, bbox_inches="tight" if tight else None,
+                        metadata=_METADATA.get(ext))
         paths.append(path)
     return paths
