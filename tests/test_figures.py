@@ -252,3 +252,18 @@ def test_fig4_draws_into_a_given_figure(rig):
     assert draw_fig4(_flowfit(rig), fig) is fig
     assert len(fig.axes) == 3  # (a) and (b) per side
     assert fig.axes[0].get_ylabel() == "Flow rate [mm$^3$/s]"
+
+
+def test_per_run_figures_drawn_by_worker_processes(tmp_path, make_dataset):
+    """With worker processes the per-run Fig. 6 task (and its cache check) is
+    sent to them: a lambda there made every Fig. 6 fail ("Can't pickle
+    local object") whenever run used more than one worker."""
+    from seanv_analysis.batch import run_pipeline
+
+    make_dataset(tmp_path / "data", n_flow=2, n_position=2)
+    pipe = {"pipeline": {"name": "f"}, "stages": [{"name": "ingest"}, {"name": "tracking"},
+                                                   {"name": "figures", "figs": [6]}]}
+    res = run_pipeline(pipe, tmp_path / "data", out_dir=tmp_path / "out", workers=2, quiet=True)
+    assert not res.stage_errors, res.stage_errors
+    fig6 = sorted(p.name for p in (tmp_path / "out" / "figures").rglob("fig6_pos*.png"))
+    assert fig6 == ["fig6_pos000.png", "fig6_pos001.png"], res.summary_text()

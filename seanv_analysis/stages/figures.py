@@ -71,6 +71,12 @@ def results_for_figures(ctx: Context) -> dict[str, Any]:
     return {k: v for k, v in out.items() if v is not None}
 
 
+def figure_files_exist(value: Mapping[str, Any]) -> bool:
+    """A cached per-run figure is still valid: every file it wrote exists
+    (module level, so the mapper can send it to worker processes)."""
+    return all(Path(p).is_file() for p in value["paths"])
+
+
 def selected_figures(figs: Any) -> list:
     """The registered figures a ``figs`` option selects, in registry order."""
     from ..plots import FIGURES
@@ -126,7 +132,7 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
                                params={"out_dir": str(out), "formats": list(formats)},
                                kwargs={"name": fig.name, "folder": str(out), "formats": formats,
                                        "rig": ctx.rig},
-                               valid=lambda v: all(Path(p).is_file() for p in v["paths"]))
+                               valid=figure_files_exist)
             got: list[Path] = []
             for d in runs:
                 r = res[str(d)]
