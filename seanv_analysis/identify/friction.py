@@ -69,10 +69,11 @@ def fit_friction(v_mm_s, f_net_n) -> dict[str, Any]:
             "rmse_n": float(np.sqrt(np.mean((A @ sol.x - f) ** 2)))}
 
 
-def breakaway_events(run, rig) -> list[float]:
+def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S) -> list[float]:
     """|p_head A - p_load A_load| [N] at each start from a hold (the position
     held within 2 encoder steps for >= 0.15 s, then leaving by > 3 steps),
-    the median over the 10 ms before the start."""
+    the median over the ``window_s`` before the start (0: the samples at the
+    last held instant)."""
     from ..errors import DataError
     from ..signals.align import align_run
 
@@ -105,7 +106,7 @@ def breakaway_events(run, rig) -> list[float]:
             while k < n and abs(x[k] - ref) <= 3 * res and t[k] - t[j] < 0.05:
                 k += 1
             if k < n and abs(x[k] - ref) > 3 * res:
-                w = (t >= t[j] - _FORCE_WINDOW_S) & (t <= t[j])
+                w = (t >= t[j] - window_s - 1e-9) & (t <= t[j])
                 fw = f[w]
                 fw = fw[np.isfinite(fw)]
                 if fw.size:
@@ -115,17 +116,32 @@ def breakaway_events(run, rig) -> list[float]:
 
 
 def _breakaway(runs, rig, coulomb: float) -> dict[str, Any] | None:
-    forces = []
+    """Breakaway force from the starts after a hold: the force is still
+    rising when the start is detected, so the breakaway lies between its
+    median over the 10 ms before the start and its value at the last held
+    instant. The estimate is the median of the two's midpoint per event; the
+    95 % interval spans both estimators' bootstrap intervals (the method's
+    systematic part: on 8 foreign-rig seeds one of the two alone missed
+    the truth in 1 and 2 seeds, their span in none)."""
+    win, end = [], []
     for r in runs:
-        forces += breakaway_events(r, rig)
-    forces = np.asarray([v for v in forces if v >= 0.5 * coulomb])
-    if forces.size < 3:
+        a, b = breakaway_events(r, rig), breakaway_events(r, rig, window_s=0.0)
+        if len(a) == len(b):
+            win += a
+            end += b
+    win, end = np.asarray(win), np.asarray(end)
+    keep = (win >= 0.5 * coulomb) & (end >= 0.5 * coulomb)
+    win, end = win[keep], end[keep]
+    if win.size < 3:
         return None
+    mid = 0.5 * (win + end)
     rng = np.random.default_rng(0)
-    boot = [float(np.median(rng.choice(forces, forces.size))) for _ in range(400)]
-    return {"static_n": float(np.median(forces)), "ci95": (float(np.percentile(boot, 2.5)),
-                                                          float(np.percentile(boot, 97.5))),
-            "n_events": int(forces.size)}
+    picks = rng.integers(0, win.size, (400, win.size))
+    lo, hi = math.inf, -math.inf
+    for f in (win, end):
+        boot = np.median(f[picks], axis=1)
+        lo, hi = min(lo, float(np.percentile(boot, 2.5))), max(hi, float(np.percentile(boot, 97.5)))
+    return {"static_n": float(np.median(mid)), "ci95": (lo, hi), "n_events": int(win.size)}
 
 
 def _force_rmse(v, f, coulomb, viscous) -> float:
