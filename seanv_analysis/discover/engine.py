@@ -23,6 +23,8 @@ Procedure:
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 from scipy import stats
@@ -349,14 +351,28 @@ def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected
     Standardised residuals of the current fit are permuted among runs and
     added back to its prediction (data that obey the current model with the
     same noise); base and candidate are refitted on each replicate.
+
+    A candidate that is a function of run order (drift, threshold shift) is
+    tested by permuting the run order instead, only among runs of the same
+    side and load (:func:`permutation_strata`), the data left as measured:
+    when a protocol steps the load up with time, anything the model misses
+    that depends on the load (or on the flow at that load) is also a trend
+    in run order, and scattered residuals would pass it off as wear. The
+    question asked is whether the order *within* a load explains the data.
     """
+    by_order = "run_index" in spec.effect.STATIC.needs
+    strata = permutation_strata(data) if by_order else []
     q_hat = predict_static(current.model, data, current.effects)
     z = (data.q_mm3_s - q_hat) / sigma
     exceed = 0
     for _ in range(n_perm):
-        q_star = q_hat + sigma * rng.permutation(z)
-        d_star = FlowData(data.side, data.theta_deg, data.p_supply_mpag, data.p_head_mpag,
-                          data.p_tank_mpag, data.run_index, data.approach, q_star)
+        if by_order:
+            order = data.run_index.copy()
+            for idx in strata:
+                order[idx] = data.run_index[rng.permutation(idx)]
+            d_star = replace(data, run_index=order)
+        else:
+            d_star = replace(data, q_mm3_s=q_hat + sigma * rng.permutation(z))
         cur = fit_static(current.model, d_star, sigma, effects=selected, geometry=current.geometry)
         # grid-searched parameters (drift's period and phase) are searched
         # again on each replicate, as they were on the data
@@ -364,3 +380,25 @@ def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected
         f, _ = _f_test(cur.rss_weighted, cur.n_params, new.rss_weighted, new.n_params, len(data))
         exceed += f >= f_obs
     return (1 + exceed) / (1 + n_perm)
+
+
+def permutation_strata(data: FlowData, *, tol_mpa: float = 0.02) -> list[np.ndarray]:
+    """Run indices grouped by side and load level (loads within ``tol_mpa``
+    of the level's first are one level; runs without a logged load are one
+    level of their side).
+
+    Not finer (e.g. the repeats of one cam angle): where a protocol repeats
+    an angle right away, its repeats span a few runs only and a run-order
+    effect could not show among them."""
+    load = np.asarray(data.load_mpag, float)
+    load = np.where(np.isfinite(load), load, -1.0)
+    groups: list[np.ndarray] = []
+    for side in np.unique(data.side):
+        rows = np.flatnonzero(data.side == side)
+        ordered = rows[np.argsort(load[rows], kind="stable")]
+        start = 0
+        for k in range(1, ordered.size + 1):
+            if k == ordered.size or load[ordered[k]] - load[ordered[start]] > tol_mpa:
+                groups.append(ordered[start:k])
+                start = k
+    return groups

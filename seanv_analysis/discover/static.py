@@ -37,6 +37,13 @@ class FlowData:
     run_index: np.ndarray
     approach: np.ndarray
     q_mm3_s: np.ndarray
+    #: the pneumatic load of each run [MPaG] (NaN: not logged); it names the
+    #: operating condition a run-order effect may be confounded with
+    load_mpag: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.load_mpag is None:
+            object.__setattr__(self, "load_mpag", np.full(self.q_mm3_s.shape, np.nan))
 
     def __len__(self) -> int:
         return int(self.q_mm3_s.size)
@@ -63,9 +70,11 @@ class FlowData:
         theta = np.where(np.isfinite(theta), theta, summary["cam_deg"].to_numpy(float))
         approach = (summary["cam_approach"].to_numpy(float) if "cam_approach" in summary
                     else np.zeros(len(summary)))
+        load = (summary["load_mpag"].to_numpy(float) if "load_mpag" in summary
+                else np.full(len(summary), np.nan))
         return cls(side, theta, p_supply, p_head, p_tank,
                    summary["run_index"].to_numpy(float), np.nan_to_num(approach),
-                   summary["q_mm3_s"].to_numpy(float))
+                   summary["q_mm3_s"].to_numpy(float), load)
 
 
 @dataclass(frozen=True)
