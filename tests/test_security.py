@@ -5,6 +5,9 @@ outside the output folder changes (the raw data above all).
 """
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import pytest
 from click.testing import CliRunner
 from conftest import snapshot
@@ -102,3 +105,59 @@ def test_a_plain_report_name_is_accepted(workspace):
                           '[[stages]]\nname = "report"\nfilename = "my_report-2.html"\n')
     assert res.exit_code == 0, res.output
     assert (workspace / "out" / "o" / "my_report-2.html").is_file()
+
+
+# symbolic links (point 10) ------------------------------------------------------
+
+SECRET = "TOPSECRET-first-line,never-echoed"
+
+
+@pytest.fixture
+def linked(tmp_path, make_dataset):
+    """A data set with: a table linked to a file outside it (a secret first
+    line), a run folder linked from outside, a run folder linked from inside."""
+    data = make_dataset(tmp_path / "data", n_flow=3)
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    (outside / "secret.csv").write_text(SECRET + "\n1,2\n")
+    enc = data / "z002-drain" / "encoder.csv"
+    enc.unlink()
+    enc.symlink_to(outside / "secret.csv")
+    make_dataset(outside / "ext", n_flow=1)
+    (data / "zz-linked-out").symlink_to(outside / "ext" / "z001-supply")
+    (data / "zz-linked-in").symlink_to(data / "z003-supply")
+    return data
+
+
+def test_links_out_of_the_data_set_are_refused_and_named(linked, tmp_path):
+    res = CliRunner().invoke(cli, ["ingest", str(linked), "--out", str(tmp_path / "out"), "--json"])
+    assert res.exit_code == 1, res.output        # some runs bad, the others ingested
+    assert SECRET.split(",")[0] not in res.output
+    doc = json.loads(res.stdout)
+    bad = {Path(b["path"]).name: b["message"] for b in doc["bad_runs"]}
+    assert "symbolic link to a file outside the data set" in bad["z002-drain"]
+    assert "encoder.csv" in bad["z002-drain"]
+    for name in ("zz-linked-out", "zz-linked-in"):    # never skipped without a word
+        assert "symbolic link to a folder" in bad[name]
+    assert doc["runs"] == 2
+    for f in (tmp_path / "out").rglob("*"):
+        if f.is_file():
+            assert SECRET.split(",")[0].encode() not in f.read_bytes(), f
+
+
+def test_data_given_as_a_link_is_followed(tmp_path, make_dataset):
+    data = make_dataset(tmp_path / "data", n_flow=2)
+    (tmp_path / "link").symlink_to(data)
+    res = CliRunner().invoke(cli, ["ingest", str(tmp_path / "link"), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output
+    assert "ingested 2 run(s)" in res.output
+
+
+def test_a_link_inside_the_data_set_is_followed(tmp_path, make_dataset):
+    data = make_dataset(tmp_path / "data", n_flow=2)
+    (data / "shared").mkdir()
+    table = data / "z002-supply" / "servo.csv"
+    table.rename(data / "shared" / "servo.csv")
+    table.symlink_to(data / "shared" / "servo.csv")     # inside the data set: read
+    res = CliRunner().invoke(cli, ["ingest", str(data), "--out", str(tmp_path / "o")])
+    assert res.exit_code == 0, res.output

@@ -75,7 +75,10 @@ def is_run_dir(path: str | Path) -> bool:
 def find_runs(dataset: str | Path) -> list[Path]:
     """Every folder at any depth under ``dataset`` (itself included) that holds
     ``run.json``, sorted by path. Hidden folders (name starting with '.') are
-    skipped.
+    skipped. A folder below ``dataset`` that is a symbolic link is not walked;
+    one holding run.json is listed, and reading it refuses it
+    (:func:`~seanv_analysis.io.validate.check_link`), so it shows as a bad
+    run. ``dataset`` itself may be a link.
 
     Raises
     ------
@@ -88,11 +91,18 @@ def find_runs(dataset: str | Path) -> list[Path]:
     if not root.is_dir():
         raise DataError("is a file; expected a data set folder (sub-folders holding run.json) "
                         "or a run folder", path=root)
+    if root.is_symlink():  # DATA given as a link: the user chose it, follow it
+        root = root.resolve()
     found = []
     for dirpath, dirnames, filenames in os.walk(root):
         dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
         if "run.json" in filenames or "run.json" in dirnames:  # a folder: reading says so
             found.append(Path(dirpath))
+        # a linked folder holding run.json is listed (not walked): reading it
+        # says it is a link (never skipped without a word)
+        found += [Path(dirpath) / d for d in dirnames
+                  if os.path.islink(os.path.join(dirpath, d))
+                  and os.path.lexists(os.path.join(dirpath, d, "run.json"))]
     return sorted(found)
 
 

@@ -23,7 +23,16 @@ from .contract import PRESSURE_UNIT, ColumnSpec, TableSpec, contract_columns, ta
 from .formats import TableFormat, either, table_formats
 from .hashing import remember_sha256
 from .scan import memory_pool, scan_file
-from .validate import check_finite, check_increasing, check_pressure, format_value, max_pressure_mpag
+from .validate import (
+    check_finite,
+    check_increasing,
+    check_link,
+    check_pressure,
+    check_time_plausible,
+    format_value,
+    max_pressure_mpag,
+    time_limits_s,
+)
 
 __all__ = ["locate_table", "read_table"]
 
@@ -49,6 +58,7 @@ def locate_table(run_dir: Path, spec: TableSpec, kind: str) -> tuple[Path, Table
         raise DataError(f"{what}; expected exactly one (which one to use is not guessed: "
                         f"remove the other{'s' if len(found) > 2 else ''})", path=found[0])
     if found:
+        check_link(run_dir, found[0])
         return found[0], by_path[found[0]]
     for p in candidates:  # there, but not a regular file: never opened (a FIFO would block)
         if os.path.lexists(p):
@@ -126,6 +136,7 @@ def read_table(path: Path, fmt: TableFormat, spec: TableSpec, rig: RigConfig,
             values = calibrate(raw, values, rig)
         if col.name == "t_s":
             check_increasing(values, path=path, column=source)
+            check_time_plausible(values, path=path, column=source, limits_s=time_limits_s(rig))
         if col.unit == PRESSURE_UNIT:
             check_pressure(values, limit_mpag=limit, path=path, column=col.name, source=raw)
         out[col.name] = values

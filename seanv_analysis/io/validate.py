@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from datetime import datetime, timezone
 from pathlib import Path
@@ -24,10 +25,11 @@ from .contract import contract
 from .run import RunMeta
 
 __all__ = ["parse_run_json", "read_run_json", "check_finite", "check_increasing",
+           "check_time_plausible", "time_limits_s", "check_link",
            "check_pressure", "check_rig_overrides", "format_value", "one_line",
            "max_pressure_mpag"]
 
-_SAFE_ID = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9._+=@-]*$")
+_SAFE_ID = re.compile(r"[A-Za-z0-9_][A-Za-z0-9._+=@-]*")
 
 
 def format_value(value: Any, *, limit: int = 60) -> str:
@@ -80,6 +82,85 @@ def max_pressure_mpag(rig: RigConfig) -> float:
         return _DEFAULT_MAX_PRESSURE_MPAG
 
 
+#: (max run span, min and max median sample interval) [s] when the rig file
+#: has none (data_schema/rig/default.toml [analysis])
+_DEFAULT_TIME_LIMITS_S = (3600.0, 1e-6, 0.5)
+
+
+def time_limits_s(rig: RigConfig) -> tuple[float, float, float]:
+    """The rig's ``analysis.max_run_duration_s``, ``min_sample_interval_s``
+    and ``max_sample_interval_s`` [s] (see :func:`check_time_plausible`)."""
+    keys = ("max_run_duration_s", "min_sample_interval_s", "max_sample_interval_s")
+    out = []
+    for key, default in zip(keys, _DEFAULT_TIME_LIMITS_S):
+        try:
+            out.append(float(rig.analysis.get(key, default)))
+        except (KeyError, TypeError, ValueError, AttributeError):
+            out.append(default)
+    return out[0], out[1], out[2]
+
+
+def check_time_plausible(t: np.ndarray, *, path: str | Path, column: str,
+                         limits_s: tuple[float, float, float] = _DEFAULT_TIME_LIMITS_S) -> None:
+    """A table's (increasing) timestamps span at most ``limits_s[0]`` and
+    step by a median within ``limits_s[1]..limits_s[2]`` [s]: a t_s jump
+    (one row's 1e9) or times logged in ms are refused here, before an
+    alignment grid over the span is allocated. The row named is the jump's,
+    or row 2 for the sample interval."""
+    if t.size < 2:
+        return
+    max_span, lo, hi = limits_s
+    span = float(t[-1] - t[0])
+    steps = np.diff(t)
+    step = float(np.median(steps))
+    ms = "; the times look like milliseconds: expected seconds"
+    if not lo <= step <= hi:
+        hint = ms if lo <= step / 1000.0 <= hi else ""
+        raise DataError(f"median sample interval {step:g} s is outside the plausible "
+                        f"{lo:g}..{hi:g} s (rig analysis.min/max_sample_interval_s){hint}",
+                        path=path, column=column, row=2)
+    if span > max_span:
+        i = int(np.argmax(steps))
+        if steps[i] >= 0.5 * span:   # one jump makes the span
+            raise DataError(f"timestamp {float(t[i + 1])!r} is {float(steps[i]):g} s after the "
+                            f"previous row's {float(t[i])!r}: the table would span {span:g} s, "
+                            f"above the plausible {max_span:g} s (rig analysis.max_run_duration_s)",
+                            path=path, column=column, row=i + 2)
+        hint = ms if span / 1000.0 <= max_span else ""
+        raise DataError(f"the table spans {span:g} s, above the plausible {max_span:g} s (rig "
+                        f"analysis.max_run_duration_s){hint}", path=path, column=column,
+                        row=int(t.size))
+
+
+# links --------------------------------------------------------------------
+
+def check_link(run_dir: str | Path, path: str | Path) -> None:
+    """Refuse a run folder that is a symbolic link, and a file of the run
+    (run.json, a table) that is a symbolic link resolving outside the folder
+    holding the run (its data set): such links are never followed, so no
+    byte of what they point to is read or echoed. Links inside the data set
+    are followed.
+
+    Raises
+    ------
+    DataError
+        naming the link (not its target).
+    """
+    run_dir, path = Path(run_dir), Path(path)
+    if run_dir.is_symlink():
+        raise DataError("is a symbolic link to a folder; run folders inside a data set are not "
+                        "followed through links: copy or move the run into the data set, or "
+                        "give the folder itself as DATA", path=run_dir)
+    if not path.is_symlink():
+        return
+    base = Path(os.path.realpath(run_dir)).parent
+    target = Path(os.path.realpath(path))   # never raises (a looping link is said later)
+    if base != target and base not in target.parents:
+        raise DataError("is a symbolic link to a file outside the data set; links out of the "
+                        "data set are not followed (copy the file into the run folder)",
+                        path=path)
+
+
 # run.json -----------------------------------------------------------------
 
 def read_run_json(run_dir: str | Path, *, max_pressure_mpag: float = math.inf) -> RunMeta:
@@ -93,6 +174,7 @@ def read_run_json(run_dir: str | Path, *, max_pressure_mpag: float = math.inf) -
     """
     run_dir = Path(run_dir)
     path = run_dir / "run.json"
+    check_link(run_dir, path)
     try:
         raw = path.read_bytes()
     except FileNotFoundError:
@@ -159,7 +241,7 @@ def parse_run_json(obj: Any, *, path: str | Path, max_pressure_mpag: float = mat
                        f"'{terms['schema']}' (data contract version 1)")
 
     run_id = obj["run_id"]
-    if not isinstance(run_id, str) or not _SAFE_ID.match(run_id) or len(run_id) > 200:
+    if not isinstance(run_id, str) or not _SAFE_ID.fullmatch(run_id) or len(run_id) > 200:
         fail("run_id", f"{format_value(run_id)} is not a safe file name; expected letters, "
                        "digits and . _ - + = @ (not starting with '.' or '-', no '/')")
 
@@ -284,7 +366,7 @@ _POSITIVE_RIG_KEY = re.compile(
     r"((?<!^rod_)diameter_mm|^length_m|^stroke_mm|radius_mm|rate_hz|^cam_slope_deg"
     r"|^spring_constant_n_per_mm|bulk_modulus_mpa|^time_step_s|^density_kg_per_m3"
     r"|viscosity_pa_s|^moving_mass_kg|^stribeck_velocity_mm_s|time_constant_s|resolution_deg"
-    r"|resolution_mm|^kpa_per_mpa|^derivative_window_s)$")
+    r"|resolution_mm|^kpa_per_mpa|^derivative_window_s|^max_run_duration_s|_sample_interval_s)$")
 _NONZERO_RIG_KEY = re.compile(r"^c_flow$")
 
 
