@@ -295,13 +295,13 @@ def test_resume_after_partial_cache(dataset, tmp_path, counted):
     out = tmp_path / "o"
     clean = run_pipeline(INGEST_ONLY, dataset, out_dir=out, workers=1, quiet=True)
     cache = out / ".cache"
-    entries = sorted((cache / "runs").glob("*.pkl"))
+    entries = sorted((cache / "runs").glob("*.json"))
     assert len(entries) == 14
     (cache / "index.json").unlink()                       # index not saved yet
     for e in entries[:5]:
         e.unlink()                                        # never written
     entries[5].write_bytes(entries[5].read_bytes()[:10])  # torn (not via atomic write)
-    (cache / "runs" / ".deadbeef.pkl.abc.tmp").write_bytes(b"partial")
+    (cache / "runs" / ".deadbeef.json.abc.tmp").write_bytes(b"partial")
     (out / ".summary.parquet.xyz.tmp").write_bytes(b"partial")
     n0 = len(counted)
     res = run_pipeline(INGEST_ONLY, dataset, out_dir=out, workers=1, quiet=True)
@@ -332,12 +332,12 @@ def test_resume_after_sigkill(dataset, tmp_path, counted):
     entries = out / ".cache" / "runs"
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
-        if entries.is_dir() and len(list(entries.glob("*.pkl"))) >= 4:
+        if entries.is_dir() and len(list(entries.glob("*.json"))) >= 4:
             break
         time.sleep(0.05)
     proc.send_signal(signal.SIGKILL)
     proc.wait()
-    done = len(list(entries.glob("*.pkl")))
+    done = len(list(entries.glob("*.json")))
     assert 4 <= done < 14, "the run finished before it could be killed"
     assert not (out / "summary.parquet").exists()
     res = run_pipeline(INGEST_ONLY, dataset, out_dir=out, workers=1, quiet=True)
@@ -380,27 +380,3 @@ def test_demo_data_is_remade_when_the_simulator_changes(tmp_path, monkeypatch):
     assert len(made) == 2 * n                              # re-simulated
 
 
-def test_cache_entry_not_signed_by_this_user_is_never_loaded(tmp_path):
-    """A pickle planted in the output folder's cache runs no code: it is a miss."""
-    import pickle
-
-    from seanv_analysis.batch.cache import read_entry, write_entry
-
-    entries = tmp_path / "runs"
-    entries.mkdir()
-    marker = tmp_path / "pwned"
-
-    class Planted:
-        def __reduce__(self):
-            return (marker.write_text, ("ran",))
-
-    (entries / "k1.pkl").write_bytes(b"\0" * 32 + pickle.dumps(Planted()))
-    (entries / "k2.pkl").write_bytes(pickle.dumps(Planted()))
-    assert read_entry(entries, "k1") is None and read_entry(entries, "k2") is None
-    assert not marker.exists()
-    assert not (entries / "k1.pkl").exists()  # removed, recomputed next time
-    write_entry(entries, "k3", {"row": [1.5, "x"]})
-    assert read_entry(entries, "k3") == {"row": [1.5, "x"]}
-    data = (entries / "k3.pkl").read_bytes()
-    (entries / "k3.pkl").write_bytes(data[:-1] + bytes([data[-1] ^ 1]))  # one bit changed
-    assert read_entry(entries, "k3") is None

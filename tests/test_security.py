@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from click.testing import CliRunner
 from conftest import snapshot
@@ -161,3 +162,90 @@ def test_a_link_inside_the_data_set_is_followed(tmp_path, make_dataset):
     table.symlink_to(data / "shared" / "servo.csv")     # inside the data set: read
     res = CliRunner().invoke(cli, ["ingest", str(data), "--out", str(tmp_path / "o")])
     assert res.exit_code == 0, res.output
+
+
+# the run cache (points 2 and 5) --------------------------------------------------
+
+def _cache_run(data, out, workers=1):
+    from seanv_analysis.batch import run_pipeline
+
+    pipe = {"pipeline": {"name": "i"}, "stages": [{"name": "ingest"}, {"name": "flowfit"}]}
+    return run_pipeline(pipe, data, out_dir=out, workers=workers, quiet=True)
+
+
+def test_a_pickle_planted_in_the_cache_never_runs(tmp_path, make_dataset):
+    """Whatever sits in <out>/.cache, under any name the cache reads, no code
+    runs and the numbers are those of a clean run."""
+    import pickle
+
+    data = make_dataset(tmp_path / "data", n_flow=6)
+    clean = _cache_run(data, tmp_path / "clean")
+    out = tmp_path / "out"
+    first = _cache_run(data, out)
+    marker = tmp_path / "pwned"
+
+    class Planted:
+        def __reduce__(self):
+            return (marker.write_text, ("ran",))
+
+    bomb = pickle.dumps(Planted())
+    entries = out / ".cache" / "runs"
+    names = [p.name for p in entries.iterdir()]
+    assert names and all(n.endswith(".json") for n in names)
+    for name in names:                    # every entry the next run would read
+        (entries / name).write_bytes(bomb)
+        (entries / (name[:-5] + ".pkl")).write_bytes(b"\0" * 32 + bomb)
+    (out / ".cache" / "index.json").write_bytes(bomb)
+    again = _cache_run(data, out)
+    assert not marker.exists()
+    assert again.computed["ingest"] == 6          # every planted entry was a miss
+    for res in (first, again):
+        assert res.flowfit.sides["supply"].c_flow == clean.flowfit.sides["supply"].c_flow
+    assert not list(entries.glob("*.pkl"))
+
+
+def test_a_tampered_entry_is_a_miss(tmp_path):
+    from seanv_analysis.batch.cache import read_entry, write_entry
+
+    entries = tmp_path / "runs"
+    entries.mkdir()
+    value = {"row": [1.5, "x", float("nan")], "a": np.arange(3.0)}
+    assert write_entry(entries, "k", value)
+    got = read_entry(entries, "k")
+    assert got["row"][:2] == [1.5, "x"] and np.isnan(got["row"][2])
+    assert np.array_equal(got["a"], np.arange(3.0))
+    path = entries / "k.json"
+    head, payload = path.read_bytes().split(b"\n", 1)
+    path.write_bytes(head + b"\n" + payload.replace(b"1.5", b"2.5"))    # hash left as it was
+    assert read_entry(entries, "k") is None and not path.exists()
+
+
+def test_a_same_size_edit_with_the_mtime_put_back_is_seen(tmp_path, make_dataset):
+    """The cache trusted size + mtime: an edit of the same size with the
+    mtime restored reused the old result, and the manifest recorded the old
+    SHA-256."""
+    import os
+
+    data = make_dataset(tmp_path / "data", n_flow=6)
+    out = tmp_path / "out"
+    first = _cache_run(data, out)
+    enc = data / "z004-supply" / "encoder.csv"
+    st = os.stat(enc)
+    text = enc.read_text()
+    lines = text.splitlines()
+    # the last sample's position, digits swapped: same size, another value
+    t, x = lines[-1].split(",")
+    x2 = x[::-1] if x[::-1] != x else x[:-1] + ("1" if x[-1] != "1" else "2")
+    assert len(x2) == len(x)
+    lines[-1] = f"{t},{x2}"
+    new = "\n".join(lines) + ("\n" if text.endswith("\n") else "")
+    assert len(new) == len(text)
+    enc.write_text(new)
+    os.utime(enc, ns=(st.st_atime_ns, st.st_mtime_ns))
+    again = _cache_run(data, out)
+    assert again.computed["ingest"] == 1 and again.cached["ingest"] == 5
+    man = json.loads((out / "manifest.json").read_text())
+    import hashlib
+    digest = hashlib.sha256(enc.read_bytes()).hexdigest()
+    assert digest in json.dumps(man["inputs"] if "inputs" in man else man)
+    assert first.input_hashes != again.input_hashes

@@ -8,21 +8,25 @@ option, a rig constant, a line of code) and the key
 changes, so stale results are never reused; a removed parameter changes the
 key too, because the whole option dict is hashed.
 
-Input files are hashed once: the reader hashes the bytes it parses, the
-worker returns the digests, and ``index.json`` remembers them together with
-each file's size and modification time. A later run re-uses a digest while
-the file's size and mtime (and the folder's file list) are unchanged, so a
-re-run with nothing changed reads no log at all.
+Input files are hashed as the reader parses them; the worker returns the
+digests and ``index.json`` remembers them with each file's size and
+modification time. The key of a later run is always made from the files'
+content: size and mtime only say which files the run read, and each file is
+hashed again once per process (a same-size edit with its mtime restored
+changes the key). A re-run with nothing changed hashes its inputs (about
+1 GB/s) but parses no log.
 
 Every write is atomic (temp file + rename) and the index is saved every few
 seconds while a stage runs, so killing a run (SIGINT, SIGKILL) leaves either
 whole entries or none; temp files left by a killed run are removed when the
 cache is opened again, and an unreadable entry counts as missing.
 
-Entries are pickles signed with a per-user key (HMAC-SHA256; the key lives
-in ``$SEANV_CACHE_KEY_DIR`` or ``~/.cache/seanv-analysis/cache-key``, mode
-0600): only an entry this user's processes wrote is ever unpickled. A file
-another user (or anything else) put into ``<out>/.cache`` is a miss.
+Entries are plain data (:mod:`.codec`: JSON with arrays as raw bytes),
+never pickle, headed by the SHA-256 of their payload, checked on read: a
+file anyone put into ``<out>/.cache`` can at worst be a miss (or, written
+consistently, wrong numbers for whoever can write the output folder anyway),
+never code run by the next user. Entries of older versions (``*.pkl``) are
+removed unread.
 """
 from __future__ import annotations
 
@@ -31,7 +35,6 @@ import hashlib
 import hmac
 import json
 import os
-import pickle
 import threading
 import time
 from pathlib import Path
@@ -39,6 +42,8 @@ from typing import Any, Mapping
 
 from .. import __version__
 from ..io.atomic import atomic_path, write_json_atomic
+from ..io.hashing import file_sha256
+from .codec import CodecError, decode, encode
 
 __all__ = ["RunCache", "run_key", "code_version", "folder_listing", "CACHE_DIRNAME"]
 
@@ -144,6 +149,11 @@ class RunCache:
     def clean_partial(self) -> int:
         """Remove temp files a killed run left behind; return how many."""
         n = 0
+        for old in self.entries.glob("*.pkl"):   # an older version's pickles: never read
+            try:
+                old.unlink()
+            except OSError:
+                pass
         for folder in (self.root, self.entries):
             for tmp in folder.glob(".*.tmp"):
                 try:
@@ -175,18 +185,21 @@ class RunCache:
 
     # input hashes --------------------------------------------------------
     def known_hashes(self, run_dir: str | Path) -> dict[str, str] | None:
-        """The recorded input hashes of a run folder, when none of its files
-        changed (same file list, sizes and modification times); else None."""
+        """The content hashes of the files a run folder was read from last
+        time, hashed now (once per process, :func:`~seanv_analysis.io.hashing.
+        file_sha256`), when its file list is unchanged; else None. The
+        recorded size and mtime are never trusted for the content: a same-
+        size edit with the mtime put back gives another hash, so another key."""
         rec = self._index.get(str(Path(run_dir).resolve()))
         if not rec:
             return None
         listing = folder_listing(run_dir)
         if sorted(listing) != rec.get("listing"):
             return None
-        for name, (size, mtime_ns, _sha) in rec["files"].items():
-            if tuple(listing.get(name, ())) != (size, mtime_ns):
-                return None
-        return {name: v[2] for name, v in rec["files"].items()}
+        try:
+            return {name: file_sha256(Path(run_dir) / name) for name in rec["files"]}
+        except OSError:
+            return None
 
     def remember(self, run_dir: str | Path, hashes: Mapping[str, str],
                  stats: Mapping[str, tuple[int, int]]) -> None:
@@ -209,71 +222,27 @@ class RunCache:
         write_entry(self.entries, key, value)
 
 
-#: per-user secret that signs cache entries (HMAC-SHA256): an entry is only
-#: unpickled when this user's process wrote it, so a file someone else put in
-#: a shared output folder is a cache miss, never code run by the next user
-_KEY_NAME = "cache-key"
-_MAC_SIZE = 32
-
-
-def _key_dir() -> Path:
-    base = os.environ.get("SEANV_CACHE_KEY_DIR") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
-        "seanv-analysis")
-    return Path(base)
-
-
-@functools.lru_cache(maxsize=1)
-def _signing_key() -> bytes:
-    """This user's signing key (32 random bytes, created once, readable by the
-    user only)."""
-    folder = _key_dir()
-    path = folder / _KEY_NAME
-    folder.mkdir(parents=True, exist_ok=True)
-    try:  # O_EXCL: of processes starting together, the first one writes the key
-        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    except FileExistsError:
-        return _read_key(path)
-    key = os.urandom(_MAC_SIZE)
-    with os.fdopen(fd, "wb") as fh:
-        fh.write(key)
-    return key
-
-
-def _read_key(path: Path, *, wait_s: float = 2.0) -> bytes:
-    """The key in ``path``, waiting while another process is still writing it
-    (a short or empty key is never used)."""
-    deadline = time.monotonic() + wait_s
-    while True:
-        key = path.read_bytes()
-        if len(key) == _MAC_SIZE:
-            return key
-        if time.monotonic() > deadline:
-            raise OSError(f"{path}: cache signing key is {len(key)} bytes, expected {_MAC_SIZE}; "
-                          "delete it to make a new one")
-        time.sleep(0.01)
-
-
-def _mac(payload: bytes) -> bytes:
-    return hmac.new(_signing_key(), payload, hashlib.sha256).digest()
+_ENTRY_SCHEMA = b"seanv-cache-entry/2"
 
 
 def read_entry(entries: str | Path, key: str) -> Any | None:
-    """Load one entry; None when missing, damaged or not signed with this
-    user's key (such a file is removed and the result recomputed)."""
-    path = Path(entries) / f"{key}.pkl"
+    """Load one entry; None when missing, damaged (its SHA-256 does not match
+    its payload) or not a plain-data entry (:mod:`.codec`): such a file is
+    removed and the result recomputed. Nothing in the file can run code."""
+    path = Path(entries) / f"{key}.json"
     try:
         data = path.read_bytes()
-    except FileNotFoundError:
-        return None
     except OSError:
         return None
-    mac, payload = data[:_MAC_SIZE], data[_MAC_SIZE:]
-    if len(data) > _MAC_SIZE and hmac.compare_digest(mac, _mac(payload)):
-        try:
-            return pickle.loads(payload)  # signed by this user: written by this package
-        except Exception:  # noqa: BLE001 - a stale class layout: treat as missing
-            pass
+    head, _, payload = data.partition(b"\n")
+    try:
+        schema, digest = head.split(b" ")
+        if schema != _ENTRY_SCHEMA or not hmac.compare_digest(
+                digest, hashlib.sha256(payload).hexdigest().encode()):
+            raise CodecError("damaged entry")
+        return decode(json.loads(payload))
+    except (ValueError, RecursionError):   # CodecError, JSON, a bad split: a miss
+        pass
     try:
         path.unlink()
     except OSError:
@@ -281,11 +250,17 @@ def read_entry(entries: str | Path, key: str) -> Any | None:
     return None
 
 
-def write_entry(entries: str | Path, key: str, value: Any) -> None:
-    """Store one entry atomically (temp file in the same folder + rename),
-    signed with this user's key."""
-    path = Path(entries) / f"{key}.pkl"
-    payload = pickle.dumps(value, protocol=pickle.HIGHEST_PROTOCOL)
+def write_entry(entries: str | Path, key: str, value: Any) -> bool:
+    """Store one entry atomically (temp file in the same folder + rename) as
+    plain data with the SHA-256 of its payload; False (nothing stored) when
+    the value holds something :mod:`.codec` does not store."""
+    try:
+        payload = json.dumps(encode(value), separators=(",", ":")).encode()
+    except CodecError:
+        return False
+    path = Path(entries) / f"{key}.json"
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as fh:
-            fh.write(_mac(payload) + payload)
+            fh.write(_ENTRY_SCHEMA + b" " + hashlib.sha256(payload).hexdigest().encode() + b"\n")
+            fh.write(payload)
+    return True

@@ -3,7 +3,7 @@
 The reader hashes each file from the bytes it has already read (no second
 pass over the disk) and remembers the digest here; the manifest writer asks
 :func:`file_sha256`, which only reads and hashes a file it has not seen (or
-that changed size or modification time since).
+that changed size, modification or change time, or inode since).
 """
 from __future__ import annotations
 
@@ -14,14 +14,17 @@ from pathlib import Path
 
 __all__ = ["file_sha256", "remember_sha256", "sha256_bytes"]
 
-_CACHE: dict[tuple[str, int, int], str] = {}
+_CACHE: dict[tuple[str, int, int, int, int], str] = {}
 _LOCK = threading.Lock()
 _CHUNK = 1 << 22
 
 
-def _key(path: Path) -> tuple[str, int, int]:
+def _key(path: Path) -> tuple[str, int, int, int, int]:
+    """(path, size, mtime, ctime, inode): a same-size edit whose mtime was
+    put back still changes the ctime (which no user can set), a file
+    replaced by another the inode."""
     st = os.stat(path)
-    return (str(Path(path).resolve()), st.st_size, st.st_mtime_ns)
+    return (str(Path(path).resolve()), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
 
 
 def sha256_bytes(data: bytes | memoryview) -> str:
@@ -41,7 +44,8 @@ def remember_sha256(path: str | Path, digest: str) -> None:
 
 def file_sha256(path: str | Path) -> str:
     """Hex SHA-256 of a file's content; reuses a digest already computed in
-    this process while the file's size and modification time are unchanged."""
+    this process while the file's size, modification and change times and
+    inode are unchanged."""
     path = Path(path)
     key = _key(path)
     with _LOCK:

@@ -1,0 +1,205 @@
+"""Plain-data encoding of cached per-run results (no pickle, no code).
+
+A per-run result is a tree of dicts, lists, tuples, numbers, strings,
+numpy arrays, pandas DataFrames/Series/Timestamps, paths and the few
+dataclasses named in :data:`DATACLASSES`. :func:`encode` turns it into
+JSON-ready data (arrays as their raw bytes in base64, bit-exact);
+:func:`decode` builds it again. Decoding only ever creates those types: a
+tag it does not know, a dataclass not on the list, an object dtype, is a
+:class:`CodecError` (the cache then recomputes), so whatever a file holds,
+reading it runs no code.
+"""
+from __future__ import annotations
+
+import base64
+import dataclasses
+import math
+from pathlib import Path, PurePath
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+__all__ = ["encode", "decode", "CodecError", "DATACLASSES"]
+
+
+class CodecError(ValueError):
+    """A value that cannot be stored as plain data, or a file that is not
+    what :func:`encode` writes."""
+
+
+def _dataclasses() -> dict[str, type]:
+    from ..analysis.validate import RunValidation
+
+    return {"RunValidation": RunValidation}
+
+
+#: the dataclasses a cached result may hold, by name (explicit allow-list)
+DATACLASSES = ("RunValidation",)
+
+_NUMERIC_KINDS = "biufcmM"   # bool, int, uint, float, complex, timedelta, datetime
+
+
+def encode(value: Any) -> Any:
+    """JSON-ready form of ``value`` (see the module docstring)."""
+    if value is None or isinstance(value, (bool, str)):
+        return value
+    if isinstance(value, int) and not isinstance(value, np.integer):
+        return value
+    if isinstance(value, float):
+        return value if math.isfinite(value) else {"t": "float", "v": repr(value)}
+    if isinstance(value, np.generic):
+        return encode(value.item())
+    if isinstance(value, dict):
+        if all(isinstance(k, str) for k in value):
+            return {"t": "dict", "v": {k: encode(v) for k, v in value.items()}}
+        return {"t": "kvdict", "v": [[encode(k), encode(v)] for k, v in value.items()]}
+    if isinstance(value, (list, tuple)):
+        return {"t": "list" if isinstance(value, list) else "tuple", "v": [encode(v) for v in value]}
+    if isinstance(value, np.ndarray):
+        return _encode_array(value)
+    if isinstance(value, pd.DataFrame):
+        return {"t": "frame", "columns": [encode(c) for c in value.columns],
+                "data": [_encode_column(value.iloc[:, i]) for i in range(value.shape[1])],
+                "index": _encode_index(value.index)}
+    if isinstance(value, pd.Series):
+        return {"t": "series", "name": encode(value.name), "data": _encode_column(value),
+                "index": _encode_index(value.index)}
+    if isinstance(value, pd.Timestamp):
+        return {"t": "timestamp", "v": value.isoformat()}
+    if isinstance(value, PurePath):
+        return {"t": "path", "v": str(value)}
+    if dataclasses.is_dataclass(value) and type(value).__name__ in DATACLASSES:
+        return {"t": "dataclass", "name": type(value).__name__,
+                "v": {f.name: encode(getattr(value, f.name)) for f in dataclasses.fields(value)}}
+    raise CodecError(f"cannot store a {type(value).__name__} as plain data")
+
+
+def _encode_array(a: np.ndarray) -> dict[str, Any]:
+    if a.dtype.kind not in _NUMERIC_KINDS:
+        if a.dtype.kind in "OUS":
+            return {"t": "objarray", "v": [encode(v) for v in a.ravel().tolist()],
+                    "shape": list(a.shape)}
+        raise CodecError(f"cannot store an array of dtype {a.dtype}")
+    a = np.ascontiguousarray(a)
+    return {"t": "ndarray", "dtype": a.dtype.str, "shape": list(a.shape),
+            "b64": base64.b64encode(a.tobytes()).decode("ascii")}
+
+
+def _encode_column(s: pd.Series) -> dict[str, Any]:
+    if isinstance(s.dtype, np.dtype) and s.dtype.kind in _NUMERIC_KINDS:
+        return _encode_array(s.to_numpy())
+    return {"t": "values", "dtype": str(s.dtype), "v": [encode(v) for v in s.tolist()]}
+
+
+def _encode_index(index: pd.Index) -> dict[str, Any]:
+    if isinstance(index, pd.RangeIndex):
+        return {"t": "range", "v": [index.start, index.stop, index.step]}
+    return {"t": "index", "v": _encode_column(pd.Series(index))}
+
+
+def decode(doc: Any) -> Any:
+    """The value :func:`encode` stored; :class:`CodecError` for anything else."""
+    if doc is None or isinstance(doc, (bool, str, int, float)):
+        return doc
+    if not isinstance(doc, dict) or "t" not in doc:
+        raise CodecError("not an encoded value")
+    tag = doc["t"]
+    if tag == "float":
+        return float(doc["v"])
+    if tag == "dict":
+        return {k: decode(v) for k, v in _mapping(doc["v"]).items()}
+    if tag == "kvdict":
+        return {_hashable(decode(k)): decode(v) for k, v in doc["v"]}
+    if tag in ("list", "tuple"):
+        items = [decode(v) for v in _sequence(doc["v"])]
+        return items if tag == "list" else tuple(items)
+    if tag == "ndarray":
+        return _decode_array(doc)
+    if tag == "objarray":
+        return np.array([decode(v) for v in doc["v"]], dtype=object).reshape(doc["shape"])
+    if tag == "frame":
+        cols = [_hashable(decode(c)) for c in _sequence(doc["columns"])]
+        data = [_decode_column(d) for d in _sequence(doc["data"])]
+        if len(cols) != len(data):
+            raise CodecError("frame: columns and data differ in length")
+        index = _decode_index(doc["index"])
+        frame = pd.DataFrame({i: d for i, d in enumerate(data)}, index=index)
+        frame.columns = pd.Index(cols)
+        return frame
+    if tag == "series":
+        return pd.Series(_decode_column(doc["data"]), index=_decode_index(doc["index"]),
+                         name=_hashable(decode(doc["name"])))
+    if tag == "timestamp":
+        return pd.Timestamp(str(doc["v"]))
+    if tag == "path":
+        return Path(str(doc["v"]))
+    if tag == "dataclass":
+        cls = _dataclasses().get(doc.get("name")) if doc.get("name") in DATACLASSES else None
+        if cls is None:
+            raise CodecError(f"dataclass {doc.get('name')!r} is not on the allow-list")
+        fields = {f.name for f in dataclasses.fields(cls)}
+        values = {k: decode(v) for k, v in _mapping(doc["v"]).items()}
+        if set(values) != fields:
+            raise CodecError(f"{cls.__name__}: fields {sorted(values)} != {sorted(fields)}")
+        return cls(**values)
+    raise CodecError(f"unknown tag {tag!r}")
+
+
+def _decode_array(doc: dict) -> np.ndarray:
+    dtype = np.dtype(str(doc["dtype"]))
+    if dtype.kind not in _NUMERIC_KINDS or dtype.hasobject:
+        raise CodecError(f"array dtype {dtype} is not plain numbers")
+    raw = base64.b64decode(str(doc["b64"]), validate=True)
+    shape = [int(n) for n in _sequence(doc["shape"])]
+    if dtype.itemsize * math.prod(shape) != len(raw):
+        raise CodecError("array: size does not match its shape")
+    return np.frombuffer(raw, dtype=dtype).reshape(shape).copy()
+
+
+def _decode_column(doc: dict):
+    if not isinstance(doc, dict):
+        raise CodecError("column: not an encoded column")
+    if doc.get("t") == "ndarray":
+        return _decode_array(doc)
+    if doc.get("t") == "values":
+        values = [decode(v) for v in _sequence(doc["v"])]
+        dtype = str(doc.get("dtype", "object"))
+        try:
+            return pd.array(values, dtype=dtype if dtype in ("string", "str", "object",
+                                                             "boolean", "Int64", "Float64")
+                            else "object")
+        except (TypeError, ValueError):
+            return pd.array(values, dtype="object")
+    raise CodecError("column: unknown encoding")
+
+
+def _decode_index(doc: dict) -> pd.Index:
+    if not isinstance(doc, dict):
+        raise CodecError("index: not an encoded index")
+    if doc.get("t") == "range":
+        start, stop, step = (int(v) for v in _sequence(doc["v"]))
+        return pd.RangeIndex(start, stop, step)
+    if doc.get("t") == "index":
+        return pd.Index(_decode_column(doc["v"]))
+    raise CodecError("index: unknown encoding")
+
+
+def _mapping(v) -> dict:
+    if not isinstance(v, dict):
+        raise CodecError("expected a mapping")
+    return v
+
+
+def _sequence(v) -> list:
+    if not isinstance(v, list):
+        raise CodecError("expected a list")
+    return v
+
+
+def _hashable(v):
+    try:
+        hash(v)
+    except TypeError:
+        raise CodecError("a dict key or column name that is not hashable") from None
+    return v
