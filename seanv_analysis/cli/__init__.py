@@ -4,7 +4,8 @@ Each subcommand lives in its own module (``*_cmd.py``) and only parses
 options, calls library functions and formats their results. Library errors
 (:class:`~seanv_analysis.errors.SeanvError`) become one line on stderr and
 exit code 2, with no traceback. A command may return an int exit code
-(e.g. 1 when a batch had bad runs).
+(e.g. 1 when a batch had bad runs). Ctrl-C exits 130 and SIGTERM 143 (queued
+per-run work cancelled, worker processes killed; what was done is cached).
 """
 from __future__ import annotations
 
@@ -17,12 +18,32 @@ from ..errors import SeanvError, os_error_line
 
 __all__ = ["cli", "main"]
 
+class Terminated(BaseException):
+    """Raised in the main thread by the SIGTERM handler :func:`main` installs,
+    so the command unwinds (queued work cancelled, workers killed) and exits
+    143; a BaseException like KeyboardInterrupt, so no "except Exception" of a
+    stage takes it for a failure of the stage."""
+
+
+def _on_sigterm(signum, frame):  # pragma: no cover - exercised through a subprocess
+    raise Terminated()
+
+
 class _SeanvGroup(click.Group):
-    """Group that turns SeanvError into 'error: ...' + exit 2 and int returns into exit codes."""
+    """Group that turns SeanvError into 'error: ...' + exit 2, Ctrl-C into
+    exit 130, SIGTERM into exit 143, and int returns into exit codes."""
 
     def invoke(self, ctx: click.Context):
         try:
             rv = super().invoke(ctx)
+        except KeyboardInterrupt:
+            click.echo("interrupted (Ctrl-C): queued work cancelled; a re-run resumes from "
+                       "the cache", err=True)
+            ctx.exit(130)
+        except Terminated:
+            click.echo("terminated (SIGTERM): queued work cancelled; a re-run resumes from "
+                       "the cache", err=True)
+            ctx.exit(143)
         except SeanvError as exc:
             click.echo(f"error: {exc}", err=True)
             ctx.exit(2)
@@ -84,10 +105,13 @@ from . import (  # noqa: E402,F401
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry point."""
+    """Console-script entry point (SIGTERM unwinds like Ctrl-C: exit 143)."""
+    import signal
+
     from ..batch.process_setup import return_large_blocks_to_os
 
     return_large_blocks_to_os()
+    signal.signal(signal.SIGTERM, _on_sigterm)
     cli.main(args=argv, prog_name="seanv-analyze")
 
 

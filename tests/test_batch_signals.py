@@ -1,0 +1,109 @@
+"""Killing `seanv-analyze run` (issue 16, point 3): no worker outlives it,
+SIGINT/SIGTERM cancel queued work at once (exit 130/143), a resumed run
+gives the numbers of an uninterrupted one."""
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+from pandas.testing import assert_frame_equal
+
+pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+
+EXE = Path(sys.executable).with_name("seanv-analyze")
+N_RUNS = 40
+
+
+@pytest.fixture(scope="module")
+def big(tmp_path_factory):
+    from conftest import write_synthetic_dataset
+
+    return write_synthetic_dataset(tmp_path_factory.mktemp("sig") / "data", n_flow=N_RUNS,
+                                   duration_s=3.0)
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    for d in os.listdir("/proc"):
+        if d.isdigit():
+            try:
+                stat = Path(f"/proc/{d}/stat").read_text()
+            except OSError:
+                continue
+            if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+                out.append(int(d))
+    return out
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+def _start_and_wait_for_workers(data: Path, out: Path):
+    """Start `run` with 2 workers; return (process, worker pids) once both
+    workers run and a few results are cached (mid-run)."""
+    cmd = [str(EXE), "run", "flowfit", str(data), "--out", str(out), "--workers", "2", "-q"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
+    entries = out / ".cache" / "runs"
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        kids = _children(proc.pid)
+        if len(kids) >= 2 and entries.is_dir() and len(list(entries.glob("*.json"))) >= 3:
+            return proc, kids
+        if proc.poll() is not None:
+            break
+        time.sleep(0.02)
+    proc.kill()
+    pytest.fail("the run did not reach its workers in time: " + (proc.stderr.read() or ""))
+
+
+@pytest.mark.parametrize("sig,code", [(signal.SIGKILL, -9), (signal.SIGTERM, 143),
+                                      (signal.SIGINT, 130)])
+def test_no_worker_outlives_the_command(big, tmp_path, sig, code):
+    out = tmp_path / "out"
+    proc, kids = _start_and_wait_for_workers(big, out)
+    t0 = time.monotonic()
+    proc.send_signal(sig)
+    rc = proc.wait(timeout=20)
+    took = time.monotonic() - t0
+    err = proc.stderr.read()
+    assert rc == code, err
+    assert "Traceback" not in err
+    if sig != signal.SIGKILL:
+        assert took < 5, f"{took:.1f} s: queued runs were waited for"
+        assert len(err.strip().splitlines()) == 1, err
+    deadline = time.monotonic() + 5
+    while time.monotonic() < deadline and any(_alive(k) for k in kids):
+        time.sleep(0.05)
+    assert not [k for k in kids if _alive(k)], "a worker outlived its parent by 5 s"
+    done = len(list((out / ".cache" / "runs").glob("*.json")))
+    assert done < N_RUNS, "the run finished before it was killed"
+
+
+def test_resumed_run_gives_the_uninterrupted_numbers(big, tmp_path):
+    out = tmp_path / "out"
+    proc, _ = _start_and_wait_for_workers(big, out)
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=20)
+    leftover = tmp_path / "leftover"
+    shutil.copytree(out, leftover)          # what the killed run left
+    for folder in (out, tmp_path / "clean"):
+        res = subprocess.run([str(EXE), "run", "flowfit", str(big), "--out", str(folder),
+                              "--workers", "2", "-q"], capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, res.stderr
+    a = pd.read_parquet(out / "summary.parquet").drop(columns=["path"], errors="ignore")
+    b = pd.read_parquet(tmp_path / "clean" / "summary.parquet").drop(columns=["path"],
+                                                                       errors="ignore")
+    assert_frame_equal(a, b)
+    assert (out / "flowfit" / "flowfit.json").read_text() == \
+        (tmp_path / "clean" / "flowfit" / "flowfit.json").read_text()
