@@ -107,3 +107,57 @@ def test_resumed_run_gives_the_uninterrupted_numbers(big, tmp_path):
     assert_frame_equal(a, b)
     assert (out / "flowfit" / "flowfit.json").read_text() == \
         (tmp_path / "clean" / "flowfit" / "flowfit.json").read_text()
+
+
+_HOLD_GIL = """
+import os, re
+from seanv_analysis.batch.executor import make_executor
+
+def hold_gil(_):
+    print(os.getpid(), flush=True)
+    re.match(r"(a+)+$", "a" * 60 + "b")   # exponential, in C, never lets the GIL go
+
+with make_executor(workers=2) as ex:
+    ex.map(hold_gil, [0], quiet=True)
+"""
+
+
+def test_a_worker_holding_the_gil_dies_with_its_parent():
+    """The watchdog thread cannot run while a C call holds the GIL: the
+    kernel (PR_SET_PDEATHSIG) ends such a worker when its parent is killed."""
+    proc = subprocess.Popen([sys.executable, "-c", _HOLD_GIL], stdout=subprocess.PIPE, text=True)
+    busy = int(proc.stdout.readline())
+    kids = set(_children(proc.pid)) | {busy}
+    try:
+        time.sleep(0.7)                       # the watchdog has had its turn
+        proc.kill()
+        proc.wait(timeout=10)
+        deadline = time.monotonic() + 5
+        while time.monotonic() < deadline and any(_alive(k) for k in kids):
+            time.sleep(0.05)
+        assert not [k for k in kids if _alive(k)], "a busy worker outlived its parent by 5 s"
+    finally:
+        for k in kids:
+            if _alive(k):
+                os.kill(k, signal.SIGKILL)
+
+
+def test_dask_queued_work_is_cancelled_on_interrupt():
+    """Best effort on a cluster: Ctrl-C during a Dask map cancels its queued tasks."""
+    distributed = pytest.importorskip("dask.distributed")
+    from seanv_analysis.batch.executor import make_executor
+
+    def interrupt(res):
+        raise KeyboardInterrupt
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster, \
+            distributed.Client(cluster) as client:
+        with pytest.raises(KeyboardInterrupt):
+            make_executor(client=client).map(time.sleep, [0.01] + [0.5] * 20, quiet=True,
+                                             on_result=interrupt)
+        deadline = time.monotonic() + 2
+        while time.monotonic() < deadline and client.run_on_scheduler(
+                lambda dask_scheduler: len(dask_scheduler.tasks)):
+            time.sleep(0.05)
+        assert client.run_on_scheduler(lambda dask_scheduler: len(dask_scheduler.tasks)) == 0

@@ -2,16 +2,20 @@
 
 :func:`return_large_blocks_to_os` is called by the CLI entry point and by
 the batch worker processes; a notebook user may call it too.
+:func:`die_with_parent` is called by each local batch worker.
 """
 from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
+import signal
 import sys
 
-__all__ = ["return_large_blocks_to_os"]
+__all__ = ["return_large_blocks_to_os", "die_with_parent"]
 
 _M_MMAP_THRESHOLD = -3   # glibc <malloc.h>
+_PR_SET_PDEATHSIG = 1    # <linux/prctl.h>
 _DONE = False
 
 
@@ -44,3 +48,32 @@ def return_large_blocks_to_os(threshold_bytes: int = 4 << 20) -> bool:
     mallopt.restype = ctypes.c_int
     _DONE = bool(mallopt(_M_MMAP_THRESHOLD, int(threshold_bytes)))
     return _DONE
+
+
+def die_with_parent(parent_pid: int, sig: int = signal.SIGKILL) -> bool:
+    """Ask the Linux kernel to send ``sig`` to this process when its parent
+    dies (``prctl(PR_SET_PDEATHSIG)``), whatever this process is doing (a
+    watchdog thread needs the GIL; a C call holding it delays the thread,
+    not the kernel). Exits at once when ``parent_pid`` is already gone.
+
+    The kernel sends the signal when the *thread* that forked this process
+    ends, so call it only in a process forked by a thread that outlives it
+    (the batch pool is started by the thread that uses it: the main thread).
+
+    Returns True when the setting was applied (Linux only; elsewhere a
+    no-op returning False).
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        prctl = libc.prctl
+    except (OSError, AttributeError):
+        return False
+    prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong,
+                      ctypes.c_ulong]
+    prctl.restype = ctypes.c_int
+    ok = prctl(_PR_SET_PDEATHSIG, int(sig), 0, 0, 0) == 0
+    if os.getppid() != parent_pid:   # the parent died before the call: no signal comes
+        os._exit(1)
+    return ok
