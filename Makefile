@@ -1,13 +1,14 @@
 # seanv-analysis: two commands set everything up on a fresh machine.
 #   make demo   create .venv, install, run the paper pipeline on simulated data
 #   make test   create .venv, install, run the test suite
+#   make test-fast  the edit loop: every test not marked slow (< 60 s)
 #   make bench  run the benchmarks (ratios written to benchmarks/results/)
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench venv clean
+.PHONY: demo test test-fast bench venv clean
 
 venv: $(STAMP)
 
@@ -20,8 +21,14 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(PY) -m seanv_analysis.demo
 
+# two pytest-xdist workers (the 2-core machine): 5 min -> about 3.3 min
+TEST_WORKERS ?= 2
+
 test: $(STAMP)
-	MPLBACKEND=Agg $(PY) -m pytest -q
+	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS)
+
+test-fast: $(STAMP)
+	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS) -m "not slow"
 
 bench: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks

@@ -239,3 +239,40 @@ def golden_run(golden_data, tmp_path_factory):
     run_pipeline("paper", [golden_data / "flow", golden_data / "position"], out_dir=out,
                  workers=1, quiet=True, command=["golden"])
     return json.loads((out / "result.json").read_text()), out
+
+
+# ---------------------------------------------------------------------------
+# `make test-fast` (pytest -m "not slow"): the tests below take 2 s or more
+# each on the 2-core machine (whole modules of end-to-end simulations, and
+# single tests elsewhere; measured with --durations=0). `make test` runs all.
+# ---------------------------------------------------------------------------
+SLOW_MODULES = {"test_batch.py", "test_batch_signals.py", "test_discover_sim.py",
+                "test_discover_twin.py", "test_foreign_rig.py", "test_golden.py",
+                "test_identify.py"}
+SLOW_TESTS = (
+    "test_cli_run.py::test_run_json_and_cache", "test_cli_run.py::test_run_end_to_end_subprocess",
+    "test_cli_run.py::test_run_shipped_pipeline_by_name", "test_cli_run.py::test_plots_command",
+    "test_discover_engine.py::test_load_dependence_is_not_passed_off_as_wear",
+    "test_discover_engine.py::test_names_injected_effect_and_cuts_heldout_error",
+    "test_discover_engine.py::test_drift_still_named_when_loads_step_with_time",
+    "test_discover_engine.py::test_heldout_runs_are_never_fitted",
+    "test_io_plausibility.py::test_limits_come_from_the_rig_file",
+    "test_cli_tracking.py::test_tracking_on_simulated_paper_position",
+    "test_outputs.py::test_command_manifest_lists_outputs_with_hashes",
+    "test_outputs.py::test_second_dataset_leaves_no_file_of_the_first",
+    "test_outputs.py::test_figures_are_byte_identical_across_runs",
+    "test_flowfit.py::test_paper_flowsteps_simulated_recovers_truth",
+    "test_flowfit.py::test_recovers_truth_with_interval",
+    "test_tracking.py::test_write_and_figures",
+    "test_report.py::", "test_cli_flowfit.py::test_subprocess_end_to_end",
+    "test_cli_flowfit.py::test_no_data_uses_builtin",
+    "test_cli_flowfit.py::test_bad_run_exit_1_results_still_written",
+    "test_sim.py::test_seed_reproduces_dataset_bit_for_bit",
+)
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        rel = item.nodeid.split("tests/", 1)[-1]
+        if rel.split("::", 1)[0] in SLOW_MODULES or rel.startswith(SLOW_TESTS):
+            item.add_marker(pytest.mark.slow)

@@ -191,13 +191,26 @@ def friction_constants(summary, rig, runs=()) -> tuple[list[Constant], dict[str,
     else:
         why_b = "" if ok_b else "the speeds do not spread enough"
     ratio = d_s / d_c if d_c > 0 else 1.0
+    lo_b, hi_b = fr["viscous_ci95"]
+    split = (f"not separable from the line's resistance (the head pressure is logged at the "
+             f"valve): the force balance gives their sum b + R A^2 = {viscous + line_r:.3g} "
+             f"[{lo_b + line_r:.3g}, {hi_b + line_r:.3g}] N s/mm; the line's part is fixed at "
+             f"the rig file's tube ({line_r:.3g} N s/mm), the rest is called viscous")
     consts = [
         Constant(keys[0][0], keys[0][1], coulomb if ok_c else d_c, d_c, "N", ok_c, by,
                  fr["coulomb_ci95"] if ok_c else (math.nan, math.nan),
                  note="" if ok_c else f"fitted {coulomb:.3g} N is not a friction force"),
         Constant(keys[1][0], keys[1][1], viscous if ok_b else d_b, d_b, "N s/mm", ok_b, by,
-                 fr["viscous_ci95"] if ok_b else (math.nan, math.nan), note=why_b),
+                 fr["viscous_ci95"] if ok_b else (math.nan, math.nan),
+                 note=split if ok_b else why_b,
+                 confounded_with=("tube.length_m", "tube.inner_diameter_mm") if ok_b else ()),
     ]
+    if ok_b:
+        # the number the data do fix: the slope of the force balance
+        consts.append(Constant(None, "friction + line slope b + R A^2", viscous + line_r,
+                               d_b + line_r, "N s/mm", True, by,
+                               (lo_b + line_r, hi_b + line_r),
+                               note="what steady motion measures; identifiable as a sum only"))
     brk = _breakaway(runs, rig, coulomb if ok_c else d_c)
     if brk is not None and brk["static_n"] >= (coulomb if ok_c else 0.0):
         consts.append(Constant(keys[2][0], keys[2][1], brk["static_n"], d_s, "N", True,

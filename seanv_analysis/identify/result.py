@@ -39,6 +39,8 @@ class Constant:
     identified : False when the data cannot tell it (value = default)
     constrained_by : what in the data fixes it (one phrase)
     note : why not identified, or anything a user should know
+    confounded_with : rig keys the data cannot tell this constant apart
+        from (the combination identified and which part is fixed: ``note``)
     """
 
     key: str | None
@@ -50,12 +52,14 @@ class Constant:
     constrained_by: str
     ci95: tuple[float, float] = (math.nan, math.nan)
     note: str = ""
+    confounded_with: tuple[str, ...] = ()
 
     def to_json(self) -> dict[str, Any]:
         return {"key": self.key, "value": json_num(self.value),
                 "ci95": [json_num(v) for v in self.ci95], "default": json_num(self.default),
                 "unit": self.unit, "identified": bool(self.identified),
-                "constrained_by": self.constrained_by, "note": self.note}
+                "constrained_by": self.constrained_by, "note": self.note,
+                "confounded_with": list(self.confounded_with)}
 
     def line(self) -> str:
         """One line of the text report."""
@@ -119,6 +123,9 @@ class Identification:
         return {"schema": "seanv-identify/1",
                 "constants": [c.to_json() for c in self.constants],
                 "identified_keys": [c.key for c in self.identified()],
+                "not_separable": [{"key": c.key, "from": list(c.confounded_with),
+                                   "note": c.note} for c in self.constants
+                                  if c.confounded_with],
                 "fits": _clean(self.fits), "notes": list(self.notes)}
 
     def report(self) -> str:
