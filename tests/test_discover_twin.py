@@ -1,10 +1,11 @@
-"""Dynamic effects found in closed loop on the identified twin (the
-``identify`` stage ran before ``discover``).
+"""Dynamic effects found in position-control data on the identified twin
+(the ``identify`` stage ran before ``discover``).
 
 An extra transport delay between the servo and the needle does not show in
 the servo's feedback: identify's line (bulk modulus) takes part of it, and
 discover must still name it, refitting the line with the candidate, and
-cut the held-out closed-loop flow error.
+cut the held-out flow error of the runs replayed on the twin (their logged
+cam command in).
 """
 from __future__ import annotations
 
@@ -27,10 +28,15 @@ def test_extra_delay_named_on_the_identified_twin(delayed_position):
     d = ctx.result("discover").discovery
     assert d.verdict == "effect_found"
     assert [(e.name, e.side) for e in d.effects] == [("delay", "both")]
-    assert d.effects[0].params["delay_s"] >= 0.03
-    assert d.heldout_source == "closed_loop_heldout"
+    found = d.effects[0].params["delay_s"]
+    lo, hi = d.effects[0].params_ci95["delay_s"]
+    assert found == pytest.approx(0.1, abs=0.02) and lo <= 0.1 <= hi, (found, lo, hi)
+    assert d.heldout_source == "replay_heldout"
     assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
     pc = d.position_control
     assert pc["found"] and pc["n_heldout_runs"] == 1
+    kept = next(c for c in pc["candidates"] if c["named"])
+    # the closed-loop numbers are there beside the headline
+    assert kept["heldout_before"]["fit_position_pct"] > 0 and kept["heldout_after"]
     # the closed-loop check runs the twin with the line refitted with the effect
     assert d.twin_overrides["tube"]["effective_bulk_modulus_mpa"] > 0

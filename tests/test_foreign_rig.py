@@ -148,5 +148,5 @@ def test_run_paper_pipeline(foreign):
         (dead, tau)
     disc = doc["discovery"]
     assert disc["verdict"] == "none", disc["effects"]
-    assert disc["position_control"]["method"].startswith("dynamic effects fitted in closed loop")
+    assert disc["position_control"]["method"].startswith("dynamic effects fitted on the identified twin replaying")
     assert (root / "out" / "run" / "report.html").is_file()

@@ -91,16 +91,25 @@ def reference_steps(run: Run) -> tuple[np.ndarray, np.ndarray]:
     return _steps(ctrl["t_s"].to_numpy(float), ctrl["x_ref_mm"].to_numpy(float))
 
 
-def load_steps(run: Run, *, step_mpa: float = 0.05, min_hold_s: float = 0.3
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """(t [s], load [MPaG]) step sequence of pressure.csv ``p_load_mpag``.
+#: a load change's onset is found where the pressure has covered this share of it
+_ONSET_SHARE = 0.2
+#: centred moving mean of the load pressure for the onset search [s]
+_ONSET_SMOOTH_S = 0.02
+
+
+def load_steps(run: Run, *, step_mpa: float = 0.05, min_hold_s: float = 0.3,
+               regulator_tau_s: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(t [s], load set point [MPaG]) step sequence of pressure.csv ``p_load_mpag``.
 
     Levels from :func:`seanv_analysis.analysis.tracking.load_levels_mpag`
     (running median, ``step_mpa`` grid, holds shorter than ``min_hold_s``
     merged into the previous level); each level's value is the median of the
-    raw load pressure over its hold; a level starts where the smoothed
-    pressure enters it (about mid-way through a load change). run.json ``load_mpag`` (when not
-    null) gives a single step.
+    raw load pressure over its hold. Each change of set point is placed at
+    its onset, so that the simulator's first-order regulator (time constant
+    ``regulator_tau_s``, default the run's rig ``load.regulator_time_constant_s``)
+    reproduces the logged pressure: where the pressure (20 ms centred mean)
+    has covered 20 % of the change, less tau ln(1/0.8). run.json
+    ``load_mpag`` (when not null) gives a single step.
     """
     if run.meta.load_mpag is not None:
         return np.array([0.0]), np.array([float(run.meta.load_mpag)])
@@ -113,7 +122,40 @@ def load_steps(run: Run, *, step_mpa: float = 0.05, min_hold_s: float = 0.3
     ts = t[starts].copy()
     ts[0] = min(ts[0], 0.0)
     vals = np.array([float(np.nanmedian(raw[a:b])) for a, b in zip(starts, ends)])
+    if starts.size > 1:
+        tau = float(run.rig["load"]["regulator_time_constant_s"]) if regulator_tau_s is None \
+            else float(regulator_tau_s)
+        ts[1:] = _onsets(t, raw, starts, vals, tau)
+        for k in range(1, ts.size):        # the simulator wants increasing instants
+            ts[k] = max(ts[k], ts[k - 1] + 1e-3)
     return ts, vals
+
+
+def _onsets(t, raw, starts, vals, tau: float) -> np.ndarray:
+    """Onset [s] of each level change k >= 1 (see :func:`load_steps`)."""
+    from scipy.ndimage import uniform_filter1d
+
+    dt = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    fill = np.where(np.isfinite(raw), raw, np.nanmedian(raw))
+    ps = uniform_filter1d(fill, max(1, int(round(_ONSET_SMOOTH_S / dt))), mode="nearest")
+    out = np.empty(starts.size - 1)
+    lead = tau * math.log(1.0 / (1.0 - _ONSET_SHARE))
+    for k in range(1, starts.size):
+        a, b, i = vals[k - 1], vals[k], int(starts[k])
+        lo = int(starts[k - 1])
+        share = (ps[lo:i + 1] - a) / (b - a) if b != a else np.zeros(i + 1 - lo)
+        below = np.flatnonzero(share < _ONSET_SHARE)
+        if below.size == 0:
+            out[k - 1] = t[i]
+            continue
+        m = int(below[-1])                  # last sample short of the share
+        if m + 1 < share.size and share[m + 1] != share[m]:
+            frac = (_ONSET_SHARE - share[m]) / (share[m + 1] - share[m])
+            t_cross = t[lo + m] + min(max(frac, 0.0), 1.0) * (t[lo + m + 1] - t[lo + m])
+        else:
+            t_cross = t[lo + m]
+        out[k - 1] = max(t_cross - lead, t[lo])
+    return out
 
 
 def step_metrics(t_s, x_mm, ref_t_s, ref_mm, *, x0_mm: float | None = None,
@@ -370,7 +412,8 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
     plant_rig = run.rig if rig is None else rig.with_overrides(run.meta.rig_overrides or None)
     ctrl = build_controller(run, _controller_model(controller_model, model, plant_rig), plant_rig)
     ref_t, ref_v = reference_steps(run)
-    load_t, load_v = load_steps(run)
+    load_t, load_v = load_steps(
+        run, regulator_tau_s=float(plant_rig["load"]["regulator_time_constant_s"]))
     enc = run.tables["encoder"]
     t_enc = enc["t_s"].to_numpy(float)
     if not t_enc[-1] <= _SIM_SPAN_MAX_S:

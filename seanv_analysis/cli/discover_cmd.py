@@ -36,7 +36,7 @@ __all__ = ["discover_cmd"]
 @click.option("--identify", "identify_first", is_flag=True,
               help="Identify the rig from DATA first (as `seanv-analyze identify`) and discover on "
                    "the identified twin: its valve with the identified needle geometry, and in "
-                   "position-control runs delay/backlash fitted in closed loop on it.")
+                   "position-control runs delay/backlash fitted on it, replaying the logged cam command.")
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document on stdout.")
 def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_first, as_json):
     """Find what the flow model (eq. 5) misses in DATA and report the error before/after.

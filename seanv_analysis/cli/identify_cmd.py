@@ -19,7 +19,7 @@ from ._common import (
 
 __all__ = ["identify_cmd"]
 
-_PARTS = ("geometry", "servo", "friction", "flow_path")
+_PARTS = ("geometry", "servo", "friction", "load", "flow_path")
 
 
 @cli.command("identify", short_help="Identify the rig (needle geometry, servo, friction, line) "
@@ -43,8 +43,9 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
     geometry (eq. 4's centre, with z0 and C refitted) and the Coulomb and
     viscous friction, position-control runs give the servo (dead time, time
     constant, rate limit, from its logs), the breakaway force, whether the
-    controller holds once converged, and the line (its bulk modulus, fitted
-    so the re-simulated closed loop moves like the runs); both give the
+    controller holds once converged, the load regulator's time constant
+    (from the logged load pressure) and the line (its bulk modulus, fitted so
+    the twin driven by the logged cam command moves like the runs); both give the
     supply pressure the runs were made at. Each constant comes with
     a 95 % interval, what constrains it and its training vs held-out error
     with the rig file's value and the identified one; what the data cannot

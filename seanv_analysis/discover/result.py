@@ -209,6 +209,8 @@ class Discovery:
         what = {"closed_loop": "closed-loop flow RMSE (validate: controller re-run on the plant)",
                 "closed_loop_heldout": "closed-loop flow RMSE on held-out position-control runs "
                                        "(controller re-run on the identified twin)",
+                "replay_heldout": "flow RMSE on held-out position-control runs replayed on the "
+                                  "identified twin (its logged cam command in, open loop)",
                 "position_control_shift": "flow RMSE of actual flow shifted by the nominal "
                                           "vs the estimated lag"}.get(self.heldout_source,
                                                                      "flow RMSE")
@@ -221,7 +223,7 @@ class Discovery:
                          f"held out): {pc['method']}: {pc.get('message', '')}; "
                          + ("an effect is added to the twin." if pc.get("found") else
                             "none kept (significant on training runs and >= 20 % lower held-out "
-                            "closed-loop flow error are both needed)."))
+                            "replayed flow error are both needed)."))
         elif self.position_control:
             pc = self.position_control
             lines.append(f"Position control (n = {pc['n_runs']} runs; lag from the first 70 % of "

@@ -1,20 +1,35 @@
 """Re-running position-control runs on a twin, and their flow error.
 
-The closed-loop fits of :mod:`.flowpath` (the line's bulk modulus) and
-:mod:`.dynamic` (delay, backlash) share these two pieces: each run's own
-controller, references and loads re-simulated on the twin
-(:func:`seanv_analysis.analysis.validate.validate_run`), and the measured vs
-simulated actuator flow error with the residuals' effective sample size.
+Two ways to put a logged position-control run on the twin:
+
+- closed loop (:func:`validate_on_twin`): the run's own controller,
+  references and loads re-simulated
+  (:func:`seanv_analysis.analysis.validate.validate_run`); what ``validate``
+  reports. With stick-slip, a hold that ends a few tenths of a millimetre
+  elsewhere changes every later command, so this error is a rough function
+  of the twin's constants (on the foreign rig: held-out flow fit 62 %, 54 %,
+  68 %, 62 %, 66 % for B = 35, 45, 55, 70, 88 MPa);
+- open loop (:func:`replay_on_twin`): the twin driven by the cam command
+  the rig's controller logged (output error with a measured input, the
+  direct approach to closed-loop identification). The same twin's flow fit
+  is then a smooth function of its constants (60, 68, 75, 74, 69 %), which
+  is what the line's bulk modulus and the dynamic effects are fitted on.
+
+:func:`flow_sse` gives the measured vs simulated actuator flow error of
+either, with the residuals' effective sample size.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
+import pandas as pd
 
 from .noise import integrated_autocorrelation
 
-__all__ = ["validate_on_twin", "flow_sse", "with_bulk"]
+__all__ = ["validate_on_twin", "replay_on_twin", "replay_targets", "replay_target", "Replay",
+           "ReplayTarget", "flow_sse", "with_bulk"]
 
 
 def with_bulk(rig, bulk_mpa: float, *, where: str = "identify"):
@@ -38,16 +53,144 @@ def validate_on_twin(runs: Sequence[Any], valve, rig, effects: Sequence[str] = (
     return out
 
 
-def flow_sse(validations) -> tuple[float, float, int]:
-    """(sum of squared flow errors [(mm^3/s)^2], effective sample count,
-    samples) of measured vs simulated actuator flow, NaN samples left out."""
-    sse, n_eff, n = 0.0, 0.0, 0
+@dataclass
+class Replay:
+    """One run replayed open loop on the twin: ``overlay`` (t_s, q_mm3_s /
+    q_sim_mm3_s [mm^3/s], position_mm / position_sim_mm [mm]) on the measured
+    time base, ``row`` (fit_flow_pct [%], rmse_flow_mm3_s) and each sample's
+    segment (the reference step it follows)."""
+
+    run_id: str
+    overlay: pd.DataFrame = field(repr=False)
+    row: dict[str, Any] = field(default_factory=dict)
+    segment: np.ndarray | None = field(default=None, repr=False)
+
+    def segment_sse(self) -> np.ndarray:
+        """Sum of squared flow errors [(mm^3/s)^2] per segment."""
+        r = (self.overlay["q_mm3_s"] - self.overlay["q_sim_mm3_s"]).to_numpy(float)
+        ok = np.isfinite(r)
+        seg = self.segment if self.segment is not None else np.zeros(r.size, int)
+        return np.bincount(seg[ok], weights=r[ok] ** 2, minlength=int(seg.max()) + 1)
+
+
+@dataclass(frozen=True)
+class ReplayTarget:
+    """What a replay of one run needs and is compared with, prepared once
+    (:func:`replay_target`): the cam command steps and load set-point steps
+    [s, deg / MPaG] on a clock starting at the first encoder sample, the
+    initial position and duration, and the measured flow and position on
+    the measured time base."""
+
+    run_id: str
+    cmd: tuple[np.ndarray, np.ndarray]
+    load: tuple[np.ndarray, np.ndarray]
+    x0_mm: float
+    duration_s: float
+    t: np.ndarray
+    q: np.ndarray
+    x: np.ndarray
+    #: segment of each sample of ``t``: the reference step it follows (0 before the first)
+    segment: np.ndarray | None = None
+
+
+def replay_target(run, rig) -> ReplayTarget | None:
+    """The :class:`ReplayTarget` of a position-control run: its logged cam
+    command (the servo identification's command timing,
+    :func:`.servo.command_schedule`), its load steps placed for the regulator
+    of ``rig``, its measured flow; None when it has no cam command or no
+    usable encoder record."""
+    from ..analysis.validate import load_steps, reference_steps
+    from ..errors import DataError
+    from ..signals.derive import derive_samples
+    from .servo import command_schedule
+
+    enc = run.tables.get("encoder")
+    sched = command_schedule(run)
+    if sched is None or enc is None or len(enc) < 10:
+        return None
+    t0 = float(enc["t_s"].iloc[0])
+    ts, cmd = sched[0] - t0, sched[1]
+    keep = np.r_[True, np.diff(ts) > 0]
+    ts, cmd = ts[keep], cmd[keep]
+    try:
+        lt, lv = load_steps(run, regulator_tau_s=float(rig["load"]["regulator_time_constant_s"]))
+        dm = derive_samples(run)
+    except DataError:
+        return None
+    lt = np.maximum(np.asarray(lt, float) - t0, 0.0)
+    lt, first = np.unique(lt, return_index=True)
+    lv = np.asarray(lv, float)[first]
+    if ts[0] > 0:
+        ts, cmd = np.r_[0.0, ts], np.r_[cmd[0], cmd]
+    t = dm["t_s"].to_numpy(float) - t0
+    try:
+        breaks = np.asarray(reference_steps(run)[0], float)[1:] - t0
+    except DataError:
+        breaks = np.arange(5.0, t[-1], 5.0)        # no reference log: 5 s blocks
+    return ReplayTarget(run.run_id, (ts, cmd), (lt, lv), float(enc["position_mm"].iloc[0]),
+                        float(enc["t_s"].iloc[-1]) - t0, t, dm["q_mm3_s"].to_numpy(float),
+                        dm["position_mm"].to_numpy(float),
+                        np.searchsorted(breaks, t, side="right"))
+
+
+def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
+    """``run`` (position control, or its prepared :class:`ReplayTarget`)
+    replayed on the twin ``rig`` from its logged cam command and load steps,
+    from its first logged position; None when it cannot be replayed."""
+    from ..analysis.validate import fit_percent
+    from ..signals.derive import derive_samples
+    from ..sim.run import simulate_cam_replay
+
+    tg = run if isinstance(run, ReplayTarget) else replay_target(run, rig)
+    if tg is None:
+        return None
+    sim, _ = simulate_cam_replay(rig, cam_cmd=tg.cmd, load=tg.load, duration_s=tg.duration_s,
+                                 x0_mm=tg.x0_mm, valve=valve, effects=tuple(effects),
+                                 run_id=f"{tg.run_id}-replay")
+    ds = derive_samples(sim)
+    tsim = ds["t_s"].to_numpy(float)
+
+    def on_t(col):
+        out = np.interp(tg.t, tsim, ds[col].to_numpy(float))
+        out[(tg.t < tsim[0]) | (tg.t > tsim[-1])] = np.nan
+        return out
+
+    ov = pd.DataFrame({"t_s": tg.t, "q_mm3_s": tg.q, "q_sim_mm3_s": on_t("q_mm3_s"),
+                       "position_mm": tg.x, "position_sim_mm": on_t("position_mm")})
+    r = (ov["q_mm3_s"] - ov["q_sim_mm3_s"]).to_numpy(float)
+    row = {"run_id": tg.run_id, "fit_flow_pct": fit_percent(ov["q_mm3_s"], ov["q_sim_mm3_s"]),
+           "rmse_flow_mm3_s": float(np.sqrt(np.nanmean(r * r)))}
+    return Replay(tg.run_id, ov, row, tg.segment)
+
+
+def replay_targets(runs: Sequence[Any], rig) -> list[ReplayTarget]:
+    """:func:`replay_target` of each run, those that can be replayed."""
+    return [t for t in (replay_target(r, rig) for r in runs) if t is not None]
+
+
+def replay_on_twin(runs: Sequence[Any], valve, rig, effects: Sequence[str] = ()) -> list[Replay]:
+    """:func:`replay_run` of each run (or prepared target); runs it cannot
+    replay are left out."""
+    out = []
+    for run in runs:
+        r = replay_run(run, valve, rig, effects)
+        if r is not None:
+            out.append(r)
+    return out
+
+
+def flow_sse(validations, *, effective: bool = True) -> tuple[float, float, int]:
+    """(sum of squared flow errors [(mm^3/s)^2], effective sample count
+    (NaN unless ``effective``), samples) of measured vs simulated actuator
+    flow, NaN samples left out."""
+    sse, n_eff, n = 0.0, 0.0 if effective else float("nan"), 0
     for v in validations:
         r = (v.overlay["q_mm3_s"] - v.overlay["q_sim_mm3_s"]).to_numpy(float)
         r = r[np.isfinite(r)]
         if r.size < 10:
             continue
         sse += float(np.sum(r * r))
-        n_eff += r.size / integrated_autocorrelation(r)
+        if effective:
+            n_eff += r.size / integrated_autocorrelation(r)
         n += r.size
     return sse, n_eff, n

@@ -12,8 +12,11 @@ Order (each part uses what the ones before found):
    none), by simulation error with the simulator's own servo step;
 3. friction (:mod:`.friction`): Coulomb and viscous from the flow steps'
    steady force balance;
-4. flow path (:mod:`.flowpath`): the lag from valve flow to actuator flow in
-   position control, turned into the simulator's line bulk modulus.
+4. load regulator (:mod:`.load`): its time constant from the load changes
+   logged in the position-control runs;
+5. flow path (:mod:`.flowpath`): the lag from valve flow to actuator flow in
+   position control, and the line's bulk modulus that makes the twin,
+   driven by the logged cam command, move like the rig.
 
 Runs are split into training and held-out ones (position-control runs in
 time order, every other one held out; flow steps: every third); the fits
@@ -30,13 +33,14 @@ from .controller import controller_constants
 from .flowpath import closed_loop_fits, flow_path_constants
 from .friction import friction_constants
 from .geometry import geometry_constants
+from .load import load_constants
 from .result import Constant, Identification, nest_constants
 from .servo import servo_constants, servo_data
 
 __all__ = ["identify_rig", "PARTS", "split_runs"]
 
 #: the parts of the rig ``identify`` looks at, in order
-PARTS = ("geometry", "servo", "friction", "flow_path")
+PARTS = ("geometry", "servo", "friction", "load", "flow_path")
 
 
 def split_runs(runs: Sequence[Any]) -> tuple[list[Any], list[Any]]:
@@ -148,10 +152,13 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     if "friction" in parts:
         log("identify: friction from the flow steps' force balance")
         current = take("friction", friction_constants(summary, current, runs=position_runs))
+    if "load" in parts and position_runs:
+        log("identify: load regulator from the logged load pressure")
+        current = take("load", load_constants(train_pos, held_pos, current))
     if "flow_path" in parts:
         log("identify: flow-path lag from the position-control runs")
         current = take("flow_path", flow_path_constants(train_pos, held_pos, current, valve))
-    if position_runs and {"servo", "flow_path", "friction"} & set(parts):
+    if position_runs and {"servo", "flow_path", "friction", "load"} & set(parts):
         log("identify: closed-loop check on the training and held-out runs")
         fits["closed_loop"] = closed_loop_fits(train_pos, held_pos, valve, rig, current)
     constants.append(_mass(position_runs, rig, current))

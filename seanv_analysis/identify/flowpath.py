@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
-from .closedloop import flow_sse, validate_on_twin, with_bulk
+from .closedloop import flow_sse, replay_on_twin, replay_targets, validate_on_twin, with_bulk
 from .result import Constant
 
 __all__ = ["FlowPathData", "flow_path_data", "fit_lag", "fit_bulk_modulus",
@@ -141,39 +141,57 @@ def _closed_loop(runs, valve, rig, bulk_mpa: float | None = None) -> list[Any]:
 
 
 def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
-    """The line's effective bulk modulus [MPa] that makes the twin's closed
-    loop move like the measured runs: the flow error of the re-simulated
-    runs minimised over log B (grid, then golden section); 95 % profile
-    interval with the residuals' effective sample size."""
+    """The line's effective bulk modulus [MPa] that makes the twin move like
+    the measured runs when it is driven by their logged cam commands (open
+    loop, :func:`~.closedloop.replay_on_twin`): the flow error minimised over
+    log B (a grid over 0.1-10x the rig file's value, then Brent's method
+    between the best point's neighbours); 95 % profile interval (the values
+    whose error stays within the chi-square(1) quantile of the residual
+    variance, with the residuals' effective sample size)."""
+    from scipy.optimize import brentq, minimize_scalar
+
     b0 = float(rig["tube"]["effective_bulk_modulus_mpa"])
     cache: dict[float, tuple[float, float]] = {}
+    runs = replay_targets(runs, rig)
 
     def cost(logb: float) -> float:
-        key = round(logb, 6)
+        key = round(float(logb), 9)
         if key not in cache:
-            cache[key] = flow_sse(_closed_loop(runs, valve, rig, math.exp(logb)))[:2]
+            cache[key] = flow_sse(replay_on_twin(runs, valve, with_bulk(rig, math.exp(key))))[:2]
         return cache[key][0]
 
-    grid = math.log(b0) + np.linspace(-math.log(10.0), math.log(10.0), 7)
+    lo_edge, hi_edge = math.log(b0 / 10.0), math.log(b0 * 10.0)
+    grid = np.linspace(lo_edge, hi_edge, 13)
     costs = [cost(g) for g in grid]
     k = int(np.argmin(costs))
+    if not math.isfinite(costs[k]) or costs[k] <= 0:
+        return {"bulk_mpa": b0, "ci95": (math.nan, math.nan), "sse": math.nan, "n_eff": 0.0,
+                "evaluations": len(cache), "at_edge": True}
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
-    g = (math.sqrt(5) - 1) / 2
-    c, d = b - g * (b - a), a + g * (b - a)
-    for _ in range(7):          # bracket / 1.6^7: ~2 % of B
-        if cost(c) < cost(d):
-            b = d
-        else:
-            a = c
-        c, d = b - g * (b - a), a + g * (b - a)
-    best = min(cache, key=lambda kk: cache[kk][0])
-    sse_min, n_eff = cache[best]
+    r = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": 0.005})
+    best = float(r.x) if r.fun < costs[k] else float(grid[k])
+    sse_min, n_eff = cache[round(best, 9)] if round(best, 9) in cache else (cost(best),
+                                                                             cache[round(best, 9)][1])
     lim = sse_min * (1.0 + 3.84 / max(n_eff - 1.0, 1.0))
-    inside = [kk for kk, (s_, _) in cache.items() if s_ <= lim]
-    ci = (math.exp(min(inside)), math.exp(max(inside)))
-    at_edge = best <= grid[0] + 1e-9 or best >= grid[-1] - 1e-9
+
+    def side(edge: float) -> float:
+        if cost(edge) <= lim:
+            return edge
+        return float(brentq(lambda v: cost(v) - lim, min(edge, best), max(edge, best),
+                            xtol=0.002))
+
+    ci = (math.exp(side(lo_edge)), math.exp(side(hi_edge)))
+    at_edge = best <= grid[0] + 1e-6 or best >= grid[-1] - 1e-6
     return {"bulk_mpa": math.exp(best), "ci95": ci, "sse": sse_min, "n_eff": n_eff,
             "evaluations": len(cache), "at_edge": at_edge}
+
+
+def _replay_fits(runs, valve, rig) -> dict[str, Any]:
+    reps = replay_on_twin(runs, valve, rig)
+    if not reps:
+        return {}
+    return {"fit_flow_pct": float(np.mean([r.row["fit_flow_pct"] for r in reps])),
+            "runs": {r.run_id: r.row["fit_flow_pct"] for r in reps}}
 
 
 def _fits(validations) -> dict[str, Any]:
@@ -217,14 +235,25 @@ def flow_path_constants(train_runs, held_runs, rig, valve
                  note=why or ("beyond the servo: a transport delay the simulator's line does "
                               "not have" if f["dead_s"] > 0.03 else "")),
         Constant("tube.effective_bulk_modulus_mpa", "line bulk modulus (effective)", bulk, b0,
-                 "MPa", ok, f"closed-loop flow of {len(train_runs)} training position-control "
-                 f"run(s) re-simulated ({fb['evaluations']} simulations)",
+                 "MPa", ok, f"actuator flow of {len(train_runs)} training position-control "
+                 f"run(s) replayed open loop from their logged cam command "
+                 f"({fb['evaluations']} simulations)",
                  fb["ci95"] if ok else (math.nan, math.nan),
                  note="" if ok else "the best value lies at the edge of 0.1-10x the rig file's"),
     ]
-    fits = {"metric": "actuator flow RMSE [mm^3/s] of the lag model (valve flow -> actuator)",
-            "train": f["rmse_mm3_s"], "heldout": lag_rmse(he, f["tau_s"], f["dead_s"]),
-            "n_train_runs": len(tr), "n_heldout_runs": len(he)}
+    fits = {"lag": {"metric": "actuator flow RMSE [mm^3/s] of the lag model (valve flow -> "
+                    "actuator)", "train": f["rmse_mm3_s"],
+                    "heldout": lag_rmse(he, f["tau_s"], f["dead_s"]),
+                    "n_train_runs": len(tr), "n_heldout_runs": len(he)}}
+    twin = with_bulk(rig, bulk)
+    rep = {"metric": "open-loop replay flow fit [%] (logged cam command -> actuator flow)",
+           "n_train_runs": len(train_runs), "n_heldout_runs": len(held_runs)}
+    for part, runs in (("train", train_runs), ("heldout", held_runs)):
+        for which, r in (("_default", rig), ("", twin)):
+            g = _replay_fits(runs, valve, r)
+            if g:
+                rep[part + which] = g["fit_flow_pct"]
+    fits["replay"] = rep
     return consts, fits, []
 
 

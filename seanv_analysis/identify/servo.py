@@ -44,7 +44,7 @@ from ..sim.servo import servo_response
 from .noise import integrated_autocorrelation
 from .result import Constant
 
-__all__ = ["ServoData", "servo_data", "fit_servo", "servo_constants"]
+__all__ = ["ServoData", "servo_data", "command_schedule", "fit_servo", "servo_constants"]
 
 #: dead-time profile grid [s]: coarse, then fine around the best node
 _DEAD_MAX_S = 0.5
@@ -67,19 +67,19 @@ class ServoData:
     timing_u_s: float = 0.0
 
 
-def servo_data(run) -> ServoData | None:
-    """:class:`ServoData` of a run, or None when its servo log has no usable
-    feedback (empty ``cam_deg``) or the command never moves."""
+def command_schedule(run) -> tuple[np.ndarray, np.ndarray, str, float] | None:
+    """The cam command as the servo received it: (instants of its changes
+    [s], values [deg], timing rule, half-width of the instants' error [s]),
+    from the servo log's ``cam_cmd_deg`` (see the module's "Command timing");
+    None without a servo log of at least 20 commands."""
     sv = run.tables.get("servo")
-    if sv is None or "cam_deg" not in sv or len(sv) < 20:
+    if sv is None or "cam_cmd_deg" not in sv or len(sv) < 20:
         return None
     t = sv["t_s"].to_numpy(float)
     cmd = sv["cam_cmd_deg"].to_numpy(float)
-    fb = sv["cam_deg"].to_numpy(float)
-    ok = np.isfinite(cmd)
-    t, cmd, fb = t[ok], cmd[ok], fb[ok]
-    good = np.isfinite(fb)
-    if good.sum() < 20 or np.ptp(cmd) < 0.5:
+    ok = np.isfinite(cmd) & np.isfinite(t)
+    t, cmd = t[ok], cmd[ok]
+    if t.size < 20:
         return None
     dt = float(np.median(np.diff(t)))
     shift, timing = dt / 2.0, "asynchronous: change taken mid-interval before its log instant"
@@ -96,7 +96,27 @@ def servo_data(run) -> ServoData | None:
     t_cmd[1:] -= shift
     # either way the instant a command was sent is known to half a servo
     # sample only (a controller log may itself be stamped late)
-    return ServoData(run.run_id, t_cmd, cmd[change], t[good], fb[good], timing, dt / 2.0)
+    return t_cmd, cmd[change], timing, dt / 2.0
+
+
+def servo_data(run) -> ServoData | None:
+    """:class:`ServoData` of a run, or None when its servo log has no usable
+    feedback (empty ``cam_deg``) or the command never moves."""
+    sv = run.tables.get("servo")
+    if sv is None or "cam_deg" not in sv or len(sv) < 20:
+        return None
+    sched = command_schedule(run)
+    if sched is None:
+        return None
+    t_cmd, cmd, timing, half = sched
+    t = sv["t_s"].to_numpy(float)
+    fb = sv["cam_deg"].to_numpy(float)
+    ok = np.isfinite(sv["cam_cmd_deg"].to_numpy(float)) & np.isfinite(t)
+    t, fb = t[ok], fb[ok]
+    good = np.isfinite(fb)
+    if good.sum() < 20 or np.ptp(cmd) < 0.5:
+        return None
+    return ServoData(run.run_id, t_cmd, cmd, t[good], fb[good], timing, half)
 
 
 def _residual(data: Sequence[ServoData], dead, tau, rate, scale):

@@ -26,7 +26,7 @@ from .control import CamController, FlowModelController
 from .kernel import MODE_SCHEDULE, OUT_FAST, OUT_SLOW, simulate_kernel
 from .plant import Plant
 
-__all__ = ["simulate_flow_step", "simulate_position_control", "SimTrace"]
+__all__ = ["simulate_flow_step", "simulate_position_control", "simulate_cam_replay", "SimTrace"]
 
 _EPOCH = datetime(2026, 3, 2, 9, 0, 0, tzinfo=timezone.utc)
 
@@ -199,3 +199,49 @@ def simulate_position_control(rig: RigConfig | None = None, *,
     trace = SimTrace(x_true_mm=fast["x_true_mm"].to_numpy(), q_true_mm3_s=fast["q_true_mm3_s"].to_numpy(),
                      cam_needle_deg=slow["cam_needle_deg"].to_numpy(), t_release_s=math.nan)
     return Run(meta=meta, tables=_tables(fast, slow, controller=True), rig=rig), trace
+
+
+def simulate_cam_replay(rig: RigConfig | None = None, *, cam_cmd, load, duration_s: float,
+                        x0_mm: float, seed: int = 0, valve: ValveModel | None = None,
+                        effects: Iterable[str | Effect | dict] = (), plant: Plant | None = None,
+                        run_id: str = "replay", started_at: datetime | None = None
+                        ) -> tuple[Run, SimTrace]:
+    """The plant driven open loop by a logged cam command (no controller).
+
+    Output-error identification of closed-loop data: the servo, needle, line
+    and actuator of the twin see the command the rig's controller actually
+    sent, so the simulated flow does not inherit the closed loop's sensitivity
+    to small differences (a hold that ends a few tenths of a millimetre
+    elsewhere changes every later command of a re-run controller).
+
+    Parameters
+    ----------
+    rig : rig config (default: the shipped one)
+    cam_cmd : (t_s, cam command [deg]) steps, e.g. the servo log's ``cam_cmd_deg``
+    load : load pressure set point, a number or (t_s, p_mpag) steps
+    duration_s : length of the run [s]
+    x0_mm : initial position [mm] (no end stops, as in position control)
+    seed, valve, effects, plant : as :func:`simulate_position_control`
+
+    Returns
+    -------
+    (Run, SimTrace): a ``position_control`` run without controller table
+    """
+    rig = rig or load_rig()
+    with config_errors():
+        plant = plant or Plant.from_rig(rig, valve=valve, effects=effects)
+    cmd, ld = _steps(cam_cmd, "cam_cmd"), _steps(load, "load")
+    neutral = float(rig["servo"]["neutral_deg"])
+    dummy = CamController.from_rig(rig).jit_spec()
+    fast, slow, _ = _run(plant, ctrl_kind=MODE_SCHEDULE, cp=dummy[1], ctrl_tables=dummy[2],
+                         ref=(np.array([0.0]), np.array([0.0])), load=ld, cmd=cmd,
+                         duration_s=duration_s, seed=seed, run_index=0, x0_mm=x0_mm,
+                         cam0_deg=float(cmd[1][0]), neutral_deg=neutral,
+                         x_stop_mm=(-math.inf, math.inf))
+    load_meta = float(ld[1][0]) if ld[1].size == 1 else None
+    meta = _meta(run_id, "position_control", started_at, load_mpag=load_meta,
+                 controller={"replay": True})
+    trace = SimTrace(x_true_mm=fast["x_true_mm"].to_numpy(),
+                     q_true_mm3_s=fast["q_true_mm3_s"].to_numpy(),
+                     cam_needle_deg=slow["cam_needle_deg"].to_numpy(), t_release_s=math.nan)
+    return Run(meta=meta, tables=_tables(fast, slow, controller=False), rig=rig), trace

@@ -5,8 +5,8 @@ Flow-step runs drive the static model (eq. 5) and its candidate effects
 registry in :mod:`seanv_analysis.models.effects`); position-control runs with
 Q_ref the delay check against the nominal lag
 (:func:`seanv_analysis.discover.dynamic.discover_delay`), or, when the
-``identify`` stage ran, the dynamic candidates (delay, backlash) fitted in
-closed loop on the identified twin
+``identify`` stage ran, the dynamic candidates (delay, backlash) fitted on
+the identified twin replaying the logged cam command
 (:func:`seanv_analysis.identify.dynamic.closed_loop_effects`). When an effect is
 found and the data holds position-control runs, the closed-loop check re-runs
 them with the base and with the augmented model (the ``validate`` stage's
@@ -79,7 +79,7 @@ def discover_runs(runs, summary, *, rig, model=None, holdout: str = "chrono",
     """Discovery on runs already read and summarised: the static candidates on
     the flow steps; on the position-control runs the delay check, or with
     ``twin`` (``rig`` is an identified twin: the ``identify`` stage ran) the
-    dynamic effects fitted in closed loop on it
+    dynamic effects fitted on it (open-loop replay of the logged cam command)
     (:func:`seanv_analysis.identify.dynamic.closed_loop_effects`).
 
     Raises
@@ -126,7 +126,7 @@ def discover_runs(runs, summary, *, rig, model=None, holdout: str = "chrono",
 
 def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
     """Static discovery on the flow steps (if enough) plus the dynamic
-    candidates fitted in closed loop on the identified twin; a dynamic effect
+    candidates fitted on the identified twin (logged cam command replayed); a dynamic effect
     found makes the held-out closed-loop flow RMSE the headline."""
     from ..discover import Discovery, EffectFinding, discover_flow_steps
     from ..identify import split_runs
@@ -134,7 +134,7 @@ def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
 
     analysis = rig.analysis
     train, held = split_runs(position)
-    findings, base_held = closed_loop_effects(train, held, model, rig)
+    findings, base_held = closed_loop_effects(train, held, model, rig, seed=seed)
     named = [f for f in findings if f.named]
     if _usable_flow_steps(summary) >= MIN_FLOW_RUNS:
         result = discover_flow_steps(summary, model=model, holdout=holdout, seed=seed,
@@ -147,10 +147,13 @@ def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
                            holdout="position-control runs: every other one held out",
                            heldout_source="closed_loop_heldout")
     msg = "; ".join(f"{f.name} {f.param} {f.value:g} (p = {f.p_value:.2g}"
-                    + (f", held-out flow RMSE {-f.heldout_improvement:+.0%}" if f.heldout_before
+                    + (f", held-out flow RMSE {-f.replay_improvement:+.0%} replayed, "
+                       f"{-f.heldout_improvement:+.0%} in closed loop" if f.heldout_before
                        else "") + ")" for f in findings)
     change: dict[str, Any] = {"position_control": {
-        "method": "dynamic effects fitted in closed loop on the identified twin",
+        "method": ("dynamic effects fitted on the identified twin replaying the logged cam "
+                   "command (open loop), checked on held-out runs replayed and re-run in "
+                   "closed loop"),
         "n_runs": len(position), "n_heldout_runs": len(held), "found": bool(named),
         "message": msg or "no candidate", "candidates": [f.to_json() for f in findings],
         "heldout_twin": base_held}}
@@ -160,17 +163,21 @@ def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
             f_p_value=f.p_value, evidence=CLOSED_LOOP_EVIDENCE)]
         change["twin_overrides"] = {"tube": {"effective_bulk_modulus_mpa": f.bulk_mpa}}
         if result.verdict != "effect_found":
+            # the headline: the held-out runs replayed (the same commands in,
+            # so the error moves with the model, not with where a re-run
+            # controller's holds happen to end); the closed-loop numbers are
+            # in the candidates and the closed-loop check
             change.update(verdict="effect_found", trend_variable=None,
-                          rmse_before_mm3_s=f.heldout_before["rmse_flow_mm3_s"],
-                          rmse_after_mm3_s=f.heldout_after["rmse_flow_mm3_s"],
-                          n_heldout_runs=len(held), heldout_source="closed_loop_heldout",
+                          rmse_before_mm3_s=f.replay_before["rmse_flow_mm3_s"],
+                          rmse_after_mm3_s=f.replay_after["rmse_flow_mm3_s"],
+                          n_heldout_runs=len(held), heldout_source="replay_heldout",
                           holdout="position-control runs: every other one held out")
     return dataclasses.replace(result, **change)
 
 
 #: the report's clause on a dynamic effect found in closed loop
-CLOSED_LOOP_EVIDENCE = ("fitted in closed loop on the identified twin (training runs, "
-                        "p = {p_value:.2g}) and confirmed on held-out runs")
+CLOSED_LOOP_EVIDENCE = ("fitted on the identified twin driven by the logged cam command "
+                        "(training runs, p = {p_value:.2g}) and confirmed on held-out runs")
 
 
 def closed_loop(ctx: Context, discovery) -> DiscoverResult:

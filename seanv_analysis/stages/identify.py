@@ -24,9 +24,9 @@ NEEDS = ("ingest",)
 WRITES = ("identify/rig-identified.toml", "identify/identify.json", "identify/identify.txt")
 DESCRIPTION = ("identify the rig's unpublished constants (needle geometry, servo, friction, "
                "line) from its logs; later stages simulate the identified twin")
-#: parts: which constants to identify (geometry, servo, friction, flow_path);
+#: parts: which constants to identify (geometry, servo, friction, load, flow_path);
 #: n_boot: bootstrap resamples of the z0/C refit; seed: its seed
-OPTIONS: dict[str, Any] = {"parts": ["geometry", "servo", "friction", "flow_path"],
+OPTIONS: dict[str, Any] = {"parts": ["geometry", "servo", "friction", "load", "flow_path"],
                            "n_boot": 100, "seed": 0}
 
 
