@@ -20,15 +20,13 @@ _PACKAGE_DIR = Path(__file__).resolve().parent
 
 
 def schema_dir() -> Path:
-    """Folder holding the data contract and default rig config.
-
-    Installed wheels carry a copy inside the package (``_data_schema``); an
-    editable checkout uses the top-level ``data_schema/``.
-    """
-    for candidate in (_PACKAGE_DIR / "_data_schema", _PACKAGE_DIR.parent / "data_schema"):
-        if (candidate / "contract.toml").is_file():
-            return candidate
-    raise ConfigError("data_schema folder not found next to the package")
+    """Folder holding the data contract and default rig config: the package's
+    ``_data_schema/`` (package data, in a wheel too; the source tree's
+    top-level ``data_schema`` is a link to it)."""
+    folder = _PACKAGE_DIR / "_data_schema"
+    if not (folder / "contract.toml").is_file():
+        raise ConfigError(f"{folder}: the package's data contract is missing (a broken install?)")
+    return folder
 
 
 def default_rig_path() -> Path:

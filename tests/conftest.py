@@ -246,7 +246,7 @@ def golden_run(golden_data, tmp_path_factory):
 # each on the 2-core machine (whole modules of end-to-end simulations, and
 # single tests elsewhere; measured with --durations=0). `make test` runs all.
 # ---------------------------------------------------------------------------
-SLOW_MODULES = {"test_batch.py", "test_batch_signals.py", "test_discover_sim.py",
+SLOW_MODULES = {"test_batch.py", "test_batch_signals.py", "test_discover_sim.py", "test_wheel.py",
                 "test_discover_twin.py", "test_foreign_rig.py", "test_golden.py",
                 "test_identify.py"}
 SLOW_TESTS = (

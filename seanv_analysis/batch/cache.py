@@ -70,7 +70,7 @@ def code_version() -> str:
 
 #: what a simulated data set depends on (package-relative paths or folders)
 _SIMULATOR_SOURCES = ("sim", "models", "control.py", "config.py", "io/writer.py",
-                      "../data_schema/rig/default.toml")
+                      "_data_schema/rig/default.toml")
 
 
 @functools.lru_cache(maxsize=1)

@@ -186,6 +186,28 @@ def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
             "evaluations": len(cache), "at_edge": at_edge}
 
 
+def _line_time_constant(rig, bulk: float, ci, ok: bool) -> Constant:
+    """The twin line's time constant C (R + b / A^2) [s]: its compliance
+    V / B times the resistance the piston's flow meets (the line's laminar R
+    and the seal's viscous b; their sum is what the force balance fixed), the
+    lag of the actuator's flow behind a valve acting as a flow source."""
+    from ..sim.plant import tube_constants
+
+    tube = tube_constants(rig)
+    area = float(rig.piston_area_mm2)
+    r_tot = tube["R"] + float(rig["actuator"]["viscous_friction_n_s_per_mm"]) / area ** 2
+
+    def tau(b: float) -> float:
+        return tube["V"] / b * r_tot
+
+    lo, hi = ci
+    return Constant(None, "line time constant C (R + b/A^2)", tau(bulk),
+                    tau(float(rig["tube"]["effective_bulk_modulus_mpa"])), "s", ok,
+                    "the identified bulk modulus and friction slope",
+                    (tau(hi), tau(lo)) if ok and math.isfinite(lo) else (math.nan, math.nan),
+                    note="" if ok else "needs the bulk modulus")
+
+
 def _replay_fits(runs, valve, rig) -> dict[str, Any]:
     reps = replay_on_twin(runs, valve, rig)
     if not reps:
@@ -234,6 +256,7 @@ def flow_path_constants(train_runs, held_runs, rig, valve
                  f["dead_ci95"] if lag_ok else (math.nan, math.nan),
                  note=why or ("beyond the servo: a transport delay the simulator's line does "
                               "not have" if f["dead_s"] > 0.03 else "")),
+        _line_time_constant(rig, bulk, fb["ci95"] if ok else (math.nan, math.nan), ok),
         Constant("tube.effective_bulk_modulus_mpa", "line bulk modulus (effective)", bulk, b0,
                  "MPa", ok, f"actuator flow of {len(train_runs)} training position-control "
                  f"run(s) replayed open loop from their logged cam command "

@@ -19,7 +19,7 @@ that stage's options (each stage module's ``OPTIONS``, with their defaults;
 :func:`stage_options`). Unknown stages or options are a :class:`~seanv_analysis.errors.ConfigError`
 naming the file, the stage and the option, so a typo never runs silently with
 a default. Shipped pipelines (``paper``, ``flowfit``, ``tracking``) live in
-the ``pipelines/`` folder of the source tree and can be given by name.
+the package (``pipelines/`` of the source tree) and can be given by name.
 """
 from __future__ import annotations
 
@@ -56,8 +56,10 @@ def stage_options() -> dict[str, dict[str, Any]]:
 
 
 def pipelines_dir() -> Path:
-    """Folder of the shipped pipelines (``pipelines/`` next to the package)."""
-    return Path(__file__).resolve().parents[2] / "pipelines"
+    """Folder of the shipped pipelines: the package's ``_pipelines/`` (package
+    data, in a wheel too; the source tree's top-level ``pipelines`` is a link
+    to it)."""
+    return Path(__file__).resolve().parents[1] / "_pipelines"
 
 
 def shipped_pipelines() -> dict[str, Path]:
