@@ -2,17 +2,48 @@
 the built-in simulated data sets)."""
 from __future__ import annotations
 
+import functools
 import hashlib
+import inspect
 import json
 from contextlib import contextmanager
 from pathlib import Path
 
 import click
 
-__all__ = ["default_out_dir", "check_out_dir", "probe_writable", "echo_bad_runs", "unusable", "stage_context",
+__all__ = ["verbosity", "default_out_dir", "check_out_dir", "probe_writable", "echo_bad_runs", "unusable", "stage_context",
            "sim_default_dataset", "write_command_manifest", "OUTPUTS_ROOT"]
 
 OUTPUTS_ROOT = Path("outputs")
+
+
+def verbosity(command):
+    """Decorator of a command (put it right under ``@cli.command``):
+    ``-q/--quiet`` and ``-v/--verbose`` (progress lines, bars and logging on
+    stderr: warnings and errors only / the default / details), logging
+    configured before the command runs (:func:`seanv_analysis.log.configure`).
+    A command that takes a ``quiet`` argument gets it (its own ``--quiet``
+    option, if any, is replaced)."""
+    takes_quiet = "quiet" in inspect.signature(command).parameters
+    own = [p for p in getattr(command, "__click_params__", []) if p.name != "quiet"]
+
+    @functools.wraps(command)
+    def wrapper(*args, quiet: bool = False, verbose: int = 0, **kwargs):
+        from ..log import configure
+
+        configure(quiet=quiet, verbose=verbose)
+        if takes_quiet:
+            kwargs["quiet"] = quiet
+        return command(*args, **kwargs)
+
+    wrapper.__click_params__ = list(own)
+    wrapper = click.option("-q", "--quiet", is_flag=True,
+                           help="Nothing on stderr but warnings and errors (default where "
+                                "stderr is not a terminal).")(wrapper)
+    wrapper = click.option("-v", "--verbose", count=True,
+                           help="Each step and its details on stderr, terminal or not (-vv: "
+                                "each line with its time and module).")(wrapper)
+    return wrapper
 
 
 def default_out_dir(data: str | Path, command: str) -> Path:
@@ -156,6 +187,11 @@ def sim_default_dataset(scenario: str, *, seed: int = 0, effects: tuple[str, ...
     path = OUTPUTS_ROOT / "_builtin" / f"{scenario}-{key}"
     done = path / ".complete"
     if not done.exists():
+        import logging
+
+        logging.getLogger("seanv_analysis.cli").info(
+            f"simulating the built-in data set '{scenario}' into {path} (first use only; "
+            "kept for later commands)")
         simulate_scenario(scenario, path, seed=seed, effects=list(effects))
         done.write_text("ok\n")
     return path

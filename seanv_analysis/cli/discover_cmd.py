@@ -14,6 +14,7 @@ from ._common import (
     sim_default_dataset,
     stage_context,
     unusable,
+    verbosity,
     write_command_manifest,
 )
 
@@ -21,6 +22,7 @@ __all__ = ["discover_cmd"]
 
 
 @cli.command("discover", short_help="What the model misses: residual -> effect -> refit, error before/after.")
+@verbosity
 @click.argument("data", required=False, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--model", "model_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Valve model file (JSON/TOML from flowfit) used as the starting point. "

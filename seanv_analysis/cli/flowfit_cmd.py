@@ -16,6 +16,7 @@ from ._common import (
     sim_default_dataset,
     stage_context,
     unusable,
+    verbosity,
     write_command_manifest,
 )
 
@@ -26,6 +27,7 @@ BUILTIN_SCENARIO = "paper-flowsteps"
 
 
 @cli.command("flowfit", short_help="Fit z0 and C per valve side (eq. 3-5) with 95 % intervals; Fig. 4.")
+@verbosity
 @click.argument("data", required=False, type=click.Path(path_type=Path))
 @click.option("--rig", "rig_file", type=click.Path(dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change. Default: the shipped rig.")

@@ -14,6 +14,7 @@ from ._common import (
     sim_default_dataset,
     stage_context,
     unusable,
+    verbosity,
     write_command_manifest,
 )
 
@@ -24,6 +25,7 @@ _PARTS = ("geometry", "servo", "friction", "load", "flow_path")
 
 @cli.command("identify", short_help="Identify the rig (needle geometry, servo, friction, line) "
                                     "from its logs.")
+@verbosity
 @click.argument("data", nargs=-1, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML to start from (its values stay where the data cannot tell). "
@@ -35,7 +37,6 @@ _PARTS = ("geometry", "servo", "friction", "load", "flow_path")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder. Default: outputs/<dataset>/identify/.")
 @click.option("--json", "as_json", is_flag=True, help="Print identify.json on stdout.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress lines on stderr.")
 def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
     """Identify what the paper does not publish about the rig in DATA, from its own logs.
 
@@ -73,9 +74,7 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
     options = {"n_boot": n_boot}
     if parts:
         options["parts"] = list(parts)
-    log = (lambda msg: None) if quiet or as_json else (lambda msg: click.echo(msg, err=True))
-    with stage_context(list(data), rig=rig, out_dir=out) as ctx:
-        ctx.log = log
+    with stage_context(list(data), rig=rig, out_dir=out, quiet=quiet) as ctx:
         ds = dataset.collect(ctx, {})
         if ds.runs_read == 0:
             return unusable(data[0], ds.failed)

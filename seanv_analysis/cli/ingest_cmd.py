@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, echo_bad_runs
+from ._common import check_out_dir, default_out_dir, echo_bad_runs, verbosity
 
 __all__ = ["ingest_cmd", "ingest"]
 
@@ -145,6 +145,7 @@ def _result(root, out_dir, by_kind, errors, tables, summary_path, *, excluded):
 
 
 @cli.command("ingest")
+@verbosity
 @click.argument("data", type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder. Default: outputs/<dataset-name>/ingest/ under the current "
@@ -155,7 +156,6 @@ def _result(root, out_dir, by_kind, errors, tables, summary_path, *, excluded):
                    "data_schema/rig/default.toml.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the result as one JSON document on stdout (nothing else on stdout).")
-@click.option("-q", "--quiet", is_flag=True, help="No progress bar on stderr.")
 def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, as_json: bool,
                quiet: bool) -> int:
     """Validate, calibrate and align the runs in DATA; write Parquet tables.

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, unusable
+from ._common import check_out_dir, default_out_dir, unusable, verbosity
 
 __all__ = ["plots_cmd", "plots_pipeline"]
 
@@ -38,6 +38,7 @@ def _figure_choices() -> list[str]:
 
 
 @cli.command("plots")
+@verbosity
 @click.argument("data", type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--fig", "fig", type=click.Choice(_figure_choices()), multiple=True,
               default=("4", "6", "7"), show_default=True,
@@ -51,7 +52,6 @@ def _figure_choices() -> list[str]:
               help="Worker processes for the per-run work (1: serial). Default: the CPU count.")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress output on stderr.")
 def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: int | None,
               rig_file: Path | None, quiet: bool) -> int:
     """Draw the paper's figures for every run / the whole data set in DATA (PNG + SVG).
@@ -78,6 +78,7 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
     out = Path(out_dir) if out_dir else default_out_dir(data, "plots")
     check_out_dir(data, out)
     interactive = sys.stderr.isatty() and not os.environ.get("CI")
+    # a line per stage where no progress bar is drawn (-q: none)
     log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
     try:
         result = run_pipeline(plots_pipeline(figs), data, out_dir=out, workers=workers,

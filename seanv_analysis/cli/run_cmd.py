@@ -9,12 +9,13 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, unusable
+from ._common import check_out_dir, default_out_dir, unusable, verbosity
 
 __all__ = ["run_cmd"]
 
 
 @cli.command("run")
+@verbosity
 @click.argument("pipeline", required=False)
 @click.argument("data", required=False, type=click.Path(path_type=Path))
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -28,7 +29,6 @@ __all__ = ["run_cmd"]
                    "The cluster is never shut down by this command.")
 @click.option("--force", is_flag=True,
               help="Recompute every per-run result instead of taking it from <out>/.cache.")
-@click.option("-q", "--quiet", is_flag=True, help="No progress bars or stage lines on stderr.")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change. Default: data_schema/rig/default.toml.")
 @click.option("--json", "as_json", is_flag=True,
@@ -95,6 +95,7 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
         out = Path(out_dir) if out_dir else default_out_dir(data, f"run-{pipe.name}")
         check_out_dir(data, out)
     interactive = sys.stderr.isatty() and not os.environ.get("CI")
+    # a line per stage where no progress bar is drawn (-q: none)
     log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
     if scheduler is None and workers is None and os.environ.get("DASK_SCHEDULER_ADDRESS"):
         scheduler = os.environ["DASK_SCHEDULER_ADDRESS"]

@@ -6,12 +6,13 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import probe_writable
+from ._common import probe_writable, verbosity
 
 __all__ = ["simulate_cmd"]
 
 
 @cli.command("simulate")
+@verbosity
 @click.argument("scenario", type=click.Choice(["paper-flowsteps", "paper-flowsteps-small",
                                                "paper-position", "paper-position-model"]))
 @click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
@@ -31,7 +32,6 @@ __all__ = ["simulate_cmd"]
 @click.option("--list-effects", is_flag=True, is_eager=True, expose_value=False,
               callback=lambda ctx, _p, v: _list_effects(ctx) if v else None,
               help="List the effects, their parameters and defaults, and exit.")
-@click.option("--quiet", is_flag=True, help="No progress bar.")
 def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, quiet):
     """Simulate SCENARIO on the built-in plant and write it as a data set.
 

@@ -15,6 +15,7 @@ from ._common import (
     sim_default_dataset,
     stage_context,
     unusable,
+    verbosity,
     write_command_manifest,
 )
 
@@ -22,6 +23,7 @@ __all__ = ["tracking_cmd"]
 
 
 @cli.command("tracking", short_help="Flow delay, lag compensation and tracking RMSE (Sec. III-C); Fig. 6/7.")
+@verbosity
 @click.argument("data", required=False, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--shift", "shift_s", type=float, default=None,
               help="Delay [s] to compensate (the paper's: 0.25). Default: estimated by "

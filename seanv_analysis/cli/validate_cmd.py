@@ -16,6 +16,7 @@ from ._common import (
     sim_default_dataset,
     stage_context,
     unusable,
+    verbosity,
     write_command_manifest,
 )
 
@@ -23,6 +24,7 @@ __all__ = ["validate_cmd"]
 
 
 @cli.command("validate")
+@verbosity
 @click.argument("data", required=False, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--model", "model_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Identified valve model (JSON/TOML from flowfit): the plant's valve and the "

@@ -79,8 +79,10 @@ def serial_map(stage: str, func: Callable[..., Any], run_dirs: Sequence[Path], *
                valid: Callable[[Any], bool] | None = None) -> dict[str, RunOutcome]:
     """The :class:`RunMapper` of a single process: each run read here (the
     next one on a helper thread while this one is processed), no cache."""
+    from ..log import progress
+
     out: dict[str, RunOutcome] = {}
-    for path, run in _read_ahead(list(run_dirs), rig):
+    for path, run in progress(_read_ahead(list(run_dirs), rig), total=len(run_dirs), desc=stage):
         key = str(path)
         if isinstance(run, SeanvError):
             out[key] = RunOutcome(key, False, error=with_path(path, one_line(run)))
@@ -91,6 +93,13 @@ def serial_map(stage: str, func: Callable[..., Any], run_dirs: Sequence[Path], *
         except SeanvError as exc:
             out[key] = RunOutcome(key, False, error=with_path(path, one_line(exc)), hashes=hashes)
     return out
+
+
+def _stage_info(msg: str) -> None:
+    """INFO on the ``seanv_analysis.stages`` logger."""
+    import logging
+
+    logging.getLogger("seanv_analysis.stages").info(msg)
 
 
 def _read_ahead(run_dirs: list[Path], rig: RigConfig):
@@ -168,7 +177,9 @@ class Context:
     loaded_runs: dict[str, Any] = field(default_factory=dict)  # {folder: Run} read in this process
     record: Any = None
     quiet: bool = True
-    log: Callable[[str], None] = lambda msg: None
+    #: one plain line per step (default: INFO on the ``seanv_analysis.stages``
+    #: logger, which prints nothing until logging is configured, as the CLI does)
+    log: Callable[[str], None] = field(default_factory=lambda: _stage_info)
 
     @classmethod
     def for_data(cls, data: str | Path | Sequence[str | Path], *, rig: RigConfig | str | Path | None = None,
@@ -196,7 +207,7 @@ class Context:
         source = model_source or ("given model" if model is not None
                                   else "rig config (paper's z0, C)")
         return cls(rig, datas, run_dirs, dataset_of, out, map_runs, model, source,
-                   quiet=quiet, log=log or (lambda msg: None))
+                   quiet=quiet, log=log or _stage_info)
 
     def add(self, name: str, result: Any) -> None:
         """Store a stage's result for the stages after it."""

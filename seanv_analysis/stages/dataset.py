@@ -158,6 +158,7 @@ def collect(ctx: Context, options: Mapping[str, Any], *, func=None) -> DatasetRe
     from ..signals.filters import exclusion_counts
 
     method = options.get("method", OPTIONS["method"])
+    ctx.log(f"ingest: reading, checking and summarising {len(ctx.run_dirs)} run folder(s)")
     res = ctx.map_runs("ingest", func or summarize, ctx.run_dirs, rig=ctx.rig,
                        params={"method": method}, kwargs={"method": method})
     failed: list[FailedRun] = []

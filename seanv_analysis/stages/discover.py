@@ -216,6 +216,7 @@ def run(ctx: Context, options: Mapping[str, Any]) -> DiscoverResult:
     """
     opts = {**OPTIONS, **options}
     ds = ctx.result("ingest")
+    ctx.log("discover: residual of the base model -> candidate effects -> held-out check")
     disc = discover_runs(position_runs(ctx), ds.summary, rig=ctx.plant_rig, model=ctx.valve,
                          holdout=opts["holdout"], seed=opts["seed"],
                          twin=ctx.result("identify") is not None)

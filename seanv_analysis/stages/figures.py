@@ -118,6 +118,8 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
     context's results into ``folder`` (per-run figures into ``folder/<name>/``
     when ``per_run_folders``)."""
     folder = Path(folder)
+    ctx.log(f"figures: drawing {figs if isinstance(figs, str) else ', '.join(map(str, figs))} "
+            f"into {folder}")
     have = results_for_figures(ctx)
     explicit = figs != "all"
     paths: dict[str, tuple[Path, ...]] = {}

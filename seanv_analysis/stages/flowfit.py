@@ -60,6 +60,8 @@ def run(ctx: Context, options: Mapping[str, Any]):
     if ds is None or not (ds.summary["kind"] == "flow_step").any():
         raise DataError("no flow_step runs in the data set; expected flow-step runs "
                         "(run.json kind = 'flow_step')", path=ctx.data[0])
+    ctx.log(f"flowfit: eq. (3)-(5) per side ({', '.join(opts['sides'])}), "
+            f"{opts['n_boot']} bootstrap resamples for the intervals")
     return fit_flow(ds.summary, ctx.rig, sides=tuple(opts["sides"]), procedure=opts["procedure"],
                     cam=opts["cam"], n_boot=opts["n_boot"], seed=opts["seed"])
 

@@ -56,6 +56,7 @@ def run(ctx: Context, options: Mapping[str, Any]):
     runs = position_runs(ctx)
     if not runs:
         return None
+    ctx.log(f"tracking: flow delay and tracking RMSE of {len(runs)} position-control run(s)")
     return tracking_runs(runs, shift_s=opts["shift_s"], q_range=tuple(opts["q_range"]),
                          model=ctx.model)
 

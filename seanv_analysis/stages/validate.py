@@ -110,6 +110,8 @@ def validate_model(ctx: Context, model, effects: Sequence[str] = (), *, seed: in
     opts = {**OPTIONS, **(options or {})}
     paths = position_paths(ctx)
     plant = ctx.plant_rig
+    ctx.log(f"{stage}: re-running the controller of {len(paths)} position-control run(s) on "
+            "the simulated plant" + (f" with {', '.join(effects)}" if effects else ""))
     if plant_overrides:
         plant = plant.with_overrides(dict(plant_overrides), where="discover")
     params = {"model": model.to_dict(), "effects": list(effects), "seed": seed}
