@@ -271,8 +271,16 @@ SLOW_TESTS = (
 )
 
 
+#: tests using the session fixture golden_run (the paper pipeline on the golden
+#: data, ~25 s): one xdist worker runs them all (``--dist loadgroup``), so the
+#: fixture is computed once per test run, not once per worker
+GOLDEN_RUN_GROUP = "golden_run"
+
+
 def pytest_collection_modifyitems(config, items):
     for item in items:
         rel = item.nodeid.split("tests/", 1)[-1]
         if rel.split("::", 1)[0] in SLOW_MODULES or rel.startswith(SLOW_TESTS):
             item.add_marker(pytest.mark.slow)
+        if "golden_run" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.xdist_group(GOLDEN_RUN_GROUP))
