@@ -18,4 +18,15 @@ from .errors import ConfigError, DataError, FitError, SeanvError
 from .models import NeedleGeometry, ValveModel, ValveSide
 
 __all__ = ["__version__", "SeanvError", "DataError", "ConfigError", "FitError",
-           "RigConfig", "load_rig", "ValveModel", "ValveSide", "NeedleGeometry"]
+           "RigConfig", "load_rig", "ValveModel", "ValveSide", "NeedleGeometry",
+           "load_dataset", "flowfit"]
+
+
+def __getattr__(name):
+    """The notebook API (:mod:`seanv_analysis.api`), imported on first use so
+    ``import seanv_analysis`` stays light."""
+    if name in ("load_dataset", "flowfit"):
+        import importlib  # by name: the root package stays below every layer
+
+        return getattr(importlib.import_module("seanv_analysis.api"), name)
+    raise AttributeError(f"module 'seanv_analysis' has no attribute {name!r}")

@@ -265,6 +265,7 @@ SLOW_TESTS = (
     "test_flowfit.py::test_recovers_truth_with_interval",
     "test_tracking.py::test_write_and_figures",
     "test_report.py::", "test_cli_flowfit.py::test_subprocess_end_to_end",
+    "test_readme.py::test_readme_snippet_runs",
     "test_cli_flowfit.py::test_no_data_uses_builtin",
     "test_cli_flowfit.py::test_bad_run_exit_1_results_still_written",
     "test_sim.py::test_seed_reproduces_dataset_bit_for_bit",

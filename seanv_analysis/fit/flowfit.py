@@ -283,6 +283,34 @@ class FlowFit:
         out["units"] = dict(UNITS)
         return out
 
+    def to_frame(self) -> pd.DataFrame:
+        """One row per side: z0_mm, C with their 95 % intervals, RMSE, runs, status."""
+        rows = []
+        for side, f in self.sides.items():
+            rows.append({"side": side, "z0_mm": f.z0_mm, "z0_lo_mm": f.z0_ci95[0],
+                         "z0_hi_mm": f.z0_ci95[1], "c_flow": f.c_flow, "c_lo": f.c_ci95[0],
+                         "c_hi": f.c_ci95[1], "rmse_mm3_s": f.rmse_mm3_s, "n_runs": f.n_runs,
+                         "status": f.status})
+        return pd.DataFrame(rows).set_index("side")
+
+    def plot(self, ax=None, *, panel: str = "a"):
+        """Fig. 4 on ``ax`` (a new pyplot figure when None): panel 'a' flow vs
+        cam angle with the model per load, 'b' threshold vs dp (one axes per
+        side); returns the axes."""
+        from ..plotting import plot
+
+        return plot(self, ax, panel=panel)
+
+    def __repr__(self) -> str:
+        parts = [f"{s} z0={f.z0_mm:.4f} mm C={f.c_flow:.3f}"
+                 + ("" if f.success else f" ({f.status})") for s, f in self.sides.items()]
+        return f"<FlowFit {'; '.join(parts)}; {len(self.per_run)} runs>"
+
+    def _repr_html_(self) -> str:
+        t = self.to_frame()
+        return (f"<p><b>FlowFit</b> (eq. 3-5; C in {UNITS.get('C', 'mm^3/(s deg^2 MPa^0.5)')}, "
+                f"95 % intervals)</p>" + t.to_html(float_format=lambda v: f"{v:.4g}"))
+
     def to_dict(self) -> dict[str, Any]:
         """Full result (sides with both procedures, settings, warnings)."""
         return {"sides": {s: f.to_dict() for s, f in self.sides.items()},

@@ -61,6 +61,31 @@ class DatasetResult:
     runs_found: int = 0
     runs_read: int = 0
     input_hashes: Mapping[str, str] = field(default_factory=dict)
+    #: the rig config the runs were read with (set by ``seanv_analysis.load_dataset``)
+    rig: Any = field(default=None, repr=False, compare=False)
+
+    def to_frame(self) -> pd.DataFrame:
+        """The per-run summary (one row per run read)."""
+        return self.summary
+
+    def plot(self, ax=None):
+        """Steady flow of every flow-step run vs its commanded cam angle, the
+        excluded ones hollow, on ``ax`` (a new pyplot figure when None)."""
+        from ..plotting import plot
+
+        return plot(self, ax)
+
+    def __repr__(self) -> str:
+        kinds = self.summary["kind"].value_counts().to_dict() if not self.summary.empty else {}
+        k = ", ".join(f"{n} {kind}" for kind, n in sorted(kinds.items())) or "no runs"
+        bad = f", {len(self.failed)} bad" if self.failed else ""
+        return f"<DatasetResult {self.runs_read}/{self.runs_found} runs read ({k}){bad}>"
+
+    def _repr_html_(self) -> str:
+        bad = "".join(f"<li>{f.message}</li>" for f in self.failed)
+        return (f"<p><b>{repr(self)[1:-1]}</b></p>"
+                + (f"<p>bad runs:</p><ul>{bad}</ul>" if bad else "")
+                + self.summary.head(20).to_html(max_cols=12))
 
     def kind(self, kind: str) -> pd.DataFrame:
         """Rows of one run kind ('flow_step', 'position_control')."""

@@ -1,0 +1,75 @@
+"""The README's notebook snippet runs verbatim on the data set it names
+(``data/flow``, made as the README says with
+``seanv-analyze simulate paper-flowsteps-small``) and gives the truth."""
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+
+
+def _snippet() -> str:
+    text = README.read_text()
+    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
+    return next(b for b in blocks if "sa.load_dataset" in b)
+
+
+@pytest.fixture(scope="module")
+def folder(tmp_path_factory):
+    from seanv_analysis.sim import simulate_scenario
+
+    root = tmp_path_factory.mktemp("readme")
+    simulate_scenario("paper-flowsteps-small", root / "data" / "flow", seed=0)
+    return root
+
+
+def test_readme_snippet_runs_and_recovers_the_paper_values(folder, monkeypatch, capsys):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    monkeypatch.chdir(folder)
+    scope: dict = {}
+    exec(compile(_snippet(), str(README), "exec"), scope)
+    out = capsys.readouterr().out
+    assert "<DatasetResult 144/144 runs read (144 flow_step)>" in out
+    frame = scope["fit"].to_frame()
+    assert frame.loc["supply", "z0_mm"] == pytest.approx(-0.155, abs=0.002)
+    assert frame.loc["drain", "c_flow"] == pytest.approx(-22.636, rel=0.02)
+    assert scope["ax"].get_xlabel() == "Cam rotation angle [deg]"
+    assert "Discovery:" in out
+
+
+def test_import_loads_no_plotting_library():
+    import subprocess
+    import sys
+
+    code = ("import sys, seanv_analysis as sa; sa.load_dataset; "
+            "print(any(m.startswith('matplotlib') for m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert res.stdout.strip() == "False"
+
+
+def test_results_draw_on_the_callers_axes_and_render_as_tables(folder):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import seanv_analysis as sa
+
+    ds = sa.load_dataset(folder / "data" / "flow")
+    fit = sa.flowfit(ds, n_boot=0)
+    fig, (a, b, c) = plt.subplots(3, 1)
+    assert fit.plot(ax=a) is a and a.get_ylabel() == "Flow rate [mm$^3$/s]"
+    assert fit.plot(ax=[b, c], panel="b") == [b, c]
+    assert ds.plot(ax=a) is a
+    plt.close(fig)
+    assert repr(fit).startswith("<FlowFit supply z0=") and len(repr(fit)) < 200
+    assert "<table" in fit._repr_html_() and "<table" in ds._repr_html_()
+    assert list(fit.to_frame().index) == ["supply", "drain"]
+    assert len(ds.to_frame()) == 144
+    with pytest.raises(ValueError, match="panel"):
+        fit.plot(panel="c")
