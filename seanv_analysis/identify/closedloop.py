@@ -117,9 +117,12 @@ def replay_target(run, rig) -> ReplayTarget | None:
         dm = derive_samples(run)
     except DataError:
         return None
+    # on the encoder's clock; changes before its start collapse to t = 0,
+    # where the last of them holds
     lt = np.maximum(np.asarray(lt, float) - t0, 0.0)
-    lt, first = np.unique(lt, return_index=True)
-    lv = np.asarray(lv, float)[first]
+    lv = np.asarray(lv, float)
+    last = np.r_[lt[1:] > lt[:-1], True]
+    lt, lv = lt[last], lv[last]
     if ts[0] > 0:
         ts, cmd = np.r_[0.0, ts], np.r_[cmd[0], cmd]
     t = dm["t_s"].to_numpy(float) - t0
