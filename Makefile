@@ -34,5 +34,7 @@ test-fast: $(STAMP)
 bench: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks
 
+# never results: outputs/ is yours (the built-in data sets and compiled code
+# live in the user cache folder, ~/.cache/seanv-analysis, safe to delete)
 clean:
-	rm -rf $(VENV) outputs/*/ .pytest_cache
+	rm -rf $(VENV) .pytest_cache build dist *.egg-info

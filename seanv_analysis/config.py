@@ -14,7 +14,8 @@ from typing import Any, Mapping
 
 from .errors import ConfigError
 
-__all__ = ["RigConfig", "load_rig", "default_rig_path", "schema_dir", "load_contract"]
+__all__ = ["RigConfig", "load_rig", "default_rig_path", "schema_dir", "load_contract",
+           "user_cache_dir"]
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
@@ -27,6 +28,20 @@ def schema_dir() -> Path:
     if not (folder / "contract.toml").is_file():
         raise ConfigError(f"{folder}: the package's data contract is missing (a broken install?)")
     return folder
+
+
+def user_cache_dir() -> Path:
+    """Where the package keeps what it can make again (the built-in simulated
+    data sets, compiled code): ``$SEANV_CACHE_DIR``, else
+    ``$XDG_CACHE_HOME/seanv-analysis``, else ``~/.cache/seanv-analysis``.
+    Never a results folder: deleting it only costs time."""
+    import os
+
+    env = os.environ.get("SEANV_CACHE_DIR")
+    if env:
+        return Path(env)
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "seanv-analysis"
 
 
 def default_rig_path() -> Path:

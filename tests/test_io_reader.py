@@ -317,6 +317,13 @@ def test_write_manifest(tmp_path):
     assert doc["config"] == {"k": 2} and doc["extra"] == {"runs": 3}
     assert doc["command_line"] == "x y" and doc["schema"] == "seanv-manifest/1"
     assert len(doc["inputs_sha256"]) == 64 and "git_sha" in doc
+    # the environment a result was made with, as pip freeze lists it
+    import numpy
+    import scipy
+
+    assert f"numpy=={numpy.__version__}" in doc["packages"]
+    assert f"scipy=={scipy.__version__}" in doc["packages"]
+    assert doc["packages"] == sorted(doc["packages"], key=lambda s: s.split("==")[0].lower())
 
 
 # long-log paths (threads, purging pool): same tables, same first error ------------

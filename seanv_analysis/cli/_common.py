@@ -175,25 +175,65 @@ def echo_bad_runs(errors) -> int:
     return 1
 
 
+def builtin_data_dir() -> Path:
+    """Folder of the built-in simulated data sets: ``builtin/`` in the user
+    cache folder (:func:`seanv_analysis.config.user_cache_dir`), so they are
+    shared by every folder a user works in and never mixed with results;
+    a temporary folder when the cache cannot be written."""
+    import tempfile
+
+    from ..config import user_cache_dir
+
+    folder = user_cache_dir() / "builtin"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        probe_writable(folder)
+    except Exception:  # noqa: BLE001 - a read-only home must not stop the command
+        folder = Path(tempfile.gettempdir()) / "seanv-analysis" / "builtin"
+        folder.mkdir(parents=True, exist_ok=True)
+    return folder
+
+
 def sim_default_dataset(scenario: str, *, seed: int = 0, effects: tuple[str, ...] = ()) -> Path:
     """Path of a built-in simulated data set, generated on first use and cached
-    under ``outputs/_builtin/`` (keyed by scenario, seed, effects and the
+    in :func:`builtin_data_dir` (keyed by scenario, seed, effects and the
     simulator's version: package version + hash of its sources and rig)."""
+    import os
+    import shutil
+    import tempfile
+
     from ..batch.cache import simulator_version
     from ..sim import simulate_scenario
 
     key = hashlib.sha256(json.dumps([scenario, seed, list(effects),
                                      simulator_version()]).encode()).hexdigest()[:10]
-    path = OUTPUTS_ROOT / "_builtin" / f"{scenario}-{key}"
-    done = path / ".complete"
-    if not done.exists():
-        import logging
+    path = builtin_data_dir() / f"{scenario}-{key}"
+    if (path / ".complete").exists():
+        return path
+    import logging
 
-        logging.getLogger("seanv_analysis.cli").info(
-            f"simulating the built-in data set '{scenario}' into {path} (first use only; "
-            "kept for later commands)")
-        simulate_scenario(scenario, path, seed=seed, effects=list(effects))
-        done.write_text("ok\n")
+    logging.getLogger("seanv_analysis.cli").info(
+        f"simulating the built-in data set '{scenario}' into {path} (first use only; "
+        "kept for later commands)")
+    # made beside it and renamed in whole: two commands starting at once both
+    # simulate, the first rename wins, the other's copy is dropped
+    from ..io.atomic import current_umask
+
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
+    try:
+        os.chmod(tmp, 0o777 & ~current_umask())
+        simulate_scenario(scenario, tmp, seed=seed, effects=list(effects))
+        (tmp / ".complete").write_text("ok\n")
+        if path.exists() and not (path / ".complete").exists():
+            shutil.rmtree(path, ignore_errors=True)     # a copy left incomplete
+        try:
+            os.rename(tmp, path)
+        except OSError:
+            if not (path / ".complete").exists():
+                raise
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
     return path
 
 

@@ -11,6 +11,7 @@ per process (the reader hashes the bytes it reads; see
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import platform
@@ -24,7 +25,7 @@ from .. import __version__
 from .atomic import write_json_atomic
 from .hashing import file_sha256
 
-__all__ = ["write_manifest", "build_manifest", "input_hashes", "output_entries", "git_sha",
+__all__ = ["write_manifest", "build_manifest", "installed_packages", "input_hashes", "output_entries", "git_sha",
            "MANIFEST_SCHEMA", "NOT_LISTED"]
 
 MANIFEST_SCHEMA = "seanv-manifest/1"
@@ -127,6 +128,24 @@ def _digest(path: Path) -> dict[str, Any]:
     return {"sha256": h.hexdigest(), "size": size}
 
 
+@functools.lru_cache(maxsize=1)
+def _installed() -> tuple[tuple[str, str], ...]:
+    from importlib.metadata import distributions
+
+    seen: dict[str, str] = {}
+    for dist in distributions():
+        name = (dist.metadata["Name"] or "").strip()
+        if name and name.lower() not in seen:
+            seen[name.lower()] = f"{name}=={dist.version}"
+    return tuple(sorted(seen.items()))
+
+
+def installed_packages() -> list[str]:
+    """``name==version`` of every distribution installed in this Python
+    (what ``pip freeze`` lists), sorted; read once per process."""
+    return [spec for _, spec in _installed()]
+
+
 def build_manifest(*, config: Any, inputs: Mapping[str | Path, str] | Iterable[str | Path],
                    command: str | Iterable[str], extra: Mapping[str, Any] | None = None,
                    outputs: list[dict[str, Any]] | None = None) -> dict[str, Any]:
@@ -150,6 +169,7 @@ def build_manifest(*, config: Any, inputs: Mapping[str | Path, str] | Iterable[s
         "cwd": os.getcwd(),
         "python": sys.version.split()[0],
         "platform": platform.platform(),
+        "packages": installed_packages(),
         "config": config,
         "inputs": [{"path": p, "sha256": h} for p, h in hashes.items()],
         "inputs_sha256": combined.hexdigest(),
@@ -183,7 +203,8 @@ def write_manifest(out_dir: str | Path, *, config: Any,
     -------
     Path of manifest.json. Fields: schema, package, version, git_sha (None
     outside a checkout), created_utc, command, command_line, cwd, python,
-    platform, config, inputs [{path, sha256}], inputs_sha256 (one digest over
+    platform, packages (``name==version`` of every installed distribution, as
+    ``pip freeze``), config, inputs [{path, sha256}], inputs_sha256 (one digest over
     all inputs: a cache key), outputs [{path (relative to ``out_dir``),
     sha256, size}], extra. A file of ``out_dir`` not among the outputs was
     not written by this command.

@@ -5,8 +5,8 @@ compiled function only: when a function it calls (e.g. a valve equation in
 ``models``) changes, a stale machine-code cache of the caller is reused. To
 make that impossible, the cache lives in a folder named after a hash of every
 source file that compiled code is built from (and the numba version), under
-``$SEANV_NUMBA_CACHE`` or ``$XDG_CACHE_HOME/seanv-analysis`` (default
-``~/.cache/seanv-analysis``). A changed equation gets a new folder and is
+``$SEANV_NUMBA_CACHE`` or the package's user cache folder
+(:func:`seanv_analysis.config.user_cache_dir`, default ``~/.cache/seanv-analysis``). A changed equation gets a new folder and is
 compiled afresh; the package tree itself is never written to.
 """
 from __future__ import annotations
@@ -44,9 +44,9 @@ def configure_numba_cache() -> Path | None:
         if p.is_file():
             h.update(rel.encode())
             h.update(p.read_bytes())
-    base = os.environ.get("SEANV_NUMBA_CACHE") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
-        "seanv-analysis")
+    from ..config import user_cache_dir
+
+    base = os.environ.get("SEANV_NUMBA_CACHE") or str(user_cache_dir())
     folder = Path(base) / f"numba-{h.hexdigest()[:16]}"
     try:
         folder.mkdir(parents=True, exist_ok=True)
