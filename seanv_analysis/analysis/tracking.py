@@ -36,7 +36,7 @@ from ..io.run import Run
 from ..signals.derive import derive_samples
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments
 
-__all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "RunTracking", "Tracking",
+__all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "load_level_holds", "RunTracking", "Tracking",
            "run_flows", "tracking_runs", "load_levels_mpag"]
 
 #: The paper's fitting range of the target flow [mm^3/s] (Sec. III-C.2).
@@ -87,6 +87,19 @@ def load_levels_mpag(t_s, p_load_mpag, *, step_mpa: float = LOAD_LEVEL_STEP_MPA,
                 keep_val[k] = keep_val[k - 1] if k > first_long else keep_val[first_long]
         lv = np.repeat(keep_val, ends - starts)
     return lv
+
+
+def load_level_holds(t_s, p_load_mpag, *, step_mpa: float = LOAD_LEVEL_STEP_MPA,
+                     min_hold_s: float = 0.3) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The holds of :func:`load_levels_mpag`: (first sample, one past the
+    last sample, level [MPaG]) of each, the level being the median of the
+    raw load pressure over the hold (NaN left out)."""
+    p = np.asarray(p_load_mpag, dtype=float)
+    lv = load_levels_mpag(t_s, p, step_mpa=step_mpa, min_hold_s=min_hold_s)
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(lv) != 0) + 1))
+    ends = np.concatenate((starts[1:], [lv.size]))
+    levels = np.array([float(np.nanmedian(p[a:b])) for a, b in zip(starts, ends)])
+    return starts, ends, levels
 
 
 def _controller_info(run: Run) -> tuple[float | None, bool]:

@@ -34,7 +34,7 @@ import pandas as pd
 from ..errors import ConfigError, DataError
 from ..io.run import Run
 from ..signals.derive import derive_samples
-from .tracking import load_levels_mpag
+from .tracking import load_level_holds
 
 __all__ = ["DEFAULT_THRESHOLD_PCT", "fit_percent", "reference_steps", "load_steps",
            "step_metrics", "build_controller", "RunValidation", "Validation", "validate_runs"]
@@ -116,12 +116,9 @@ def load_steps(run: Run, *, step_mpa: float = 0.05, min_hold_s: float = 0.3,
     p = run.tables["pressure"]
     t = p["t_s"].to_numpy(float)
     raw = p["p_load_mpag"].to_numpy(float)
-    lv = load_levels_mpag(t, raw, step_mpa=step_mpa, min_hold_s=min_hold_s)
-    starts = np.concatenate(([0], np.flatnonzero(np.diff(lv) != 0) + 1))
-    ends = np.concatenate((starts[1:], [t.size]))
+    starts, _, vals = load_level_holds(t, raw, step_mpa=step_mpa, min_hold_s=min_hold_s)
     ts = t[starts].copy()
     ts[0] = min(ts[0], 0.0)
-    vals = np.array([float(np.nanmedian(raw[a:b])) for a, b in zip(starts, ends)])
     if starts.size > 1:
         tau = float(run.rig["load"]["regulator_time_constant_s"]) if regulator_tau_s is None \
             else float(regulator_tau_s)

@@ -183,12 +183,12 @@ def builtin_data_dir() -> Path:
     import tempfile
 
     from ..config import user_cache_dir
+    from ..errors import OutputError
 
     folder = user_cache_dir() / "builtin"
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-        probe_writable(folder)
-    except Exception:  # noqa: BLE001 - a read-only home must not stop the command
+        probe_writable(folder)          # creates it
+    except OutputError:                 # a read-only home must not stop the command
         folder = Path(tempfile.gettempdir()) / "seanv-analysis" / "builtin"
         folder.mkdir(parents=True, exist_ok=True)
     return folder

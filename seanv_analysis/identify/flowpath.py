@@ -134,12 +134,6 @@ def lag_rmse(data: Sequence[FlowPathData], tau, dead) -> float:
     return float(np.sqrt(np.mean(_residual(data, tau, dead, 1.0) ** 2)))
 
 
-def _closed_loop(runs, valve, rig, bulk_mpa: float | None = None) -> list[Any]:
-    """The runs re-run on the twin ``rig`` (with the line's bulk modulus
-    ``bulk_mpa`` when given)."""
-    return validate_on_twin(runs, valve, rig if bulk_mpa is None else with_bulk(rig, bulk_mpa))
-
-
 def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
     """The line's effective bulk modulus [MPa] that makes the twin move like
     the measured runs when it is driven by their logged cam commands (open
@@ -170,8 +164,8 @@ def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
     r = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": 0.005})
     best = float(r.x) if r.fun < costs[k] else float(grid[k])
-    sse_min, n_eff = cache[round(best, 9)] if round(best, 9) in cache else (cost(best),
-                                                                             cache[round(best, 9)][1])
+    cost(best)                              # in the cache from here on
+    sse_min, n_eff = cache[round(best, 9)]
     lim = sse_min * (1.0 + 3.84 / max(n_eff - 1.0, 1.0))
 
     def side(edge: float) -> float:
@@ -288,7 +282,7 @@ def closed_loop_fits(train_runs, held_runs, valve, rig_default, rig_identified) 
         for which, r in (("_default", rig_default), ("", rig_identified)):
             if part == "train" and which == "_default" and held_runs:
                 continue        # the headline is held-out; training: the identified twin only
-            f = _fits(_closed_loop(runs, valve, r))
+            f = _fits(validate_on_twin(runs, valve, r))
             if f:
                 out[part + which] = f["fit_position_pct"]
                 out[part + which + "_flow"] = f["fit_flow_pct"]

@@ -36,7 +36,7 @@ _MIN_STEP_MPA = 0.03
 def load_changes(run) -> list[tuple[np.ndarray, np.ndarray, float, float, float]]:
     """Each load change of a run: (t [s], p [MPaG], level before, level after,
     first guess of the onset [s]) over a window around it."""
-    from ..analysis.tracking import load_levels_mpag
+    from ..analysis.tracking import load_level_holds
 
     p = run.tables.get("pressure")
     if p is None or "p_load_mpag" not in p or run.meta.load_mpag is not None or len(p) < 50:
@@ -47,10 +47,7 @@ def load_changes(run) -> list[tuple[np.ndarray, np.ndarray, float, float, float]
     t, raw = t[ok], raw[ok]
     if t.size < 50:
         return []
-    lv = load_levels_mpag(t, raw)
-    starts = np.concatenate(([0], np.flatnonzero(np.diff(lv) != 0) + 1))
-    ends = np.concatenate((starts[1:], [t.size]))
-    levels = [float(np.median(raw[a:b])) for a, b in zip(starts, ends)]
+    starts, ends, levels = load_level_holds(t, raw)
     out = []
     for k in range(1, starts.size):
         a, b = levels[k - 1], levels[k]
