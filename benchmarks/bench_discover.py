@@ -83,14 +83,14 @@ def _hour_of_logs(root: Path) -> Path:
 
     total = 0.0
     for run in iter_scenario_runs("paper-flowsteps", rig=load_rig(), seed=7):
-        write_run(root / run.run_id, run.meta.to_json(), run.tables, fmt="parquet")
+        write_run(root / run.run_id, run.meta.to_json_dict(), run.tables, fmt="parquet")
         total += float(run.tables["encoder"]["t_s"].iloc[-1])
     # repeat the sweep (new seeds, later times) until an hour is logged
     seed = 8
     while total < 3600.0:
         for run in iter_scenario_runs("paper-flowsteps", rig=load_rig(), seed=seed):
             rid = f"s{seed}-{run.run_id}"
-            meta = run.meta.to_json()
+            meta = run.meta.to_json_dict()
             meta["run_id"] = rid
             meta["started_at"] = meta["started_at"].replace("2026-03-02", f"2026-03-{seed:02d}")
             write_run(root / rid, meta, run.tables, fmt="parquet")

@@ -75,7 +75,7 @@ def bench_summary(rig) -> dict:
     return {"runs": len(summary), "runs_fitted": int((summary["excluded"] == "").sum()),
             "time_s": round(dt, 3), "tracemalloc_peak_mib": round(peak, 2),
             "time_no_bootstrap_s": round(dt0, 3), "tracemalloc_peak_no_bootstrap_mib":
-                round(peak0, 2), "result": fit.to_json()}
+                round(peak0, 2), "result": fit.to_json_dict()}
 
 
 def _conftest_writer():
@@ -139,7 +139,7 @@ def bench_disk(rig) -> dict:
         size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
     return {"runs": k, "bad_runs": len(ds.errors), "data_mib": round(size / 2 ** 20, 2),
             "write_data_s": round(t_write, 2), "time_s": round(dt, 2), **stages,
-            "tracemalloc_peak_mib": round(peak, 2), "result": fit.to_json()}
+            "tracemalloc_peak_mib": round(peak, 2), "result": fit.to_json_dict()}
 
 
 def bench_recovery(rig) -> dict:

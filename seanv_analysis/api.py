@@ -8,7 +8,7 @@
 Each call is the same stage the CLI runs (``seanv_analysis.stages``), on a
 context with no output folder. Results print short (``repr``), render as
 tables in Jupyter (``_repr_html_``), give DataFrames (``to_frame()``), the
-CLI's JSON (``to_json()``, a dict) and figures on your axes (``plot(ax=None)``).
+CLI's JSON (``to_json()`` text, ``to_json_dict()`` a dict) and figures on your axes (``plot(ax=None)``).
 """
 from __future__ import annotations
 

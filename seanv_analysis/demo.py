@@ -96,7 +96,7 @@ def _ci(values, fmt: str) -> str:
 def headline(result: dict, rig=None) -> str:
     """The demo's numbers next to the paper's (a few lines of text).
 
-    ``result``: :meth:`PipelineResult.to_json` of the paper pipeline.
+    ``result``: :meth:`PipelineResult.to_json_dict` of the paper pipeline.
     """
     from .config import load_rig
     from .models import ValveModel
@@ -182,7 +182,7 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(result.summary_text())
     print("\nheadline numbers (the drain C above is the average over a drifting valve):")
-    print(headline(result.to_json()))
+    print(headline(result.to_json_dict()))
     total = time.perf_counter() - t0
     print(f"\ndemo finished in {total:.0f} s (simulation {t_sim:.0f} s, analysis "
           f"{total - t_sim:.0f} s)")

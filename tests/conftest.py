@@ -223,7 +223,7 @@ def golden_data(tmp_path_factory):
         run, _ = simulate_flow_step(side=side, cam_deg=cam, load_mpag=load, seed=5, run_index=i,
                                     effects=[GOLDEN_DRIFT], run_id=f"fs{i:02d}-{side}",
                                     started_at=t + timedelta(minutes=i))
-        write_run(root / "flow" / run.meta.run_id, run.meta.to_json(), run.tables)
+        write_run(root / "flow" / run.meta.run_id, run.meta.to_json_dict(), run.tables)
     simulate_scenario("paper-position", root / "position", seed=5)
     return root
 

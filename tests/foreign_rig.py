@@ -232,7 +232,7 @@ class ForeignTruth:
         servo = self.servo_lag_s() if self.servo_in_position else 0.0
         return self.delay_s + servo + self.flow_lag_s("position_control")
 
-    def to_json(self) -> dict:
+    def to_json_dict(self) -> dict:
         d = asdict(self)
         d["stroke_mm"] = list(self.stroke_mm)
         d["needle_geometry"] = {s: self.geometry(s).to_dict() for s in ("supply", "drain")}
@@ -893,4 +893,4 @@ if __name__ == "__main__":  # pragma: no cover - manual use
     write_flowsteps(Path(a.out) / "flow", plan=plan, seed=a.seed, truth=truth)
     if not a.no_position:
         write_position(Path(a.out) / "position", seed=a.seed, truth=truth)
-    (Path(a.out) / "_foreign_truth.json").write_text(json.dumps(truth.to_json(), indent=1))
+    (Path(a.out) / "_foreign_truth.json").write_text(json.dumps(truth.to_json_dict(), indent=1))

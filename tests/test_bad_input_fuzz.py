@@ -595,4 +595,4 @@ def test_generated_run_json_is_data_error_or_valid(tmp_path_factory, doc):
         assert "\n" not in str(exc) and str(run_dir / "run.json") in str(exc), str(exc)
         return
     pd.Timestamp(meta.started_at)  # the summary's datetime64[ns] holds it
-    json.dumps(meta.to_json(), default=str)
+    json.dumps(meta.to_json_dict(), default=str)

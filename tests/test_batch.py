@@ -106,7 +106,7 @@ def test_serial_process_dask_identical(dataset, tmp_path, dask_cluster):
         assert [f.message for f in other.failed] == [f.message for f in serial.failed]
         assert other.stage_errors == serial.stage_errors
         if serial.flowfit is not None:
-            assert other.flowfit.to_json() == serial.flowfit.to_json()
+            assert other.flowfit.to_json_dict() == serial.flowfit.to_json_dict()
     assert serial.runs_read == 14
     assert serial.computed["ingest"] == 14 and dask.computed["ingest"] == 14
 
@@ -124,9 +124,9 @@ def test_simulated_paper_pipeline_identical_on_all_executors(golden_data, golden
     data = [golden_data / "flow", golden_data / "position"]
     keys = ("flowfit", "identify", "tracking", "validation", "validation_augmented", "discovery", "excluded",
             "stage_errors", "runs_read")
-    pool = run_pipeline(doc, data, out_dir=tmp_path / "p", workers=2, quiet=True).to_json()
+    pool = run_pipeline(doc, data, out_dir=tmp_path / "p", workers=2, quiet=True).to_json_dict()
     with Client(dask_cluster) as client:
-        dask = run_pipeline(doc, data, out_dir=tmp_path / "d", client=client, quiet=True).to_json()
+        dask = run_pipeline(doc, data, out_dir=tmp_path / "d", client=client, quiet=True).to_json_dict()
     assert serial["runs_read"] == 26 and pool["executor"].startswith("process pool (2")
     assert serial["stage_errors"] == {} and serial["flowfit"] is not None
     assert serial["validation"] is not None and serial["validation_augmented"] is not None

@@ -94,12 +94,12 @@ def test_heldout_runs_are_never_fitted():
     df2 = df.copy()
     df2.loc[df2.run_index.isin(held_runs), "q_mm3_s"] *= 3.0
     d2 = discover_flow_steps(df2, model=MODEL)
-    assert [e.to_json() for e in d2.effects] == [e.to_json() for e in d.effects]
+    assert [e.to_json_dict() for e in d2.effects] == [e.to_json_dict() for e in d.effects]
 
 
 def test_json_contract():
     d = discover_flow_steps(synth_summary(1, ("drift", "drain", 0.04)), model=MODEL)
-    j = d.to_json()
+    j = d.to_json_dict()
     assert set(j) >= {"verdict", "effects", "heldout", "trend_variable"}
     assert set(j["heldout"]) == {"n_runs", "rmse_before_mm3_s", "rmse_after_mm3_s"}
     e = j["effects"][0]

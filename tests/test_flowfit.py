@@ -150,7 +150,7 @@ def test_one_outlier_run_moves_c_less_than_3_percent(rig, paper_summary, side):
 # contract and errors --------------------------------------------------------------
 
 def test_json_contract(paper_fit):
-    doc = paper_fit.to_json()
+    doc = paper_fit.to_json_dict()
     assert list(doc) == ["supply", "drain", "excluded", "units"]
     for side in ("supply", "drain"):
         d = doc[side]
@@ -185,7 +185,7 @@ def test_singular_covariance_gives_null_intervals(rig, paper_summary, monkeypatc
         fit = fit_flow(paper_summary, rig, sides=("supply",), n_boot=50)
     sf = fit.sides["supply"]
     assert "covariance singular" in sf.message and math.isfinite(sf.z0_mm)
-    doc = fit.to_json()
+    doc = fit.to_json_dict()
     assert doc["supply"]["z0_ci95"] == [None, None] and doc["supply"]["C_ci95"] == [None, None]
     assert list(doc) == ["supply", "excluded", "units"]
     assert "covariance singular" in fit.report()
@@ -223,7 +223,7 @@ def test_one_side_missing_still_fits_the_other(rig, paper_summary):
         fit = fit_flow(s, rig, n_boot=0)
     assert fit.sides["supply"].success and not fit.sides["drain"].success
     assert not fit.success and "drain" in fit.message
-    assert fit.to_json()["drain"]["C"] is None
+    assert fit.to_json_dict()["drain"]["C"] is None
     assert fit.model.drain.z0_mm == ValveModel.from_rig(rig).drain.z0_mm  # rig's kept
 
 
@@ -235,7 +235,7 @@ def test_write_outputs_and_model_file_roundtrip(tmp_path, paper_fit):
     paths = flowfit_stage.write(paper_fit, tmp_path)
     names = {p.name for p in paths}
     assert {"flowfit.json", "model.toml", "model.json", "per_run.parquet"} <= names
-    assert json.loads((tmp_path / "flowfit.json").read_text()) == paper_fit.to_json()
+    assert json.loads((tmp_path / "flowfit.json").read_text()) == paper_fit.to_json_dict()
     for fname in ("model.toml", "model.json"):
         m = read_model(tmp_path / fname, rig=load_rig())
         for side in ("supply", "drain"):

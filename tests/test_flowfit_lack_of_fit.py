@@ -192,7 +192,7 @@ def test_two_step_procedure_same_verdicts(clean_summary, drift_summary):
 def test_json_contract_and_stage_files(drift_fit, clean_fit, tmp_path):
     from seanv_analysis.stages import flowfit as stage
 
-    doc = drift_fit.to_json()
+    doc = drift_fit.to_json_dict()
     for side, want in (("supply", False), ("drain", True)):
         d = doc[side]
         assert list(d)[-3:] == list(JSON_KEYS)

@@ -136,7 +136,7 @@ def test_default_truth_is_todays_rig():
     assert tr.flow_lag_s("flow_step") == tr.tau_flow_s == 0.15
     assert tr.flow_lag_s("position_control") == 0.0
     assert tr.position_lag_s() == tr.delay_s == 0.30
-    doc = tr.to_json()
+    doc = tr.to_json_dict()
     assert doc["needle_geometry"]["supply"]["needle_x_c_mm"] == -7.10
     assert doc["needle_geometry"]["drain"]["needle_y_c_mm"] == 20.0
     json.dumps(doc)
@@ -177,7 +177,7 @@ def test_own_rig_differs_from_default_toml_in_every_unpublished_constant():
     assert tr.flow_lag_s() == pytest.approx(0.12, abs=0.01)
     assert tr.position_lag_s() == pytest.approx(tr.servo_dead_s + tr.servo_tau_s
                                                 + tr.flow_lag_s())
-    doc = tr.to_json()
+    doc = tr.to_json_dict()
     assert doc["needle_geometry"]["supply"] == tr.geometry("supply").to_dict()
     assert doc["flow_lag_s"]["position_control"] == tr.flow_lag_s()
     assert own_rig(coulomb_n=50.0).coulomb_n == 50.0

@@ -67,7 +67,7 @@ def test_seeded_interval_is_reproducible():
     b = estimate_lag(t, target, actual, seed=7)
     assert a.ci95_s == b.ci95_s
     assert "bootstrap" in a.method and "seed 7" in a.method
-    assert a.to_json()["ci95_s"] == list(a.ci95_s)
+    assert a.to_json_dict()["ci95_s"] == list(a.ci95_s)
 
 
 def test_peak_at_edge_warns():

@@ -3,6 +3,7 @@
 ``seanv-analyze simulate paper-flowsteps-small``) and gives the truth."""
 from __future__ import annotations
 
+import json
 import re
 from pathlib import Path
 
@@ -73,3 +74,7 @@ def test_results_draw_on_the_callers_axes_and_render_as_tables(folder):
     assert len(ds.to_frame()) == 144
     with pytest.raises(ValueError, match="panel"):
         fit.plot(panel="c")
+    text = fit.to_json()
+    assert isinstance(text, str) and json.loads(text) == fit.to_json_dict()
+    assert json.loads(text)["supply"]["n_runs"] == fit.sides["supply"].n_runs
+    assert json.loads(ds.to_json())["runs_read"] == 144

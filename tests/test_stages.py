@@ -93,6 +93,6 @@ def test_stages_one_by_one_in_a_notebook(data):
     assert ds.runs_read == 4 and len(ds.kind("position_control")) == 2
     tr = tracking.run(ctx, {"shift_s": 0.05})
     same = run_stages(data, ["ingest", "tracking"], options={"tracking": {"shift_s": 0.05}})
-    assert tr.to_json() == same.result("tracking").to_json()
+    assert tr.to_json_dict() == same.result("tracking").to_json_dict()
     assert math.isfinite(tr.rmse_mm3_s)
     assert ctx.model is None and ctx.valve is not None  # no model given: the rig's where needed

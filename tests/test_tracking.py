@@ -102,7 +102,7 @@ def test_shift_025_is_the_papers_procedure_exactly(delayed_runs):
     assert tr.n_samples == n
     assert_allclose(tr.rmse_mm3_s, rmse, rtol=1e-9)
     assert_allclose(tr.bias_mm3_s, bias, rtol=1e-9)
-    doc = tr.to_json()
+    doc = tr.to_json_dict()
     assert list(doc) == ["lag_s", "lag_source", "lag_ci95_s", "rmse_mm3_s", "bias_mm3_s",
                          "range_mm3_s", "n_samples", "runs"]
     assert doc["range_mm3_s"] == [-2500.0, 8000.0] and doc["lag_ci95_s"] is None

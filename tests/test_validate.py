@@ -101,7 +101,7 @@ def test_identical_plant_fits_perfectly(measured, tmp_path):
     assert isinstance(v, Validation) and v.flagged == []
     assert_allclose(v.table.fit_position_pct, 100.0)
     assert list(v.table.controller) == ["flow_model", "cam"]
-    doc = json.loads(json.dumps(v.to_json()))
+    doc = json.loads(json.dumps(v.to_json_dict()))
     assert doc["flagged"] == [] and len(doc["runs"]) == 2
     assert set(doc["by_controller"]) == {"flow_model", "cam"}
     from seanv_analysis.stages import validate as validate_stage
@@ -170,6 +170,6 @@ def test_injected_effect_drops_fit_and_flags(sim_runs):
 
 def test_controller_model_choice(measured):
     v = validate_runs(measured[:1], simulate=_fake_simulator(measured), controller_model="plant")
-    assert v.to_json()["controller_model"] == "plant"
+    assert v.to_json_dict()["controller_model"] == "plant"
     with pytest.raises(ConfigError, match="controller_model"):
         validate_runs(measured[:1], simulate=_fake_simulator(measured), controller_model="x")

@@ -40,6 +40,7 @@ import numpy as np
 from scipy.signal import correlate
 
 from ..errors import DataError
+from ..jsonable import JsonResult
 
 __all__ = ["LagEstimate", "estimate_lag", "estimate_lag_segments", "DEFAULT_BLOCK_S",
            "DEFAULT_N_BOOT"]
@@ -56,7 +57,7 @@ _METHOD = ("masked cross-correlation pooled over block-detrended blocks, parabol
 
 
 @dataclass(frozen=True)
-class LagEstimate:
+class LagEstimate(JsonResult):
     """Delay of ``actual`` behind ``target``.
 
     Attributes
@@ -85,7 +86,7 @@ class LagEstimate:
     success: bool = True
     message: str = ""
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         """JSON-ready dict (without the correlation curve)."""
         return {"lag_s": _num(self.lag_s),
                 "ci95_s": None if self.ci95_s is None else [_num(v) for v in self.ci95_s],

@@ -33,6 +33,7 @@ import pandas as pd
 
 from ..errors import ConfigError, DataError
 from ..io.run import Run
+from ..jsonable import JsonResult
 from ..signals.derive import derive_samples
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments
 
@@ -240,7 +241,7 @@ class RunTracking:
 
 
 @dataclass
-class Tracking:
+class Tracking(JsonResult):
     """Flow tracking of a set of position_control runs (``tracking --json`` contract).
 
     Attributes
@@ -290,7 +291,7 @@ class Tracking:
         """One row per run (lag estimate, applied shift, RMSE, bias, per side)."""
         return pd.DataFrame([r.row() for r in self.runs])
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         """The ``tracking --json`` document (``runs[].lag_s`` = the run's own estimate)."""
         ci = self.lag_ci95_s
         return {"lag_s": _num(self.lag_s), "lag_source": self.lag_source,
@@ -302,12 +303,12 @@ class Tracking:
                           "rmse_mm3_s": _num(r.rmse_mm3_s)} for r in self.runs]}
 
     def details(self) -> dict[str, Any]:
-        """More than :meth:`to_json`: per side/load RMSE, lag estimates, skipped runs."""
-        return {**self.to_json(),
+        """More than :meth:`to_json_dict`: per side/load RMSE, lag estimates, skipped runs."""
+        return {**self.to_json_dict(),
                 "rmse_supply_mm3_s": _num(self.rmse_supply_mm3_s),
                 "rmse_drain_mm3_s": _num(self.rmse_drain_mm3_s),
                 "rmse_by_load_mm3_s": {f"{k:g}": _num(v) for k, v in self.rmse_by_load_mm3_s.items()},
-                "lag_estimate": None if self.lag is None else self.lag.to_json(),
+                "lag_estimate": None if self.lag is None else self.lag.to_json_dict(),
                 "runs_detail": [{k: (_num(v) if isinstance(v, float) else v)
                                  for k, v in r.row().items()} for r in self.runs],
                 "skipped": dict(self.skipped), "warnings": list(self.warnings),

@@ -33,6 +33,7 @@ import pandas as pd
 
 from ..errors import ConfigError, DataError
 from ..io.run import Run
+from ..jsonable import JsonResult
 from ..signals.derive import derive_samples
 from .tracking import load_level_holds
 
@@ -255,7 +256,7 @@ class RunValidation:
 
 
 @dataclass
-class Validation:
+class Validation(JsonResult):
     """Closed-loop validation of a data set.
 
     Attributes
@@ -306,7 +307,7 @@ class Validation:
                     parts.append(df.assign(run_id=r.run_id, source=source))
         return pd.concat(parts, ignore_index=True) if parts else pd.DataFrame()
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         """JSON document: threshold, flagged runs, per-run table, per-controller means."""
         def clean(v):
             if isinstance(v, (bool, np.bool_)):

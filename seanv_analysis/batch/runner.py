@@ -23,6 +23,7 @@ from .. import __version__
 from ..config import RigConfig
 from ..errors import ConfigError, DataError, SeanvError
 from ..io.atomic import atomic_folder, remove_stale_temps, retire_folder
+from ..jsonable import JsonResult
 from ..stages import STAGES, Context, FailedRun, RunOutcome
 from ..stages.pipeline import Pipeline, load_pipeline
 from .cache import CACHE_DIRNAME, RunCache, run_key
@@ -39,7 +40,7 @@ STAGE_FOLDERS = {"ingest": ".", "flowfit": "flowfit", "identify": "identify", "t
 
 
 @dataclass
-class PipelineResult:
+class PipelineResult(JsonResult):
     """Everything a pipeline run produced.
 
     Attributes
@@ -133,10 +134,10 @@ class PipelineResult:
             lines.append(f"report: {self.report_path}")
         return "\n".join(lines)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         """Numbers and paths as one JSON document (``result.json``)."""
         def j(obj):
-            return obj.to_json() if obj is not None else None
+            return obj.to_json_dict() if obj is not None else None
 
         return {
             "schema": "seanv-pipeline-result/1",
@@ -147,7 +148,7 @@ class PipelineResult:
             "executor": self.executor,
             "runs_found": self.runs_found,
             "runs_read": self.runs_read,
-            "failed": [f.to_json() for f in self.failed],
+            "failed": [f.to_json_dict() for f in self.failed],
             "excluded": self.excluded,
             "flowfit": j(self.flowfit),
             "identify": j(self.identify),
@@ -425,7 +426,7 @@ def _write_manifest(result: PipelineResult, ctx: Context, *, final: bool = False
     extra = {"pipeline": result.pipeline.to_dict(),
              "pipeline_file": str(result.pipeline.source) if result.pipeline.source else None,
              "executor": result.executor, "runs_found": result.runs_found,
-             "runs_read": result.runs_read, "failed": [f.to_json() for f in result.failed],
+             "runs_read": result.runs_read, "failed": [f.to_json_dict() for f in result.failed],
              "excluded": result.excluded, "model_source": ctx.model_source}
     result.manifest_path = write_manifest(result.out_dir, config=ctx.rig, inputs=result.input_hashes,
                                           command=result.command, extra=extra,
@@ -445,7 +446,7 @@ def _write_result(result: PipelineResult, ctx: Context, pipe: Pipeline, elapsed_
         result.outputs.append(path)
     _write_manifest(result, ctx, final=True)
     result.timings_s["total"] = elapsed_s
-    write_json_atomic(path, result.to_json())
+    write_json_atomic(path, result.to_json_dict())
 
 
 def _error_line(exc: BaseException) -> str:

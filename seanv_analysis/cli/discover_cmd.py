@@ -1,7 +1,6 @@
 """``seanv-analyze discover``: residual -> missing effect -> refit -> error before/after."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
@@ -100,7 +99,7 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
                                             "identify": identify_first,
                                             "model": str(model_file) if model_file else None})
     if as_json:
-        click.echo(json.dumps(result.to_json()))
+        click.echo(result.to_json())
     else:
         click.echo(result.report())
         if result.note:

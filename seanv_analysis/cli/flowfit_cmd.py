@@ -2,7 +2,6 @@
 with 95 % intervals; write the model file, tables and Fig. 4."""
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 
@@ -117,7 +116,7 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
         "data": str(data), "side": side, "method": method, **options,
         "outputs": [str(p) for p in [*paths, *drawn.all_paths()]]}})
     if as_json:
-        click.echo(json.dumps(fit.to_json()))
+        click.echo(fit.to_json())
     else:
         click.echo(fit.report())
         click.echo(f"outputs: {out}")

@@ -1,7 +1,6 @@
 """``seanv-analyze identify``: the rig's unpublished constants from its own logs."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import click
@@ -90,7 +89,7 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
     write_command_manifest(out, ctx, outputs=written, extra={"parts": list(parts) or list(_PARTS),
                                             "n_boot": n_boot})
     if as_json:
-        click.echo(json.dumps(result.to_json()))
+        click.echo(result.to_json())
     else:
         click.echo(result.report())
         click.echo(f"outputs: {out}  (use --rig {out / 'rig-identified.toml'})")

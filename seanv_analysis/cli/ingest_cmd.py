@@ -134,7 +134,7 @@ def _result(root, out_dir, by_kind, errors, tables, summary_path, *, excluded):
         "out": str(out_dir),
         "runs": sum(by_kind.values()),
         "runs_by_kind": by_kind,
-        "bad_runs": [e.to_json() for e in errors],
+        "bad_runs": [e.to_json_dict() for e in errors],
         "tables": tables,
         "summary": None if summary_path is None else str(summary_path),
         "excluded": excluded,

@@ -1,7 +1,6 @@
 """``seanv-analyze run``: run a pipeline (``pipelines/*.toml``) on a data set."""
 from __future__ import annotations
 
-import json
 import os
 import sys
 from pathlib import Path
@@ -105,7 +104,7 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
     except DataError as exc:  # no run could be read: say which runs were bad and why
         return unusable(data, bad_runs(datas, rig_file, exc), exc)
     if as_json:
-        click.echo(json.dumps(result.to_json(), default=str))
+        click.echo(result.to_json())
         text = result.summary_text()
         if result.failed or result.stage_errors:
             click.echo(text, err=True)

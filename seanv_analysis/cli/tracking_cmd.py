@@ -1,7 +1,6 @@
 """``seanv-analyze tracking``: flow delay, delay compensation, RMSE, Fig. 6/7."""
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 
@@ -89,7 +88,7 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
     write_command_manifest(out, ctx, outputs=written, extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
                                             "model": str(model_file) if model_file else None})
     if as_json:
-        click.echo(json.dumps(result.to_json()))
+        click.echo(result.to_json())
     else:
         click.echo(result.report())
         click.echo(f"outputs: {out}")

@@ -2,7 +2,6 @@
 the simulated plant with the identified valve model and compare."""
 from __future__ import annotations
 
-import json
 import warnings
 from pathlib import Path
 
@@ -98,7 +97,7 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
                                             "threshold_pct": threshold_pct,
                                             "controller_model": controller_model})
     if as_json:
-        click.echo(json.dumps(result.to_json()))
+        click.echo(result.to_json())
     else:
         click.echo(result.report())
         click.echo(f"outputs: {out}")

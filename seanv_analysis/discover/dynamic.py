@@ -51,7 +51,7 @@ class DelayDiscovery:
     rmse_after_mm3_s: float
     message: str = ""
 
-    def to_json(self) -> dict:
+    def to_json_dict(self) -> dict:
         return {"n_runs": self.n_runs, "nominal_lag_s": self.nominal_lag_s,
                 "lag_s": _f(self.lag_s),
                 "lag_ci95_s": None if self.lag_ci95_s is None else [_f(v) for v in self.lag_ci95_s],

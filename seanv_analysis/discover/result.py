@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
+from ..jsonable import JsonResult
 from ..models import ValveModel
 from ..models import effects as fx
 
@@ -60,7 +61,7 @@ class EffectFinding:
         """The test behind the finding with its p-values."""
         return self.evidence.format(p_value=self.p_value, f_p_value=self.f_p_value)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {"name": self.name, "side": self.side,
                 "params": {k: _num(v) for k, v in self.params.items()},
                 "params_ci95": {k: [_num(a), _num(b)] for k, (a, b) in self.params_ci95.items()},
@@ -76,7 +77,7 @@ def _num(v):
 
 
 @dataclass(frozen=True)
-class Discovery:
+class Discovery(JsonResult):
     """What discovery found and how much it helps on held-out runs.
 
     Frozen: :meth:`with_closed_loop` (and ``dataclasses.replace``) return a
@@ -121,10 +122,10 @@ class Discovery:
             return 0.0
         return 1.0 - self.rmse_after_mm3_s / self.rmse_before_mm3_s
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         """The stable JSON contract of ``seanv-analyze discover --json``."""
         out = {"verdict": self.verdict,
-               "effects": [e.to_json() for e in self.effects],
+               "effects": [e.to_json_dict() for e in self.effects],
                "heldout": {"n_runs": int(self.n_heldout_runs),
                            "rmse_before_mm3_s": _num(self.rmse_before_mm3_s),
                            "rmse_after_mm3_s": _num(self.rmse_after_mm3_s)},
@@ -142,7 +143,7 @@ class Discovery:
     def augmented_model_dict(self) -> dict[str, Any]:
         """Model file content: the refitted valve plus the effects found."""
         d = self.model.to_dict()
-        d["effects"] = [e.to_json() for e in self.effects]
+        d["effects"] = [e.to_json_dict() for e in self.effects]
         return d
 
     def with_closed_loop(self, before: dict | None, after: dict | None) -> "Discovery":

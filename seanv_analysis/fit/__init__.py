@@ -2,7 +2,7 @@
 
 - :func:`fit_flow` (per-run summary -> :class:`FlowFit`) and
 - :class:`FlowFit`, :class:`SideFit`: parameters, 95 % intervals, per-run
-  and per-load tables, ``.report()``, ``.to_json()`` (files are written by
+  and per-load tables, ``.report()``, ``.to_json_dict()`` (files are written by
   :mod:`seanv_analysis.stages.flowfit`).
 """
 from .flowfit import PROCEDURES, UNITS, FlowFit, SideFit, fit_flow

@@ -71,6 +71,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ConfigError, DataError, FitError
+from ..jsonable import JsonResult, json_num
 from ..models import SIDES, ValveModel, signed_power
 from ..models.valve import MIN_DP_MPA
 from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
@@ -115,10 +116,6 @@ _PER_RUN_COLUMNS = ("run_id", "side", "run_index", "load_mpag", "load_level_mpag
 
 def _nan_ci() -> tuple[float, float]:
     return (math.nan, math.nan)
-
-
-def _json_num(x: float) -> float | None:
-    return float(x) if x is not None and math.isfinite(float(x)) else None
 
 
 @dataclass
@@ -173,21 +170,21 @@ class SideFit:
     lack_of_fit_p: float = math.nan
     lack_of_fit_detail: dict = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         """The ``--json`` contract for one side (NaN -> null)."""
-        return {"z0_mm": _json_num(self.z0_mm), "C": _json_num(self.c_flow),
-                "z0_ci95": [_json_num(v) for v in self.z0_ci95],
-                "C_ci95": [_json_num(v) for v in self.c_ci95],
-                "rmse_mm3_s": _json_num(self.rmse_mm3_s), "n_runs": int(self.n_runs),
+        return {"z0_mm": json_num(self.z0_mm), "C": json_num(self.c_flow),
+                "z0_ci95": [json_num(v) for v in self.z0_ci95],
+                "C_ci95": [json_num(v) for v in self.c_ci95],
+                "rmse_mm3_s": json_num(self.rmse_mm3_s), "n_runs": int(self.n_runs),
                 "lack_of_fit": None if self.lack_of_fit is None else bool(self.lack_of_fit),
-                "lack_of_fit_ratio": _json_num(self.lack_of_fit_ratio),
-                "lack_of_fit_p": _json_num(self.lack_of_fit_p)}
+                "lack_of_fit_ratio": json_num(self.lack_of_fit_ratio),
+                "lack_of_fit_p": json_num(self.lack_of_fit_p)}
 
     def to_dict(self) -> dict[str, Any]:
         """Everything (JSON-ready)."""
-        d = self.to_json()
-        d.update(z0_ci95_stat=[_json_num(v) for v in self.z0_ci95_stat],
-                 C_ci95_stat=[_json_num(v) for v in self.c_ci95_stat])
+        d = self.to_json_dict()
+        d.update(z0_ci95_stat=[json_num(v) for v in self.z0_ci95_stat],
+                 C_ci95_stat=[json_num(v) for v in self.c_ci95_stat])
         d.update(side=self.side, procedure=self.procedure, success=self.success,
                  message=self.message, ci_method=self.ci_method, n_boot_ok=self.n_boot_ok,
                  noise=self.noise, joint=_clean(self.joint), two_step=_clean(self.two_step),
@@ -237,11 +234,11 @@ def _lack_of_fit_sentence(lof: LackOfFit) -> str:
 
 
 def _clean(d: dict) -> dict:
-    return {k: (_json_num(v) if isinstance(v, float) else v) for k, v in d.items()}
+    return {k: (json_num(v) if isinstance(v, float) else v) for k, v in d.items()}
 
 
 @dataclass
-class FlowFit:
+class FlowFit(JsonResult):
     """Result of :func:`fit_flow`: per-side parameters with 95 % intervals,
     the fitted :class:`~seanv_analysis.models.ValveModel`, per-run and
     per-load tables.
@@ -276,9 +273,9 @@ class FlowFit:
     warnings: list[str] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         """The stable JSON contract of ``flowfit --json``."""
-        out: dict[str, Any] = {s: f.to_json() for s, f in self.sides.items()}
+        out: dict[str, Any] = {s: f.to_json_dict() for s, f in self.sides.items()}
         out["excluded"] = {k: int(v) for k, v in self.excluded.items()}
         out["units"] = dict(UNITS)
         return out
@@ -314,7 +311,7 @@ class FlowFit:
     def to_dict(self) -> dict[str, Any]:
         """Full result (sides with both procedures, settings, warnings)."""
         return {"sides": {s: f.to_dict() for s, f in self.sides.items()},
-                "excluded": self.to_json()["excluded"], "units": dict(UNITS),
+                "excluded": self.to_json_dict()["excluded"], "units": dict(UNITS),
                 "success": self.success, "message": self.message, "warnings": self.warnings,
                 "settings": self.settings,
                 "per_load": json.loads(self.per_load.to_json(orient="records"))}
@@ -696,8 +693,8 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
     fitted = type(fitted)(fitted.supply, fitted.drain, fitted.cam_min_deg, fitted.cam_max_deg,
                           {**fitted.extras, "flowfit": {
                               "procedure": procedure, "sides": list(sides),
-                              "ci95": {s: {"z0_mm": [_json_num(v) for v in r.z0_ci95],
-                                           "c_flow": [_json_num(v) for v in r.c_ci95]}
+                              "ci95": {s: {"z0_mm": [json_num(v) for v in r.z0_ci95],
+                                           "c_flow": [json_num(v) for v in r.c_ci95]}
                                        for s, r in results.items()}}})
     per_run = (pd.concat(per_runs, ignore_index=True) if per_runs
                else pd.DataFrame(columns=list(_PER_RUN_COLUMNS)))

@@ -93,7 +93,7 @@ class DynamicFinding:
         """Drop of the held-out open-loop replay flow RMSE (what decides)."""
         return _drop(self.replay_before, self.replay_after)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {"name": self.name, "param": self.param, "value": self.value,
                 "ci95": list(self.ci95), "p_value": self.p_value, "named": self.named,
                 "bulk_mpa_with_effect": self.bulk_mpa,

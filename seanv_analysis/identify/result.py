@@ -12,16 +12,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..jsonable import JsonResult, json_num
+
 __all__ = ["Constant", "Identification", "json_num", "nest_constants"]
-
-
-def json_num(x: Any) -> float | None:
-    """A finite float, or None (JSON null) for NaN/inf/None."""
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
 
 
 @dataclass
@@ -54,7 +47,7 @@ class Constant:
     note: str = ""
     confounded_with: tuple[str, ...] = ()
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {"key": self.key, "value": json_num(self.value),
                 "ci95": [json_num(v) for v in self.ci95], "default": json_num(self.default),
                 "unit": self.unit, "identified": bool(self.identified),
@@ -91,7 +84,7 @@ def nest_constants(constants) -> dict[str, Any]:
 
 
 @dataclass
-class Identification:
+class Identification(JsonResult):
     """Result of :func:`seanv_analysis.identify.identify_rig`.
 
     Attributes
@@ -119,9 +112,9 @@ class Identification:
         """Nested {section: {key: value}} of the identified constants (rig-file schema)."""
         return nest_constants(self.constants)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {"schema": "seanv-identify/1",
-                "constants": [c.to_json() for c in self.constants],
+                "constants": [c.to_json_dict() for c in self.constants],
                 "identified_keys": [c.key for c in self.identified()],
                 "not_separable": [{"key": c.key, "from": list(c.confounded_with),
                                    "note": c.note} for c in self.constants

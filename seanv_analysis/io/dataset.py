@@ -31,7 +31,7 @@ class RunError:
     def __str__(self) -> str:
         return self.message
 
-    def to_json(self) -> dict[str, str]:
+    def to_json_dict(self) -> dict[str, str]:
         return {"path": str(self.path), "message": self.message}
 
 

@@ -55,7 +55,7 @@ class RunMeta:
     rig_overrides: dict[str, Any] = field(default_factory=dict)
     extra: dict[str, Any] = field(default_factory=dict)
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         """run.json content (data contract ``seanv-run/1``)."""
         started = self.started_at
         text = started.isoformat().replace("+00:00", "Z") if hasattr(started, "isoformat") else str(started)

@@ -278,7 +278,7 @@ class Effect:
         """Parameter values by name."""
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {"name": self.name, **self.params()}
 
     def spec(self) -> str:

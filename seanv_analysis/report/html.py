@@ -19,7 +19,7 @@ the file can be mailed or archived as is. Sections:
 8. provenance: version, git SHA, command line, pipeline, rig config, input
    file hashes, executor, timings.
 
-The report only formats results (``.to_json()``, tables) and the figure files
+The report only formats results (``.to_json_dict()``, tables) and the figure files
 already written; it computes nothing.
 """
 from __future__ import annotations
@@ -444,7 +444,7 @@ def _runs(r) -> str:
                                 max_rows=5000) + "</details>")
     if r.failed:
         out.append(f"<h3 class='bad'>Failed runs ({len(r.failed)})</h3>")
-        df = pd.DataFrame([f.to_json() for f in r.failed])
+        df = pd.DataFrame([f.to_json_dict() for f in r.failed])
         out.append(_table(df, left=("path", "stage", "message")))
     else:
         out.append("<p class='ok'>No run failed.</p>")
@@ -511,7 +511,7 @@ def render_report(result: Any) -> str:
           ``data`` (input folders), ``executor``, ``command`` (list of str),
           ``rig`` (rig config: ``rig["valve"][side]["z0_mm"]``, ``.to_dict()``)
         - ``runs_found``, ``runs_read``, ``summary`` (per-run DataFrame),
-          ``excluded`` ({reason: count}), ``failed`` (objects with ``.to_json()``)
+          ``excluded`` ({reason: count}), ``failed`` (objects with ``.to_json_dict()``)
         - ``flowfit``, ``identify`` (optional attribute), ``tracking``, ``validation``,
           ``validation_augmented``, ``discovery``: stage results, None when the
           stage did not run

@@ -258,7 +258,7 @@ class FlowModelController(_PController):
         """run.json ``controller`` object (data contract)."""
         return {"kp": self.kp_mm3_s_per_mm, "flow_model": True, "rate_hz": self.rate_hz}
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {**self.run_json(), "hold_below_threshold_deg": self.hold_below_threshold_deg,
                 "convergence_band_mm": self.convergence_band_mm,
                 "release_band_mm": self.release_band_mm,
@@ -321,7 +321,7 @@ class CamController(_PController):
         """run.json ``controller`` object (data contract)."""
         return {"kp": self.kp_deg_per_mm, "flow_model": False, "rate_hz": self.rate_hz}
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {**self.run_json(), "neutral_deg": self.neutral_deg,
                 "convergence_band_mm": self.convergence_band_mm,
                 "release_band_mm": self.release_band_mm,

@@ -176,5 +176,5 @@ class Plant:
 
     def truth(self) -> dict[str, Any]:
         """Everything the plant is made of (for ``_truth.json``)."""
-        return {"valve": self.valve.to_dict(), "effects": [e.to_json() for e in self.effects],
+        return {"valve": self.valve.to_dict(), "effects": [e.to_json_dict() for e in self.effects],
                 "rig": self.rig.to_dict(), "tube": tube_constants(self.rig)}

@@ -193,7 +193,7 @@ def simulate_scenario(name: str, out_dir: str | Path, *, seed: int = 0,
     ids = []
     total = scenario_size(name)
     for run in iter_scenario_runs(name, seed=seed, plant=plant):
-        write_run(out / run.run_id, run.meta.to_json(), run.tables, fmt=fmt)
+        write_run(out / run.run_id, run.meta.to_json_dict(), run.tables, fmt=fmt)
         ids.append(run.run_id)
         if progress:
             progress(len(ids), total)

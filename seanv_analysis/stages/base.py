@@ -43,7 +43,7 @@ class FailedRun:
     stage: str
     message: str
 
-    def to_json(self) -> dict[str, str]:
+    def to_json_dict(self) -> dict[str, str]:
         return {"path": self.path, "stage": self.stage, "message": self.message}
 
 

@@ -20,6 +20,7 @@ from typing import Any, Mapping
 import pandas as pd
 
 from ..errors import DataError
+from ..jsonable import JsonResult
 from .base import Context, FailedRun, with_path
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DatasetResult", "check_option", "run", "collect",
@@ -42,7 +43,7 @@ def check_option(key: str, value: Any) -> Any:
 
 
 @dataclass(frozen=True)
-class DatasetResult:
+class DatasetResult(JsonResult):
     """The per-run summary of a data set and what could not be read.
 
     Attributes
@@ -119,9 +120,9 @@ class DatasetResult:
         return (f"runs: {self.runs_found} found, {self.runs_read} read" + (f" ({k})" if k else "")
                 + f", {len(self.failed)} failed\nexcluded from the flow fit: {ex}")
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {"runs_found": self.runs_found, "runs_read": self.runs_read,
-                "excluded": dict(self.excluded), "failed": [f.to_json() for f in self.failed]}
+                "excluded": dict(self.excluded), "failed": [f.to_json_dict() for f in self.failed]}
 
 
 def summarize(run, *, method: str) -> dict[str, Any]:

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from ..errors import FitError, SeanvError
+from ..jsonable import JsonResult
 from .base import Context, FailedRun, one_line
 from .dataset import position_runs
 from .validate import controller_numbers, position_paths, validate_model
@@ -49,7 +50,7 @@ def check_option(key: str, value: Any) -> Any:
 
 
 @dataclass(frozen=True)
-class DiscoverResult:
+class DiscoverResult(JsonResult):
     """The discovery, and when it ran, the closed-loop check: the validation
     of the position-control runs with the base model (``before``) and with
     the augmented one (``after``); ``note`` says why the check did not run."""
@@ -63,8 +64,8 @@ class DiscoverResult:
     def report(self) -> str:
         return self.discovery.report()
 
-    def to_json(self) -> dict[str, Any]:
-        return self.discovery.to_json()
+    def to_json_dict(self) -> dict[str, Any]:
+        return self.discovery.to_json_dict()
 
 
 def _usable_flow_steps(summary) -> int:
@@ -113,7 +114,7 @@ def discover_runs(runs, summary, *, rig, model=None, holdout: str = "chrono",
                        f">= {MIN_FLOW_RUNS}) and no position_control run with q_ref_mm3_s")
     if delay is None:
         return result
-    change: dict[str, Any] = {"position_control": {**delay.to_json(), "message": delay.message}}
+    change: dict[str, Any] = {"position_control": {**delay.to_json_dict(), "message": delay.message}}
     if delay.finding is not None:
         change["effects"] = [*result.effects, delay.finding]
         if result.verdict != "effect_found":
@@ -155,7 +156,7 @@ def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
                    "command (open loop), checked on held-out runs replayed and re-run in "
                    "closed loop"),
         "n_runs": len(position), "n_heldout_runs": len(held), "found": bool(named),
-        "message": msg or "no candidate", "candidates": [f.to_json() for f in findings],
+        "message": msg or "no candidate", "candidates": [f.to_json_dict() for f in findings],
         "heldout_twin": base_held}}
     for f in named:
         change["effects"] = [*result.effects, EffectFinding(
@@ -232,7 +233,7 @@ def write(result: DiscoverResult, folder: Path) -> list[Path]:
 
     out = Path(folder)
     disc = result.discovery
-    paths = [write_json_atomic(out / "discover.json", disc.to_json()),
+    paths = [write_json_atomic(out / "discover.json", disc.to_json_dict()),
              write_json_atomic(out / "model_augmented.json", disc.augmented_model_dict()),
              write_text_atomic(out / "discover.txt", disc.report() + "\n")]
     if result.after is not None:

@@ -55,7 +55,7 @@ class FiguresResult:
     def all_paths(self) -> list[Path]:
         return [p for ps in self.paths.values() for p in ps]
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {"figures": {k: [str(p) for p in v] for k, v in self.paths.items()},
                 "problems": list(self.problems)}
 

@@ -76,7 +76,7 @@ def write(fit, folder: Path) -> list[Path]:
     out = Path(folder)
     model_dict = fit.model.to_dict()
     return [
-        write_json_atomic(out / "flowfit.json", fit.to_json()),
+        write_json_atomic(out / "flowfit.json", fit.to_json_dict()),
         write_json_atomic(out / "flowfit_details.json", fit.to_dict()),
         write_json_atomic(out / "model.json", model_dict),
         write_model_toml(out / "model.toml", fit.model,

@@ -89,5 +89,5 @@ def write(result, folder: Path) -> list[Path]:
 
     out = Path(folder)
     return [write_text_atomic(out / "rig-identified.toml", rig_toml(result)),
-            write_json_atomic(out / "identify.json", result.to_json()),
+            write_json_atomic(out / "identify.json", result.to_json_dict()),
             write_text_atomic(out / "identify.txt", result.report() + "\n")]

@@ -43,7 +43,7 @@ class ReportResult:
     record: Any
     filename: str = "report.html"
 
-    def to_json(self) -> dict[str, Any]:
+    def to_json_dict(self) -> dict[str, Any]:
         return {"filename": self.filename}
 
 

@@ -67,7 +67,7 @@ def write(result, folder: Path) -> list[Path]:
     from ..io import write_json_atomic, write_table_parquet, write_text_atomic
 
     out = Path(folder)
-    paths = [write_json_atomic(out / "tracking.json", result.to_json()),
+    paths = [write_json_atomic(out / "tracking.json", result.to_json_dict()),
              write_json_atomic(out / "tracking_details.json", result.details()),
              write_text_atomic(out / "tracking.txt", result.report() + "\n")]
     if result.runs:

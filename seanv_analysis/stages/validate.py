@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from ..errors import DataError
+from ..jsonable import JsonResult
 from .base import Context, FailedRun, one_line, with_path
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "ValidateResult", "check_option", "run", "write",
@@ -44,7 +45,7 @@ def check_option(key: str, value: Any) -> Any:
 
 
 @dataclass(frozen=True)
-class ValidateResult:
+class ValidateResult(JsonResult):
     """The validation of the position-control runs and the runs that failed."""
 
     validation: Any
@@ -53,8 +54,8 @@ class ValidateResult:
     def report(self) -> str:
         return self.validation.report()
 
-    def to_json(self) -> dict[str, Any]:
-        return self.validation.to_json()
+    def to_json_dict(self) -> dict[str, Any]:
+        return self.validation.to_json_dict()
 
 
 def validate_one(run, *, rig, model: Mapping[str, Any], effects: Sequence[str], seed: int,
@@ -160,7 +161,7 @@ def write(result: ValidateResult, folder: Path) -> list[Path]:
 
     validation = result.validation
     out = Path(folder)
-    paths = [write_json_atomic(out / "validate.json", validation.to_json()),
+    paths = [write_json_atomic(out / "validate.json", validation.to_json_dict()),
              write_text_atomic(out / "validate.txt", validation.report() + "\n")]
     if not validation.table.empty:
         paths.append(write_table_parquet(validation.table, out / "validate_table.parquet"))
@@ -178,6 +179,6 @@ def controller_numbers(validation) -> dict[str, dict[str, Any]] | None:
     rmse_position_mm, fit_flow_pct, rmse_flow_mm3_s}}."""
     if validation is None:
         return None
-    doc = validation.to_json()
+    doc = validation.to_json_dict()
     keys = ("fit_position_pct", "rmse_position_mm", "fit_flow_pct", "rmse_flow_mm3_s")
     return {c: {k: row.get(k) for k in keys} for c, row in doc["by_controller"].items()}
