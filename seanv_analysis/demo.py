@@ -110,10 +110,10 @@ def headline(result: dict, rig=None) -> str:
         if not f:
             continue
         ps = paper.side(side)
-        rows.append((f"{side} z0 [mm]", f"{f['z0_mm']:+.4f} {_ci(f.get('z0_ci95'), '+.4f')}",
+        rows.append((f"{side} z0 [mm]", f"{f['z0_mm']:+.4f} {_ci(f.get('z0_ci95_mm'), '+.4f')}",
                      f"{ps.z0_mm:+.3f}"))
         rows.append((f"{side} C [mm^3/(s deg^2 MPa^0.5)]",
-                     f"{f['C']:+.3f} {_ci(f.get('C_ci95'), '+.3f')}", f"{ps.c_flow:+.3f}"))
+                     f"{f['C_mm3_s_deg2_sqrtMPa']:+.3f} {_ci(f.get('C_ci95_mm3_s_deg2_sqrtMPa'), '+.3f')}", f"{ps.c_flow:+.3f}"))
     tr = result.get("tracking") or {}
     if tr.get("lag_s") is not None:
         rows.append(("flow delay behind Q_ref [s]",

@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 from conftest import write_synthetic_run
+from json_schemas import check_schema, keys_without_unit
 
 from seanv_analysis.cli import cli
 from seanv_analysis.config import load_rig
@@ -54,26 +55,33 @@ def test_json_outputs_and_manifest(dataset, tmp_path):
     res = invoke(dataset, "--out", out, "--json", "--n-boot", 30, "--cam", "commanded")
     assert res.exit_code == 0, res.output + res.stderr
     doc = json.loads(res.stdout)
-    assert list(doc) == ["supply", "drain", "excluded", "units"]
+    assert list(doc) == ["supply", "drain", "excluded", "units", "inputs"]
+    check_schema("flowfit", doc)  # data_schema/json/flowfit.schema.json
+    assert keys_without_unit(doc) == []
     truth = ValveModel.from_rig(load_rig())
     for side in ("supply", "drain"):
         assert abs(doc[side]["z0_mm"] - truth.side(side).z0_mm) < 0.01
-        assert doc[side]["C"] == pytest.approx(truth.side(side).c_flow, rel=0.03)
+        assert doc[side]["C_mm3_s_deg2_sqrtMPa"] == pytest.approx(truth.side(side).c_flow, rel=0.03)
     import pandas as pd
     per_run = pd.read_parquet(out / "per_run.parquet")
     for side in ("supply", "drain"):
         assert doc[side]["n_runs"] == int(per_run["used"][per_run["side"] == side].sum())
     assert doc["excluded"]["leakage"] == 4
     assert sum(doc["excluded"].values()) == int((~per_run["used"]).sum())
+    # every run kept out is listed with the filter's reason
+    skipped = {s["run_id"]: s["reason"] for s in doc["inputs"]["skipped"]}
+    assert set(skipped) == set(per_run.run_id[~per_run["used"]])
+    assert sum(r.startswith("leakage") for r in skipped.values()) == 4
     for name in ("flowfit.json", "model.toml", "model.json", "per_run.parquet",
                  "fig4.png", "fig4.svg", "manifest.json"):
         assert (out / name).is_file(), name
-    assert json.loads((out / "flowfit.json").read_text()) == doc
+    assert json.loads((out / "flowfit.json").read_text()) == {k: v for k, v in doc.items()
+                                                               if k != "inputs"}
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["extra"]["flowfit"]["side"] == "both"
     assert len(manifest["inputs"]) >= 4 * 2 * sum(map(len, CAMS.values()))
     m = read_model(out / "model.toml", rig=load_rig())
-    assert m.supply.c_flow == pytest.approx(doc["supply"]["C"])
+    assert m.supply.c_flow == pytest.approx(doc["supply"]["C_mm3_s_deg2_sqrtMPa"])
 
 
 def test_report_and_one_side(dataset, tmp_path):
@@ -99,6 +107,9 @@ def test_bad_run_exit_1_results_still_written(dataset, tmp_path):
     assert "1 bad run(s) skipped" in res.stderr and "supply-l0.3-c0.0" in res.stderr
     doc = json.loads(res.stdout)
     assert doc["supply"]["n_runs"] == clean["supply"]["n_runs"] - 1
+    (failed,) = doc["inputs"]["failed"]  # the bad run, with why
+    assert "supply-l0.3-c0.0" in failed["path"] and "encoder" in failed["message"]
+    assert doc["inputs"]["runs_read"] == clean["inputs"]["runs_read"] - 1
     assert (out / "flowfit.json").is_file() and (out / "fig4.png").is_file()
 
 
@@ -129,4 +140,4 @@ def test_subprocess_end_to_end(dataset, tmp_path):
                            "--out", str(tmp_path), "--json", "--n-boot", "0"],
                           capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert json.loads(proc.stdout)["drain"]["C"] < 0
+    assert json.loads(proc.stdout)["drain"]["C_mm3_s_deg2_sqrtMPa"] < 0

@@ -13,6 +13,7 @@ import pyarrow.parquet as pq
 import pytest
 from click.testing import CliRunner
 from conftest import snapshot
+from json_schemas import check_schema, keys_without_unit
 from test_io_bad_input import CASES
 
 from seanv_analysis.cli import cli
@@ -53,6 +54,9 @@ def test_dataset_writes_tables_summary_manifest(tmp_path, make_dataset):
     doc = json.loads(result.stdout)
     assert doc["runs"] == 6 and doc["runs_by_kind"] == {"flow_step": 4, "position_control": 2}
     assert doc["bad_runs"] == []
+    assert doc["inputs"] == {"runs_found": 6, "runs_read": 6, "failed": [], "skipped": []}
+    check_schema("ingest", doc)  # data_schema/json/ingest.schema.json
+    assert keys_without_unit(doc) == []
     assert snapshot(data) == before
     assert sorted(p.name for p in out.iterdir()) == ["flow_step.parquet", "manifest.json",
                                                      "position_control.parquet", "summary.parquet"]

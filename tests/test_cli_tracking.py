@@ -7,6 +7,7 @@ import sys
 
 import pytest
 from click.testing import CliRunner
+from json_schemas import check_schema, keys_without_unit
 from numpy.testing import assert_allclose
 from test_tracking import write_delayed_run
 
@@ -36,7 +37,9 @@ def test_tracking_json_shift(dataset, tmp_path):
     assert doc["n_samples"] == expected.n_samples
     assert [r["run_id"] for r in doc["runs"]] == ["pos0", "pos1"]
     assert (out / "tracking.json").exists() and (out / "manifest.json").exists()
+    inputs = doc.pop("inputs")  # --json adds the inputs block to tracking.json
     assert json.loads((out / "tracking.json").read_text()) == doc
+    assert (inputs["runs_found"], inputs["runs_read"], inputs["failed"]) == (2, 2, [])
 
 
 def test_tracking_estimated_and_range(dataset, tmp_path):
@@ -85,6 +88,8 @@ def test_validate_json_same_plant_and_injected_delay(sim_sets, tmp_path):
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
     assert doc["flagged"] == [] and len(doc["runs"]) == 2
+    check_schema("validate", doc)  # data_schema/json/validate.schema.json
+    assert keys_without_unit(doc) == []
     assert all(r["fit_position_pct"] > 90 for r in doc["runs"])
     assert {r["controller"] for r in doc["runs"]} == {"flow_model", "cam"}
     assert (tmp_path / "v1" / "manifest.json").exists()
@@ -109,6 +114,10 @@ def test_tracking_on_simulated_paper_position(sim_sets, tmp_path):
     # the run without flow model has no q_ref: skipped (no --model), listed in the details
     details = json.loads((tmp_path / "t" / "tracking_details.json").read_text())
     assert list(details["skipped"]) == ["position-without-flow-model"]
+    (skipped,) = doc["inputs"]["skipped"]  # and in --json, with why
+    assert skipped["run_id"] == "position-without-flow-model" and skipped["reason"]
+    check_schema("tracking", doc)  # data_schema/json/tracking.schema.json
+    assert keys_without_unit(doc) == []
     # Fig. 6 shows both runs ((a) without, (b) with the flow model), Fig. 7 the tracked one
     for name in ("fig6.png", "fig6.svg", "fig7.png", "fig7.svg",
                  "fig6_position-without-flow-model.png", "fig7_position-with-flow-model.svg"):

@@ -103,7 +103,8 @@ def test_json_contract():
     assert set(j) >= {"verdict", "effects", "heldout", "trend_variable"}
     assert set(j["heldout"]) == {"n_runs", "rmse_before_mm3_s", "rmse_after_mm3_s"}
     e = j["effects"][0]
-    assert set(e) == {"name", "side", "params", "params_ci95", "p_value"}
+    assert set(e) == {"name", "side", "params", "params_ci95", "params_units", "p_value"}
+    assert e["params_units"] == {"step": "-", "every": "runs", "offset": "runs"}
     assert e["name"] == "drift" and e["side"] == "drain" and 0 < e["p_value"] <= 0.05
 
 

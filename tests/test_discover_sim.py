@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from json_schemas import check_schema, keys_without_unit
 
 from seanv_analysis import load_rig
 from seanv_analysis.sim.scenarios import iter_scenario_runs
@@ -137,6 +138,8 @@ def test_discover_cli_on_position_only_data(tmp_path):
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
     assert [e["name"] for e in doc["effects"]] == ["delay"]
+    check_schema("discover", doc)  # data_schema/json/discover.schema.json
+    assert keys_without_unit(doc) == []
     assert doc["heldout_source"] == "closed_loop"
     assert doc["heldout"]["rmse_after_mm3_s"] <= 0.7 * doc["heldout"]["rmse_before_mm3_s"]
     assert (tmp_path / "out" / "discover.json").exists()

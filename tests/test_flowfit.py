@@ -150,20 +150,22 @@ def test_one_outlier_run_moves_c_less_than_3_percent(rig, paper_summary, side):
 # contract and errors --------------------------------------------------------------
 
 def test_json_contract(paper_fit):
+    C = "C_mm3_s_deg2_sqrtMPa"  # the unit in the key
     doc = paper_fit.to_json_dict()
     assert list(doc) == ["supply", "drain", "excluded", "units"]
     for side in ("supply", "drain"):
         d = doc[side]
-        assert list(d) == ["z0_mm", "C", "z0_ci95", "C_ci95", "rmse_mm3_s", "n_runs",
+        assert list(d) == ["z0_mm", C, "z0_ci95_mm", "C_ci95" + C[1:], "rmse_mm3_s", "n_runs",
                            "lack_of_fit", "lack_of_fit_ratio", "lack_of_fit_p"]
-        assert all(isinstance(d[k], float) for k in ("z0_mm", "C", "rmse_mm3_s"))
+        assert all(isinstance(d[k], float) for k in ("z0_mm", C, "rmse_mm3_s"))
         assert isinstance(d["n_runs"], int)
-        assert len(d["z0_ci95"]) == 2 and all(isinstance(v, float) for v in d["z0_ci95"])
-        assert len(d["C_ci95"]) == 2 and d["C_ci95"][0] <= d["C"] <= d["C_ci95"][1]
-    assert doc["drain"]["C"] < 0 < doc["supply"]["C"]
+        assert len(d["z0_ci95_mm"]) == 2 and all(isinstance(v, float) for v in d["z0_ci95_mm"])
+        lo, hi = d["C_ci95" + C[1:]]
+        assert lo <= d[C] <= hi
+    assert doc["drain"]["C_mm3_s_deg2_sqrtMPa"] < 0 < doc["supply"]["C_mm3_s_deg2_sqrtMPa"]
     assert set(doc["excluded"]) == {"leakage", "friction", "cam_range", "invalid"}
     assert all(isinstance(v, int) for v in doc["excluded"].values())
-    assert doc["units"] == {"C": "mm^3/(s deg^2 MPa^0.5)", "z0_mm": "mm"}
+    assert doc["units"] == {C: "mm^3/(s deg^2 MPa^0.5)", "z0_mm": "mm"}
     assert json.loads(json.dumps(doc, allow_nan=False)) == doc
     json.dumps(paper_fit.to_dict(), allow_nan=False)
     text = paper_fit.report()
@@ -186,7 +188,7 @@ def test_singular_covariance_gives_null_intervals(rig, paper_summary, monkeypatc
     sf = fit.sides["supply"]
     assert "covariance singular" in sf.message and math.isfinite(sf.z0_mm)
     doc = fit.to_json_dict()
-    assert doc["supply"]["z0_ci95"] == [None, None] and doc["supply"]["C_ci95"] == [None, None]
+    assert doc["supply"]["z0_ci95_mm"] == [None, None] and doc["supply"]["C_ci95_mm3_s_deg2_sqrtMPa"] == [None, None]
     assert list(doc) == ["supply", "excluded", "units"]
     assert "covariance singular" in fit.report()
 
@@ -223,7 +225,7 @@ def test_one_side_missing_still_fits_the_other(rig, paper_summary):
         fit = fit_flow(s, rig, n_boot=0)
     assert fit.sides["supply"].success and not fit.sides["drain"].success
     assert not fit.success and "drain" in fit.message
-    assert fit.to_json_dict()["drain"]["C"] is None
+    assert fit.to_json_dict()["drain"]["C_mm3_s_deg2_sqrtMPa"] is None
     assert fit.model.drain.z0_mm == ValveModel.from_rig(rig).drain.z0_mm  # rig's kept
 
 

@@ -69,10 +69,10 @@ def test_flowfit_recovers_the_foreign_valve(foreign):
                         ("drain", truth.drain_z0_mm, truth.drain_c)):
         got = doc[side]
         assert abs(got["z0_mm"] - z0) < 0.01, (side, got)
-        assert got["C"] == pytest.approx(c, rel=0.03), (side, got)
-        lo, hi = got["z0_ci95"]
+        assert got["C_mm3_s_deg2_sqrtMPa"] == pytest.approx(c, rel=0.03), (side, got)
+        lo, hi = got["z0_ci95_mm"]
         assert lo <= z0 <= hi, (side, "z0", got)
-        lo, hi = sorted(got["C_ci95"])
+        lo, hi = sorted(got["C_ci95_mm3_s_deg2_sqrtMPa"])
         assert lo <= c <= hi, (side, "C", got)
 
 
@@ -137,7 +137,7 @@ def test_run_paper_pipeline(foreign):
     for side, z0, c in (("supply", truth.supply_z0_mm, truth.supply_c),
                         ("drain", truth.drain_z0_mm, truth.drain_c)):
         got = doc["flowfit"][side]
-        assert abs(got["z0_mm"] - z0) < 0.01 and got["C"] == pytest.approx(c, rel=0.03)
+        assert abs(got["z0_mm"] - z0) < 0.01 and got["C_mm3_s_deg2_sqrtMPa"] == pytest.approx(c, rel=0.03)
     assert abs(doc["tracking"]["lag_s"] - truth.delay_s) < 0.02
     # this rig's 0.3 s delay sits before the servo feedback (the logged cam is
     # the delayed command): identify takes it as the servo's dead time, so the

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 from foreign_rig import ForeignTruth, flowstep_plan, own_rig, write_flowsteps, write_position
+from json_schemas import check_schema, keys_without_unit
 
 from seanv_analysis import ValveModel, load_rig
 from seanv_analysis.cli import cli
@@ -33,6 +34,8 @@ def foreign_own(tmp_path_factory):
     assert res.exit_code == 0, res.output
     assert "Traceback" not in res.output
     doc = json.loads(res.stdout)
+    check_schema("identify", doc)  # data_schema/json/identify.schema.json
+    assert keys_without_unit(doc) == []
     return root, truth, doc
 
 
@@ -141,9 +144,9 @@ def test_closed_loop_on_heldout_runs(foreign_own):
     fit stays near 60-65 % either way, see docs/identify.md)."""
     _, _, doc = foreign_own
     cl = doc["fits"]["closed_loop"]
-    assert cl["heldout"] >= 88.0
-    assert cl["heldout"] > cl["heldout_default"] + 1.0
-    assert cl["heldout_flow"] >= cl["heldout_default_flow"] - 1.0
+    assert cl["heldout_pct"] >= 88.0
+    assert cl["heldout_pct"] > cl["heldout_default_pct"] + 1.0
+    assert cl["heldout_flow_pct"] >= cl["heldout_default_flow_pct"] - 1.0
 
 
 def test_rig_file_round_trip(foreign_own):
@@ -172,6 +175,8 @@ def test_discover_does_not_blame_the_unknown_geometry(foreign_own):
     doc = json.loads(res.stdout)
     assert doc["verdict"] == "none", doc
     assert set(doc["base_geometry"]) == {"supply", "drain"}
+    check_schema("discover", doc)  # data_schema/json/discover.schema.json
+    assert keys_without_unit(doc) == []
     h = doc["heldout"]
     assert h["rmse_after_mm3_s"] < 0.5 * h["rmse_before_mm3_s"]   # the geometry's share
 
@@ -205,7 +210,7 @@ def test_dynamic_effect_named_in_position_control(foreign_own, tmp_path, effect,
     assert d.heldout_source == "replay_heldout"
     assert d.rmse_after_mm3_s <= 0.8 * d.rmse_before_mm3_s
     kept = next(c for c in d.position_control["candidates"] if c["named"])
-    lo, hi = kept["ci95"]
+    lo, hi = kept["ci95_" + param.rsplit("_", 1)[-1]]   # the unit in the key
     assert lo < found < hi and hi - lo < 0.5 * true_value
     # the closed-loop held-out numbers are reported beside the headline
     assert kept["heldout_before"]["fit_position_pct"] > 80

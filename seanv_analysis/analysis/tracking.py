@@ -314,6 +314,10 @@ class Tracking(JsonResult):
                 "skipped": dict(self.skipped), "warnings": list(self.warnings),
                 "residual_sign": "actual (shifted) - target"}
 
+    def skipped_runs(self) -> dict[str, str]:
+        """{run_id: why} of the runs that could not be used."""
+        return dict(self.skipped)
+
     def report(self) -> str:
         """Plain-text summary."""
         lo, hi = self.range_mm3_s

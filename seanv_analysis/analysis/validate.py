@@ -255,16 +255,22 @@ class RunValidation:
     simulated: Run | None = field(default=None, repr=False)
 
 
+def _applicable(rec: dict[str, Any]) -> dict[str, Any]:
+    """``rec`` without the gain key of the other controller (kp_* null)."""
+    return {k: v for k, v in rec.items() if not (k.startswith("kp_") and v is None)}
+
+
 @dataclass
 class Validation(JsonResult):
     """Closed-loop validation of a data set.
 
     Attributes
     ----------
-    table : one row per run: run_id, controller ('flow_model' | 'cam'), kp,
-        fit_position_pct, rmse_position_mm, fit_flow_pct, rmse_flow_mm3_s,
-        fit_cam_pct, rmse_cam_deg, steps, converged_measured /
-        converged_simulated (fraction of steps), convergence_time_measured_s /
+    table : one row per run: run_id, controller ('flow_model' | 'cam'),
+        kp_mm3_s_per_mm (flow-model controller) or kp_deg_per_mm (cam
+        controller), fit_position_pct, rmse_position_mm, fit_flow_pct,
+        rmse_flow_mm3_s, fit_cam_pct, rmse_cam_deg, steps,
+        converged_measured_frac / converged_simulated_frac (fraction of steps), convergence_time_measured_s /
         convergence_time_simulated_s (mean time to first enter the band),
         overshoot_measured_mm /
         overshoot_simulated_mm (largest), settling_measured_s /
@@ -291,11 +297,15 @@ class Validation(JsonResult):
         return len(self.table) > 0
 
     def by_controller(self) -> pd.DataFrame:
-        """Mean of the numeric metrics per controller ('flow_model' | 'cam')."""
+        """Per controller ('flow_model' | 'cam'): n_runs, steps (total) and
+        the mean of every other numeric metric over its runs."""
         if self.table.empty:
             return pd.DataFrame()
-        num = self.table.drop(columns=["run_id", "flagged"]).groupby("controller")
-        return num.mean(numeric_only=True)
+        g = self.table.drop(columns=["run_id", "flagged"]).groupby("controller")
+        out = g.mean(numeric_only=True)
+        out["steps"] = g["steps"].sum().astype(int)  # a count stays a count
+        out.insert(0, "n_runs", g.size().astype(int))
+        return out
 
     def steps(self) -> pd.DataFrame:
         """Per reference step of every run, measured and simulated
@@ -323,11 +333,15 @@ class Validation(JsonResult):
                 "controller_model": self.controller_model,
                 "metric": "fit % = 100 (1 - ||y - y_sim|| / ||y - mean(y)||); RMSE of "
                           "measured - simulated",
-                "runs": [{k: clean(v) for k, v in rec.items()}
+                "runs": [_applicable({k: clean(v) for k, v in rec.items()})
                          for rec in self.table.to_dict(orient="records")],
-                "by_controller": {str(c): {k: clean(v) for k, v in row.items()}
-                                  for c, row in by.iterrows()},
+                "by_controller": {str(c): _applicable({k: clean(v) for k, v in row.items()})
+                                  for c, row in by.to_dict(orient="index").items()},
                 "skipped": dict(self.skipped), "warnings": list(self.warnings)}
+
+    def skipped_runs(self) -> dict[str, str]:
+        """{run_id: why} of the runs that could not be used."""
+        return dict(self.skipped)
 
     def report(self) -> str:
         """Plain-text table."""
@@ -342,7 +356,7 @@ class Validation(JsonResult):
             lines.append(
                 f"  {r['run_id']:<28} {r['controller']:<10} {r['fit_position_pct']:>8.1f} "
                 f"{r['rmse_position_mm']:>7.3f} {r['fit_flow_pct']:>8.1f} {r['fit_cam_pct']:>9.1f} "
-                f"{r['converged_measured']:>4.2f}/{r['converged_simulated']:<4.2f} "
+                f"{r['converged_measured_frac']:>4.2f}/{r['converged_simulated_frac']:<4.2f} "
                 f"{r['convergence_time_measured_s']:>6.2f}/{r['convergence_time_simulated_s']:<6.2f} "
                 f"{r['overshoot_measured_mm']:>5.2f}/{r['overshoot_simulated_mm']:<5.2f} "
                 f"{r['settling_measured_s']:>6.2f}/{r['settling_simulated_s']:<6.2f}"
@@ -458,9 +472,12 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
         return float(how(v)) if v.size else math.nan
 
     fit_x = fit_percent(ov.position_mm, ov.position_sim_mm)
+    kp = float(c["kp"]) if c.get("kp") is not None else math.nan
     row = {"run_id": run.run_id,
            "controller": "flow_model" if c.get("flow_model", True) else "cam",
-           "kp": float(c["kp"]) if c.get("kp") is not None else math.nan,
+           # the gain's unit depends on the controller (eq. 6 or the cam law)
+           "kp_mm3_s_per_mm": kp if c.get("flow_model", True) else math.nan,
+           "kp_deg_per_mm": math.nan if c.get("flow_model", True) else kp,
            "fit_position_pct": fit_x,
            "rmse_position_mm": _rmse(ov.position_mm.to_numpy(), ov.position_sim_mm.to_numpy()),
            "fit_flow_pct": fit_percent(ov.q_mm3_s, ov.q_sim_mm3_s),
@@ -468,8 +485,8 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
            "fit_cam_pct": fit_percent(ov.cam_deg, ov.cam_sim_deg),
            "rmse_cam_deg": _rmse(ov.cam_deg.to_numpy(), ov.cam_sim_deg.to_numpy()),
            "steps": int((sm.step_mm.abs() > band).sum()) if not sm.empty else 0,
-           "converged_measured": agg(sm, "converged", np.mean),
-           "converged_simulated": agg(ss, "converged", np.mean),
+           "converged_measured_frac": agg(sm, "converged", np.mean),
+           "converged_simulated_frac": agg(ss, "converged", np.mean),
            "convergence_time_measured_s": agg(sm, "convergence_time_s", np.mean),
            "convergence_time_simulated_s": agg(ss, "convergence_time_s", np.mean),
            "overshoot_measured_mm": agg(sm, "overshoot_mm", np.max),

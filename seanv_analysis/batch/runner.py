@@ -134,13 +134,24 @@ class PipelineResult(JsonResult):
             lines.append(f"report: {self.report_path}")
         return "\n".join(lines)
 
+    def skipped(self) -> list[dict[str, str]]:
+        """Runs read but left out of a stage's result: run id, stage and why
+        (the flow fit's filters, tracking's and validate's unusable runs)."""
+        out = []
+        for stage, obj in (("flowfit", self.flowfit), ("tracking", self.tracking),
+                           ("validate", self.validation)):
+            fn = getattr(obj, "skipped_runs", None)
+            if callable(fn):
+                out += [{"run_id": k, "stage": stage, "reason": v} for k, v in fn().items()]
+        return out
+
     def to_json_dict(self) -> dict[str, Any]:
         """Numbers and paths as one JSON document (``result.json``)."""
         def j(obj):
             return obj.to_json_dict() if obj is not None else None
 
         return {
-            "schema": "seanv-pipeline-result/1",
+            "schema": "seanv-pipeline-result/2",
             "version": __version__,
             "pipeline": self.pipeline.to_dict(),
             "data": [str(d) for d in self.data],
@@ -149,6 +160,7 @@ class PipelineResult(JsonResult):
             "runs_found": self.runs_found,
             "runs_read": self.runs_read,
             "failed": [f.to_json_dict() for f in self.failed],
+            "skipped": self.skipped(),
             "excluded": self.excluded,
             "flowfit": j(self.flowfit),
             "identify": j(self.identify),

@@ -165,6 +165,19 @@ def unusable(data, failed, exc: Exception | None = None) -> int:
     return echo_bad_runs(errors)
 
 
+def result_json(result, ds, *, failed=()) -> str:
+    """A command's ``--json`` document: the result's contract plus the
+    ``inputs`` block (runs found, read, failed with why, skipped with why;
+    :meth:`~seanv_analysis.stages.dataset.DatasetResult.runs_json`)."""
+    from ..jsonable import dumps
+
+    skipped = getattr(result, "skipped_runs", None)
+    left_out = {**ds.excluded_runs(), **(skipped() if callable(skipped) else {})}
+    doc = result.to_json_dict()
+    doc["inputs"] = ds.runs_json(failed=failed, skipped=left_out)
+    return dumps(doc)
+
+
 def echo_bad_runs(errors) -> int:
     """List bad runs on stderr, one line each; return the exit code (1 if any)."""
     if not errors:

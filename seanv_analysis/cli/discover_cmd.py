@@ -10,6 +10,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    result_json,
     sim_default_dataset,
     stage_context,
     unusable,
@@ -99,7 +100,7 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
                                             "identify": identify_first,
                                             "model": str(model_file) if model_file else None})
     if as_json:
-        click.echo(result.to_json())
+        click.echo(result_json(result, ds, failed=result.failed))
     else:
         click.echo(result.report())
         if result.note:

@@ -12,6 +12,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    result_json,
     sim_default_dataset,
     stage_context,
     unusable,
@@ -116,7 +117,7 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
         "data": str(data), "side": side, "method": method, **options,
         "outputs": [str(p) for p in [*paths, *drawn.all_paths()]]}})
     if as_json:
-        click.echo(fit.to_json())
+        click.echo(result_json(fit, ds))
     else:
         click.echo(fit.report())
         click.echo(f"outputs: {out}")

@@ -10,6 +10,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    result_json,
     sim_default_dataset,
     stage_context,
     unusable,
@@ -89,7 +90,7 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
     write_command_manifest(out, ctx, outputs=written, extra={"parts": list(parts) or list(_PARTS),
                                             "n_boot": n_boot})
     if as_json:
-        click.echo(result.to_json())
+        click.echo(result_json(result, ds))
     else:
         click.echo(result.report())
         click.echo(f"outputs: {out}  (use --rig {out / 'rig-identified.toml'})")

@@ -135,6 +135,11 @@ def _result(root, out_dir, by_kind, errors, tables, summary_path, *, excluded):
         "runs": sum(by_kind.values()),
         "runs_by_kind": by_kind,
         "bad_runs": [e.to_json_dict() for e in errors],
+        # the block every command's --json carries (ingest keeps excluded runs:
+        # their reason is in summary.parquet, none is skipped)
+        "inputs": {"runs_found": sum(by_kind.values()) + len(errors),
+                   "runs_read": sum(by_kind.values()),
+                   "failed": [e.to_json_dict() for e in errors], "skipped": []},
         "tables": tables,
         "summary": None if summary_path is None else str(summary_path),
         "excluded": excluded,

@@ -11,6 +11,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    result_json,
     sim_default_dataset,
     stage_context,
     unusable,
@@ -88,7 +89,7 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
     write_command_manifest(out, ctx, outputs=written, extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
                                             "model": str(model_file) if model_file else None})
     if as_json:
-        click.echo(result.to_json())
+        click.echo(result_json(result, ds))
     else:
         click.echo(result.report())
         click.echo(f"outputs: {out}")

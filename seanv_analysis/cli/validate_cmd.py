@@ -12,6 +12,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    result_json,
     sim_default_dataset,
     stage_context,
     unusable,
@@ -97,7 +98,7 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
                                             "threshold_pct": threshold_pct,
                                             "controller_model": controller_model})
     if as_json:
-        click.echo(result.to_json())
+        click.echo(result_json(result, ds, failed=result.failed))
     else:
         click.echo(result.report())
         click.echo(f"outputs: {out}")

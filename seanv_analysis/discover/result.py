@@ -65,7 +65,22 @@ class EffectFinding:
         return {"name": self.name, "side": self.side,
                 "params": {k: _num(v) for k, v in self.params.items()},
                 "params_ci95": {k: [_num(a), _num(b)] for k, (a, b) in self.params_ci95.items()},
+                "params_units": _param_units(self.name, self.params),
                 "p_value": _num(self.p_value)}
+
+
+def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
+    """{parameter: unit} of a named effect's numeric parameters, from the
+    '[unit]' of its ``PARAMS`` description ('-' for a ratio)."""
+    from ..models.effects import EFFECTS
+
+    desc = getattr(EFFECTS.get(name), "PARAMS", {})
+    out = {}
+    for k in params:
+        text = desc.get(k, "")
+        if "[" in text and "]" in text.rsplit("[", 1)[1]:
+            out[k] = text.rsplit("[", 1)[1].split("]", 1)[0]
+    return out
 
 
 def _num(v):

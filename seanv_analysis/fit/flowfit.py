@@ -87,14 +87,16 @@ from ._perload import (
     two_step,
 )
 
-__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "UNITS",
+__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "UNITS", "C_KEY",
            "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
 
 #: Fit procedures: 'joint' (default, eq. 5 on all runs) and the paper's 'two_step'.
 PROCEDURES = ("joint", "two_step")
 
 #: Units of the JSON contract.
-UNITS = {"C": "mm^3/(s deg^2 MPa^0.5)", "z0_mm": "mm"}
+#: the flow coefficient C of eq. (5) in JSON, its unit in its key
+C_KEY = "C_mm3_s_deg2_sqrtMPa"
+UNITS = {C_KEY: "mm^3/(s deg^2 MPa^0.5)", "z0_mm": "mm"}
 
 #: Default calibration (Type B) uncertainties, 95 % half-widths, added in
 #: quadrature to the bootstrap intervals: flow scale (relative; piston area
@@ -172,9 +174,9 @@ class SideFit:
 
     def to_json_dict(self) -> dict[str, Any]:
         """The ``--json`` contract for one side (NaN -> null)."""
-        return {"z0_mm": json_num(self.z0_mm), "C": json_num(self.c_flow),
-                "z0_ci95": [json_num(v) for v in self.z0_ci95],
-                "C_ci95": [json_num(v) for v in self.c_ci95],
+        return {"z0_mm": json_num(self.z0_mm), C_KEY: json_num(self.c_flow),
+                "z0_ci95_mm": [json_num(v) for v in self.z0_ci95],
+                "C_ci95" + C_KEY[1:]: [json_num(v) for v in self.c_ci95],
                 "rmse_mm3_s": json_num(self.rmse_mm3_s), "n_runs": int(self.n_runs),
                 "lack_of_fit": None if self.lack_of_fit is None else bool(self.lack_of_fit),
                 "lack_of_fit_ratio": json_num(self.lack_of_fit_ratio),
@@ -183,8 +185,8 @@ class SideFit:
     def to_dict(self) -> dict[str, Any]:
         """Everything (JSON-ready)."""
         d = self.to_json_dict()
-        d.update(z0_ci95_stat=[json_num(v) for v in self.z0_ci95_stat],
-                 C_ci95_stat=[json_num(v) for v in self.c_ci95_stat])
+        d["z0_ci95_stat_mm"] = [json_num(v) for v in self.z0_ci95_stat]
+        d["C_ci95_stat" + C_KEY[1:]] = [json_num(v) for v in self.c_ci95_stat]
         d.update(side=self.side, procedure=self.procedure, success=self.success,
                  message=self.message, ci_method=self.ci_method, n_boot_ok=self.n_boot_ok,
                  noise=self.noise, joint=_clean(self.joint), two_step=_clean(self.two_step),
@@ -305,7 +307,7 @@ class FlowFit(JsonResult):
 
     def _repr_html_(self) -> str:
         t = self.to_frame()
-        return (f"<p><b>FlowFit</b> (eq. 3-5; C in {UNITS.get('C', 'mm^3/(s deg^2 MPa^0.5)')}, "
+        return (f"<p><b>FlowFit</b> (eq. 3-5; C in {UNITS[C_KEY]}, "
                 f"95 % intervals)</p>" + t.to_html(float_format=lambda v: f"{v:.4g}"))
 
     def to_dict(self) -> dict[str, Any]:
@@ -315,6 +317,15 @@ class FlowFit(JsonResult):
                 "success": self.success, "message": self.message, "warnings": self.warnings,
                 "settings": self.settings,
                 "per_load": json.loads(self.per_load.to_json(orient="records"))}
+
+    def skipped_runs(self) -> dict[str, str]:
+        """{run_id: why} of the runs the paper's filters kept out of the fit."""
+        pr = self.per_run
+        if pr.empty or "excluded" not in pr:
+            return {}
+        out = pr[pr["excluded"].fillna("").astype(str) != ""]
+        why = out["excluded_detail"] if "excluded_detail" in out else out["excluded"]
+        return dict(zip(out["run_id"].astype(str), why.astype(str)))
 
     def report(self) -> str:
         """Human-readable summary."""

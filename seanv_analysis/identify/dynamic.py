@@ -94,9 +94,10 @@ class DynamicFinding:
         return _drop(self.replay_before, self.replay_after)
 
     def to_json_dict(self) -> dict[str, Any]:
-        return {"name": self.name, "param": self.param, "value": self.value,
-                "ci95": list(self.ci95), "p_value": self.p_value, "named": self.named,
-                "bulk_mpa_with_effect": self.bulk_mpa,
+        unit = self.param.rsplit("_", 1)[-1]  # 'delay_s' -> s, 'width_deg' -> deg
+        return {"name": self.name, "param": self.param, f"value_{unit}": self.value,
+                f"ci95_{unit}": list(self.ci95), "p_value": self.p_value, "named": self.named,
+                "bulk_modulus_with_effect_mpa": self.bulk_mpa,
                 "heldout_before": self.heldout_before, "heldout_after": self.heldout_after,
                 "replay_heldout_before": self.replay_before,
                 "replay_heldout_after": self.replay_after}

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..fit.flowfit import C_KEY
 from ..models import ValveSide, fluid_force_n
 from .result import Constant
 
@@ -188,7 +189,7 @@ def geometry_constants(per_run, model, rig) -> tuple[list[Constant], dict[str, A
         fits[name] = {"metric": "flow-step RMSE [mm^3/s], y_c of the rig file vs identified "
                                 "(z0, C refitted for each)",
                       f"{part}_default": g.rmse_default_mm3_s, part: g.rmse_mm3_s, "n_train_runs": len(train), "n_heldout_runs": n_held,
-                      "z0_mm": g.z0_mm, "C": g.c_flow,
+                      "z0_mm": g.z0_mm, C_KEY: g.c_flow,
                       "threshold_range_deg": [float(np.min(thr_new)), float(np.max(thr_new))],
                       "threshold_range_default_deg": [float(np.min(thr_default)),
                                                       float(np.max(thr_default))]}

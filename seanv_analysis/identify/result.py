@@ -113,13 +113,13 @@ class Identification(JsonResult):
         return nest_constants(self.constants)
 
     def to_json_dict(self) -> dict[str, Any]:
-        return {"schema": "seanv-identify/1",
+        return {"schema": "seanv-identify/2",
                 "constants": [c.to_json_dict() for c in self.constants],
                 "identified_keys": [c.key for c in self.identified()],
                 "not_separable": [{"key": c.key, "from": list(c.confounded_with),
                                    "note": c.note} for c in self.constants
                                   if c.confounded_with],
-                "fits": _clean(self.fits), "notes": list(self.notes)}
+                "fits": _unit_keys(_clean(self.fits)), "notes": list(self.notes)}
 
     def report(self) -> str:
         lines = ["identify: the rig's unpublished constants from its own logs",
@@ -145,6 +145,26 @@ class Identification(JsonResult):
 def _fmt(v: Any) -> str:
     v = json_num(v)
     return "n/a" if v is None else f"{v:.4g}"
+
+
+#: a fit block's metric names its unit in brackets; the JSON keys carry it
+_UNIT_SUFFIX = {"mm^3/s": "mm3_s", "deg": "deg", "N": "N", "MPa": "MPa", "%": "pct"}
+_SCORES = ("train", "heldout", "train_default", "heldout_default", "train_flow",
+           "heldout_flow", "heldout_default_flow")
+
+
+def _unit_keys(x: Any) -> Any:
+    """Fit blocks (dicts with a ``metric`` '... [unit] ...') with the unit
+    appended to their score keys: ``heldout`` -> ``heldout_mm3_s``."""
+    if not isinstance(x, dict):
+        return x
+    out = {k: _unit_keys(v) for k, v in x.items()}
+    metric = out.get("metric")
+    if isinstance(metric, str) and "[" in metric:
+        unit = _UNIT_SUFFIX.get(metric.split("[", 1)[1].split("]", 1)[0])
+        if unit is not None:
+            out = {(f"{k}_{unit}" if k in _SCORES else k): v for k, v in out.items()}
+    return out
 
 
 def _clean(x: Any) -> Any:

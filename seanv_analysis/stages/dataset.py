@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, Sequence
 
 import pandas as pd
 
@@ -123,6 +123,25 @@ class DatasetResult(JsonResult):
     def to_json_dict(self) -> dict[str, Any]:
         return {"runs_found": self.runs_found, "runs_read": self.runs_read,
                 "excluded": dict(self.excluded), "failed": [f.to_json_dict() for f in self.failed]}
+
+    def excluded_runs(self) -> dict[str, str]:
+        """{run_id: why} of the flow-step runs the paper's filters exclude."""
+        df = self.summary
+        if df.empty or "excluded" not in df:
+            return {}
+        out = df[df["excluded"].fillna("").astype(str) != ""]
+        col = "excluded_detail" if "excluded_detail" in out else "excluded"
+        return dict(zip(out["run_id"].astype(str), out[col].astype(str)))
+
+    def runs_json(self, *, failed: Sequence[FailedRun] = (),
+                  skipped: Mapping[str, str] | None = None) -> dict[str, Any]:
+        """The ``inputs`` block every command's ``--json`` carries: runs found
+        and read, every failed run (its folder, the stage, why) and every run
+        read but left out of the result (``skipped``: run id and why)."""
+        return {"runs_found": int(self.runs_found), "runs_read": int(self.runs_read),
+                "failed": [f.to_json_dict() for f in (*self.failed, *failed)],
+                "skipped": [{"run_id": str(k), "reason": str(v)}
+                            for k, v in (skipped or {}).items()]}
 
 
 def summarize(run, *, method: str) -> dict[str, Any]:

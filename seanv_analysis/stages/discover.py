@@ -67,6 +67,10 @@ class DiscoverResult(JsonResult):
     def to_json_dict(self) -> dict[str, Any]:
         return self.discovery.to_json_dict()
 
+    def skipped_runs(self) -> dict[str, str]:
+        """{run_id: why} of the position-control runs validate could not re-run."""
+        return {} if self.before is None else dict(getattr(self.before, "skipped", {}))
+
 
 def _usable_flow_steps(summary) -> int:
     if summary.empty:

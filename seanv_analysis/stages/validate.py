@@ -54,6 +54,9 @@ class ValidateResult(JsonResult):
     def report(self) -> str:
         return self.validation.report()
 
+    def skipped_runs(self) -> dict[str, str]:
+        return self.validation.skipped_runs()
+
     def to_json_dict(self) -> dict[str, Any]:
         return self.validation.to_json_dict()
 

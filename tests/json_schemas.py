@@ -1,0 +1,65 @@
+"""Check a command's JSON output against its schema in data_schema/json/,
+and the units rule: every number's unit is the end of its key."""
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from pathlib import Path
+
+SCHEMAS = Path(__file__).resolve().parents[1] / "seanv_analysis" / "_data_schema" / "json"
+URN = "urn:seanv-analysis:schema:"
+
+#: unit suffixes of keys (data_schema/json/common.schema.json says what they mean)
+UNIT_SUFFIXES = ("_mm", "_s", "_deg", "_mm3_s", "_mpa", "_mpag", "_MPa", "_N", "_pct", "_frac",
+                 "_mm3_s_per_mm", "_deg_per_mm", "_mm3_s_deg2_sqrtMPa", "_kg", "_m", "_hz")
+#: dimensionless numbers: counts, p values, ratios, seeds
+DIMENSIONLESS = ("n_", "runs", "rows", "p_value", "steps", "seed")
+DIMENSIONLESS_END = ("_p", "_ratio", "_runs", "_changes", "_samples")
+
+
+@lru_cache(maxsize=None)
+def _registry():
+    from referencing import Registry, Resource
+
+    resources = []
+    for path in SCHEMAS.glob("*.schema.json"):
+        doc = json.loads(path.read_text())
+        resources.append((doc["$id"], Resource.from_contents(doc)))
+    return Registry().with_resources(resources)
+
+
+def check_schema(command: str, doc) -> None:
+    """Raise jsonschema.ValidationError when ``doc`` breaks ``command``'s schema."""
+    from jsonschema import Draft202012Validator
+
+    schema = _registry().contents(URN + command)
+    Draft202012Validator(schema, registry=_registry()).validate(doc)
+
+
+def keys_without_unit(doc, path: str = "", key: str = "", parent: dict | None = None) -> list[str]:
+    """Paths of numbers whose key names no unit and is not a count, p value
+    or ratio; a number beside a 'unit' key, or under 'params'/'params_ci95'
+    beside 'params_units', takes its unit from there. ``/pipeline`` (the
+    pipeline file echoed), ``/excluded``, ``/computed``, ``/cached`` (counts
+    per reason or stage) are not checked; the members of a dict whose own key
+    ends in a unit (``timings_s``) take that unit, those of a count
+    (``runs_by_kind``, ``rows``) are counts."""
+    out: list[str] = []
+    if isinstance(doc, dict):
+        if key.endswith(UNIT_SUFFIXES) or key.startswith(DIMENSIONLESS):
+            return []  # {name: value} in the unit of its key, or counts
+        for k, v in doc.items():
+            if k in ("pipeline", "excluded", "computed", "cached") or (
+                    k in ("params", "params_ci95") and "params_units" in doc):
+                continue
+            out += keys_without_unit(v, f"{path}/{k}", k, doc)
+    elif isinstance(doc, list):
+        for v in doc:
+            # a list's records are checked key by key; its numbers by the list's key
+            out += keys_without_unit(v, f"{path}[]", "" if isinstance(v, dict) else key, parent)
+    elif isinstance(doc, (int, float)) and not isinstance(doc, bool):
+        ok = (key.endswith(UNIT_SUFFIXES) or key.startswith(DIMENSIONLESS)
+              or key.endswith(DIMENSIONLESS_END) or (parent is not None and "unit" in parent))
+        if not ok and path not in out:
+            out.append(path)
+    return sorted(set(out))
