@@ -82,6 +82,9 @@ class RigConfig:
     def __getitem__(self, key: str) -> Any:
         return self.data[key]
 
+    def __repr__(self) -> str:
+        return f"<RigConfig {self.data.get('name', '?')!r} from {self.source}>"
+
     def with_overrides(self, overrides: Mapping | None, *, where: str = "rig") -> "RigConfig":
         """A copy with ``overrides`` (same nesting as the TOML) applied."""
         if not overrides:

@@ -1,4 +1,5 @@
-"""JSON the way every result of the package writes it (core layer).
+"""JSON the way every result of the package writes it (core layer), and
+how results show in Jupyter (:class:`JsonResult`).
 
 Strict JSON only: NaN and infinities become ``null``, numpy scalars and
 arrays plain numbers and lists, paths strings, integers stay integers.
@@ -60,3 +61,17 @@ class JsonResult:
     def to_json(self, *, indent: int | None = None) -> str:
         """The ``--json`` contract as strict JSON text (NaN -> null)."""
         return dumps(self.to_json_dict(), indent=indent)
+
+    def _repr_html_(self) -> str:
+        """Jupyter: the one-line repr as a caption over ``to_frame()``'s
+        table, or over the plain-text ``report()``."""
+        import html
+
+        head = f"<p><b>{html.escape(repr(self))}</b></p>"
+        to_frame = getattr(self, "to_frame", None)
+        if callable(to_frame):
+            frame = to_frame()
+            if len(frame):
+                return head + frame.to_html(float_format=lambda v: f"{v:.4g}")
+        report = getattr(self, "report", None)
+        return head + (f"<pre>{html.escape(report())}</pre>" if callable(report) else "")

@@ -105,6 +105,10 @@ def test_json_contract():
     e = j["effects"][0]
     assert set(e) == {"name", "side", "params", "params_ci95", "params_units", "p_value"}
     assert e["params_units"] == {"step": "-", "every": "runs", "offset": "runs"}
+    assert repr(d).startswith("<Discovery effect_found: drift (drain); held-out RMSE ")
+    frame = d.to_frame()
+    assert list(frame.name) == ["drift"] and frame.step_lo[0] <= frame.step[0] <= frame.step_hi[0]
+    assert "<table" in d._repr_html_()
     assert e["name"] == "drift" and e["side"] == "drain" and 0 < e["p_value"] <= 0.05
 
 

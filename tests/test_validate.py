@@ -104,6 +104,12 @@ def test_identical_plant_fits_perfectly(measured, tmp_path):
     doc = json.loads(json.dumps(v.to_json_dict()))
     assert doc["flagged"] == [] and len(doc["runs"]) == 2
     assert set(doc["by_controller"]) == {"flow_model", "cam"}
+    assert doc["by_controller"]["cam"]["n_runs"] == 1
+    assert "kp_mm3_s_per_mm" in doc["runs"][0] and "kp_deg_per_mm" not in doc["runs"][0]
+    # notebook display: one line, a table in Jupyter, a frame indexed by run
+    assert repr(v).startswith("<Validation position fit: ") and "100.0 %" in repr(v)
+    assert "\n" not in repr(v) and "<table" in v._repr_html_()
+    assert list(v.to_frame().index) == list(v.table.run_id)
     from seanv_analysis.stages import validate as validate_stage
 
     paths = validate_stage.write(validate_stage.ValidateResult(v), tmp_path / "out")

@@ -314,6 +314,17 @@ class Tracking(JsonResult):
                 "skipped": dict(self.skipped), "warnings": list(self.warnings),
                 "residual_sign": "actual (shifted) - target"}
 
+    def __repr__(self) -> str:
+        lo, hi = self.range_mm3_s
+        return (f"<Tracking lag {self.lag_s:.3f} s ({self.lag_source}), RMSE "
+                f"{self.rmse_mm3_s:.4g} mm^3/s over Q_ref in [{lo:g}, {hi:g}] mm^3/s; "
+                f"{len(self.runs)} runs" + (f", {len(self.skipped)} skipped" if self.skipped
+                                             else "") + ">")
+
+    def to_frame(self) -> pd.DataFrame:
+        """One row per tracked run: lag_s, rmse_mm3_s (``per_run``)."""
+        return self.per_run
+
     def skipped_runs(self) -> dict[str, str]:
         """{run_id: why} of the runs that could not be used."""
         return dict(self.skipped)

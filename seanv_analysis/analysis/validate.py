@@ -339,6 +339,16 @@ class Validation(JsonResult):
                                   for c, row in by.to_dict(orient="index").items()},
                 "skipped": dict(self.skipped), "warnings": list(self.warnings)}
 
+    def __repr__(self) -> str:
+        fits = ", ".join(f"{r.run_id} {r.row['fit_position_pct']:.1f} %"
+                         for r in self.runs) or "none"
+        return (f"<Validation position fit: {fits}; flagged (< {self.threshold_pct:g} %): "
+                f"{', '.join(self.flagged) or 'none'}>")
+
+    def to_frame(self) -> pd.DataFrame:
+        """The per-run table indexed by run_id (fits, RMSEs, step metrics)."""
+        return self.table.set_index("run_id") if "run_id" in self.table else self.table
+
     def skipped_runs(self) -> dict[str, str]:
         """{run_id: why} of the runs that could not be used."""
         return dict(self.skipped)

@@ -134,6 +134,11 @@ class PipelineResult(JsonResult):
             lines.append(f"report: {self.report_path}")
         return "\n".join(lines)
 
+    def __repr__(self) -> str:
+        return (f"<PipelineResult {self.pipeline.name}: {self.runs_read}/{self.runs_found} runs "
+                f"read, {len(self.failed)} failed, {len(self.stage_errors)} stage errors; "
+                f"out={self.out_dir}>")
+
     def skipped(self) -> list[dict[str, str]]:
         """Runs read but left out of a stage's result: run id, stage and why
         (the flow fit's filters, tracking's and validate's unusable runs)."""

@@ -201,6 +201,27 @@ class Discovery(JsonResult):
                 raise ConfigError(str(exc)) from None
         return self.model, specs
 
+    def __repr__(self) -> str:
+        found = ", ".join(f"{e.name} ({e.side})" for e in self.effects) or "nothing"
+        return (f"<Discovery {self.verdict}: {found}; held-out RMSE "
+                f"{self.rmse_before_mm3_s:.4g} -> {self.rmse_after_mm3_s:.4g} mm^3/s "
+                f"({self.heldout_source}, {self.n_heldout_runs} runs)>")
+
+    def to_frame(self):
+        """One row per effect found: name, side, each parameter with its
+        95 % interval (``<param>_lo``, ``<param>_hi``), p value."""
+        import pandas as pd
+
+        rows = []
+        for e in self.effects:
+            row = {"name": e.name, "side": e.side}
+            for k, v in e.params.items():
+                row[k] = v
+                if k in e.params_ci95:
+                    row[f"{k}_lo"], row[f"{k}_hi"] = e.params_ci95[k]
+            rows.append({**row, "p_value": e.p_value})
+        return pd.DataFrame(rows)
+
     def report(self) -> str:
         """A short text a researcher can paste into a lab note."""
         lines = []

@@ -137,6 +137,15 @@ class Identification(JsonResult):
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 
+    def to_frame(self):
+        """One row per constant: key, value, 95 % interval, rig-file default,
+        unit, identified, what constrains it."""
+        import pandas as pd
+
+        return pd.DataFrame([{"key": c.key, "value": c.value, "lo": c.ci95[0], "hi": c.ci95[1],
+                              "default": c.default, "unit": c.unit, "identified": c.identified,
+                              "constrained_by": c.constrained_by} for c in self.constants])
+
     def __repr__(self) -> str:
         return (f"<Identification: {len(self.identified())}/{len(self.constants)} constants "
                 f"identified: {', '.join(c.key for c in self.identified()) or 'none'}>")

@@ -67,6 +67,12 @@ class DiscoverResult(JsonResult):
     def to_json_dict(self) -> dict[str, Any]:
         return self.discovery.to_json_dict()
 
+    def __repr__(self) -> str:
+        return repr(self.discovery)
+
+    def to_frame(self):
+        return self.discovery.to_frame()
+
     def skipped_runs(self) -> dict[str, str]:
         """{run_id: why} of the position-control runs validate could not re-run."""
         return {} if self.before is None else dict(getattr(self.before, "skipped", {}))

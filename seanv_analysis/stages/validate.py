@@ -57,6 +57,12 @@ class ValidateResult(JsonResult):
     def skipped_runs(self) -> dict[str, str]:
         return self.validation.skipped_runs()
 
+    def __repr__(self) -> str:
+        return repr(self.validation)
+
+    def to_frame(self):
+        return self.validation.to_frame()
+
     def to_json_dict(self) -> dict[str, Any]:
         return self.validation.to_json_dict()
 
