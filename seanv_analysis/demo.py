@@ -93,6 +93,24 @@ def _ci(values, fmt: str) -> str:
     return "[" + ", ".join(format(v, fmt) for v in values) + "]"
 
 
+#: the README block the demo's headline numbers live in (scripts/update_readme_numbers.py)
+README_START, README_END = "<!-- headline:start", "<!-- headline:end -->"
+#: the demo result's numbers the README shows, recorded beside it
+RECORDED_HEADLINE = Path("docs") / "demo_headline.json"
+
+
+def headline_inputs(result: dict) -> dict:
+    """The part of ``result`` (:meth:`PipelineResult.to_json_dict`) that
+    :func:`headline` reads: flowfit, tracking, discovery."""
+    return {k: result.get(k) for k in ("flowfit", "tracking", "discovery")}
+
+
+def readme_headline(readme_text: str) -> str:
+    """The headline text inside the README's marked ```text block."""
+    block = readme_text.split(README_START, 1)[1].split(README_END, 1)[0]
+    return block.split("```text\n", 1)[1].rsplit("```", 1)[0].rstrip("\n")
+
+
 def headline(result: dict, rig=None) -> str:
     """The demo's numbers next to the paper's (a few lines of text).
 
@@ -135,8 +153,8 @@ def headline(result: dict, rig=None) -> str:
         for e in disc.get("effects", []):
             if e["name"] == "drift":
                 lines.append(f"  drift: C of the {e['side']} side x (1 - {e['params']['step']:.4f}) "
-                             f"every {e['params']['every']} runs (the paper: 'the drain-side flow "
-                             "rate decreased slightly every three measurements')")
+                             f"every {e['params']['every']} runs (paper: 'decreased slightly every "
+                             "three measurements')")
         val = disc.get("validation") or {}
         for ctrl, before in (val.get("before") or {}).items():
             after = (val.get("after") or {}).get(ctrl, {})
@@ -145,6 +163,20 @@ def headline(result: dict, rig=None) -> str:
                              f"{before['fit_position_pct']:.1f} % -> {after['fit_position_pct']:.1f} % "
                              "with the augmented model")
     return "\n".join(lines)
+
+
+def _check_readme(text: str) -> None:
+    """In a source checkout: say whether the README shows this run's numbers."""
+    readme = Path("README.md")
+    if not (readme.is_file() and README_START in readme.read_text()):
+        return
+    shown = readme_headline(readme.read_text()).splitlines()[1:]
+    if shown == text.splitlines():
+        print("(README.md shows these numbers)")
+    else:
+        print("note: README.md's headline numbers differ from this run; "
+              "`python scripts/update_readme_numbers.py` rewrites them from "
+              "outputs/demo/run-paper/result.json")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -182,7 +214,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     print(result.summary_text())
     print("\nheadline numbers (the drain C above is the average over a drifting valve):")
-    print(headline(result.to_json_dict()))
+    text = headline(result.to_json_dict())
+    print(text)
+    _check_readme(text)
     total = time.perf_counter() - t0
     print(f"\ndemo finished in {total:.0f} s (simulation {t_sim:.0f} s, analysis "
           f"{total - t_sim:.0f} s)")

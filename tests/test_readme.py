@@ -78,3 +78,18 @@ def test_results_draw_on_the_callers_axes_and_render_as_tables(folder):
     assert isinstance(text, str) and json.loads(text) == fit.to_json_dict()
     assert json.loads(text)["supply"]["n_runs"] == fit.sides["supply"].n_runs
     assert json.loads(ds.to_json())["runs_read"] == 144
+
+
+def test_readme_headline_numbers_are_the_recorded_demo_output():
+    """README's headline block is headline() of the demo result recorded in
+    docs/demo_headline.json (scripts/update_readme_numbers.py writes both;
+    `make demo` says when a run no longer matches them)."""
+    from seanv_analysis.demo import RECORDED_HEADLINE, headline, readme_headline
+
+    root = README.parent
+    record = json.loads((root / RECORDED_HEADLINE).read_text())
+    shown = readme_headline(README.read_text()).splitlines()
+    assert shown[1:] == headline(record).splitlines()
+    # the record is a real pipeline result: the paper's supply side, the drift found
+    assert record["flowfit"]["supply"]["z0_mm"] == pytest.approx(-0.155, abs=0.002)
+    assert [e["name"] for e in record["discovery"]["effects"]] == ["drift"]
