@@ -93,3 +93,18 @@ def test_readme_headline_numbers_are_the_recorded_demo_output():
     # the record is a real pipeline result: the paper's supply side, the drift found
     assert record["flowfit"]["supply"]["z0_mm"] == pytest.approx(-0.155, abs=0.002)
     assert [e["name"] for e in record["discovery"]["effects"]] == ["drift"]
+
+
+def test_cli_help_loads_no_heavy_library():
+    """`seanv-analyze --help` and a command's --help answer without importing
+    pandas, scipy, numba or matplotlib (benchmarks/bench_commands.py times it)."""
+    import subprocess
+    import sys
+
+    code = ("import sys\nfrom seanv_analysis.cli import cli\n"
+            "for args in (['--help'], ['flowfit', '--help'], ['run', '--help']):\n"
+            "    try:\n        cli.main(args=args, standalone_mode=False)\n"
+            "    except SystemExit:\n        pass\n"
+            "print(sorted(m for m in ('pandas', 'scipy', 'numba', 'matplotlib') if m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert res.stdout.strip().splitlines()[-1] == "[]"

@@ -10,20 +10,35 @@
 Pipeline files (stages and their options) are read by
 :mod:`seanv_analysis.stages.pipeline`, re-exported here.
 """
-from ..stages import FailedRun
-from ..stages.pipeline import (
-                               STAGE_NAMES,
-                               Pipeline,
-                               Stage,
-                               load_pipeline,
-                               parse_pipeline,
-                               shipped_pipelines,
-                               stage_options,
-)
-from .cache import RunCache, run_key
-from .executor import Executor, TaskResult, make_executor
-from .runner import CachedMapper, PipelineResult, run_pipeline
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+#: public name -> the module that defines it, imported on first use (PEP 562),
+#: so that importing a light submodule (process_setup, at every CLI start)
+#: does not load the stages, pandas and scipy
+_LAZY = {
+    "FailedRun": "..stages",
+    **{n: "..stages.pipeline" for n in ("STAGE_NAMES", "Pipeline", "Stage", "load_pipeline",
+                                        "parse_pipeline", "shipped_pipelines", "stage_options")},
+    "RunCache": ".cache", "run_key": ".cache",
+    "Executor": ".executor", "TaskResult": ".executor", "make_executor": ".executor",
+    "CachedMapper": ".runner", "PipelineResult": ".runner", "run_pipeline": ".runner",
+}
 
 __all__ = ["run_pipeline", "PipelineResult", "FailedRun", "Pipeline", "Stage", "load_pipeline",
            "parse_pipeline", "shipped_pipelines", "STAGE_NAMES", "stage_options", "Executor",
            "TaskResult", "make_executor", "RunCache", "run_key", "CachedMapper"]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

@@ -37,10 +37,26 @@ def _figure_choices() -> list[str]:
     return [str(f.number) if f.number is not None else f.name for f in FIGURES.values()] + ["all"]
 
 
+class _FigureChoice(click.Choice):
+    """The registry's figures, read when first needed (not when the CLI is
+    imported: ``seanv-analyze --help`` must not load the figures and pandas)."""
+
+    def __init__(self) -> None:
+        super().__init__([])
+
+    @property
+    def choices(self):  # type: ignore[override]
+        return _figure_choices()
+
+    @choices.setter
+    def choices(self, _value) -> None:
+        pass
+
+
 @cli.command("plots")
 @verbosity
 @click.argument("data", type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--fig", "fig", type=click.Choice(_figure_choices()), multiple=True,
+@click.option("--fig", "fig", type=_FigureChoice(), multiple=True,
               default=("4", "6", "7"), show_default=True,
               help="Figure(s) of the registry (seanv_analysis.plots.FIGURES): 4 flow "
                    "characterisation of the data set (fit + threshold), 6 one per "
