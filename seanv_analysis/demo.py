@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
         t_sim = time.perf_counter() - t0
         log(f"2/2 running pipelines/paper.toml on {', '.join(map(str, data))} ...")
         result = run_pipeline("paper", data, out_dir=args.out / "run-paper", workers=args.workers,
-                              force=args.force, quiet=args.quiet, log=log,
+                              force=args.force, quiet=args.quiet, log=log, reuse=True,
                               command=[sys.executable, "-m", "seanv_analysis.demo", *(argv or sys.argv[1:])])
     except SeanvError as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -42,12 +42,40 @@ def test_run_json_and_cache(data, tmp_path):
     assert r1.exit_code == 0, r1.output
     doc = json.loads(r1.stdout)
     assert doc["runs_read"] == 8 and doc["computed"]["ingest"] == 8
+    stamp = (out / "result.json").stat().st_mtime_ns
+    # nothing changed (the executor is not an input): the last run is reused, nothing written
     r2 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json")
-    doc2 = json.loads(r2.stdout)  # the cache does not depend on the executor
-    assert doc2["computed"]["ingest"] == 0 and doc2["cached"]["ingest"] == 8
-    assert doc2["tracking"] == doc["tracking"]
-    r3 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json", "--force")
-    assert json.loads(r3.stdout)["computed"]["ingest"] == 8
+    doc2 = json.loads(r2.stdout)
+    assert doc2.pop("reused") is True and doc2 == doc
+    assert (out / "result.json").stat().st_mtime_ns == stamp
+    # an output removed: the run runs, its per-run work from the cache
+    (out / "report.html").unlink()
+    r3 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json")
+    doc3 = json.loads(r3.stdout)
+    assert "reused" not in doc3 and (out / "report.html").is_file()
+    assert doc3["computed"]["ingest"] == 0 and doc3["cached"]["ingest"] == 8
+    assert doc3["tracking"] == doc["tracking"]
+    r4 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json", "--force")
+    assert json.loads(r4.stdout)["computed"]["ingest"] == 8
+
+
+def test_run_reuses_nothing_after_an_input_changed(data, tmp_path):
+    import shutil
+
+    copy = tmp_path / "data"
+    shutil.copytree(data, copy)
+    out = tmp_path / "o"
+    assert invoke("run", "tracking", copy, "--out", out, "-q", "--workers", "1").exit_code == 0
+    assert "reused" in invoke("run", "tracking", copy, "--out", out, "-q", "--workers",
+                              "1").output
+    table = next(copy.rglob("encoder.csv"))
+    lines = table.read_text().splitlines()
+    head, value = lines[1].rsplit(",", 1)
+    lines[1] = f"{head},{float(value) + 0.001}"  # one value of one log
+    table.write_text("\n".join(lines) + "\n")
+    r = invoke("run", "tracking", copy, "--out", out, "-q", "--workers", "1", "--json")
+    doc = json.loads(r.stdout)
+    assert "reused" not in doc and doc["computed"]["ingest"] == 1 and doc["cached"]["ingest"] == 7
 
 
 def test_run_pipeline_file_and_bad_runs_exit_1(data, tmp_path):

@@ -28,6 +28,7 @@ from ..stages import STAGES, Context, FailedRun, RunOutcome
 from ..stages.pipeline import Pipeline, load_pipeline
 from .cache import CACHE_DIRNAME, RunCache, run_key
 from .executor import Executor, TaskResult, make_executor, one_line_error
+from .memo import forget_run, pipeline_key, record_run, recorded_run
 from .tasks import cached_run_task
 
 __all__ = ["PipelineResult", "FailedRun", "run_pipeline", "CachedMapper"]
@@ -93,6 +94,30 @@ class PipelineResult(JsonResult):
     report_path: Path | None = None
     manifest_path: Path | None = None
     manifest_created_utc: str | None = field(default=None, repr=False)
+    #: the last run's result.json when this run reused it (``reuse=True``,
+    #: nothing changed); the stage results are then None
+    recorded: dict | None = field(default=None, repr=False)
+
+    @classmethod
+    def from_recorded(cls, pipe: Pipeline, ctx: Context, out: Path, doc: dict,
+                      command: list[str]) -> "PipelineResult":
+        """The result of a run that reused the last one (:mod:`.memo`): its
+        numbers and paths from ``result.json``, no stage result objects."""
+        r = cls(pipe, ctx.data, out, rig=ctx.rig, command=command, recorded=doc)
+        r.executor = "none: nothing changed since the last run"
+        r.runs_found, r.runs_read = int(doc["runs_found"]), int(doc["runs_read"])
+        r.failed = [FailedRun(**f) for f in doc.get("failed", [])]
+        r.excluded = dict(doc.get("excluded", {}))
+        r.figures = {k: [Path(p) for p in v] for k, v in doc.get("figures", {}).items()}
+        r.stage_errors = dict(doc.get("stage_errors", {}))
+        r.stage_notes = {"reused": f"inputs, pipeline, rig and code unchanged since the last "
+                                   f"run: its results in {out} are reused (--force recomputes)",
+                         **doc.get("stage_notes", {})}
+        r.outputs = [Path(p) for p in doc.get("outputs", [])]
+        r.report_path = Path(doc["report"]) if doc.get("report") else None
+        if (out / "summary.parquet").is_file():
+            r.summary = pd.read_parquet(out / "summary.parquet")
+        return r
 
     @property
     def success(self) -> bool:
@@ -152,6 +177,9 @@ class PipelineResult(JsonResult):
 
     def to_json_dict(self) -> dict[str, Any]:
         """Numbers and paths as one JSON document (``result.json``)."""
+        if self.recorded is not None:
+            return {**self.recorded, "reused": True}
+
         def j(obj):
             return obj.to_json_dict() if obj is not None else None
 
@@ -242,6 +270,7 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
                  out_dir: str | Path, workers: int | None = None, scheduler: str | None = None,
                  force: bool = False, quiet: bool = False, rig: RigConfig | str | Path | None = None,
                  client: Any = None, log: Callable[[str], None] | None = None,
+                 reuse: bool = False,
                  command: Sequence[str] | None = None) -> PipelineResult:
     """Run a pipeline on a data set and write its outputs.
 
@@ -262,6 +291,11 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     client : an existing ``dask.distributed.Client`` (never closed)
     log : called with one plain line per stage (e.g. ``print`` to stderr)
     command : command line for the manifest (default: ``sys.argv``)
+    reuse : when nothing changed since the last successful run into
+        ``out_dir`` (inputs' content, pipeline, rig, code, library versions;
+        :mod:`.memo`) and its outputs are untouched, return its numbers from
+        ``result.json`` without running (stage result objects None; what
+        ``seanv-analyze run`` does). ``force`` runs anyway.
 
     Returns
     -------
@@ -292,6 +326,14 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
                             command=list(command) if command is not None else list(sys.argv))
     result.runs_found = len(ctx.run_dirs)
     ctx.record = result
+    key = None
+    if reuse:
+        key = pipeline_key(pipe.to_dict(), ctx.rig.to_dict(), ctx.data, ctx.run_dirs)
+        doc = None if force else recorded_run(out, key)
+        if doc is not None:
+            say(f"[{pipe.name}] nothing changed since the last run: reusing {out / 'result.json'}")
+            return PipelineResult.from_recorded(pipe, ctx, out, doc, result.command)
+    forget_run(out)  # this run replaces the outputs the memo describes
     cache = RunCache(out / CACHE_DIRNAME)
     removed = cache.removed_partial + remove_stale_temps(out, set(STAGE_FOLDERS.values()))
     if removed:
@@ -318,6 +360,8 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
                             if not issubclass(w.category, (DeprecationWarning, ResourceWarning))]
     result.model = ctx.model
     _write_result(result, ctx, pipe, time.perf_counter() - t_start)
+    if key is not None and result.success:
+        record_run(out, key, result.outputs)
     return result
 
 

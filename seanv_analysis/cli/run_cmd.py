@@ -27,7 +27,8 @@ __all__ = ["run_cmd"]
                    "DASK_SCHEDULER_ADDRESS environment variable, if set (and --workers not given). "
                    "The cluster is never shut down by this command.")
 @click.option("--force", is_flag=True,
-              help="Recompute every per-run result instead of taking it from <out>/.cache.")
+              help="Recompute everything instead of reusing the last run or the per-run "
+                   "results in <out>/.cache.")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change. Default: data_schema/rig/default.toml.")
 @click.option("--json", "as_json", is_flag=True,
@@ -48,9 +49,11 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
     in parallel; data-set stages (flow fit, tracking, discovery) run here.
     Results are identical whichever executor ran them. Per-run results are
     cached in <out>/.cache keyed by the input files' SHA-256, the stage
-    options, the rig config and the package version: a second run with
-    nothing changed does no per-run work, and a killed run picks up where it
-    stopped.
+    options, the rig config and the package version: a killed run picks up
+    where it stopped. When nothing changed since the last successful run into
+    --out (the inputs' content, the pipeline, the rig, the code, the library
+    versions) and its outputs are untouched, the run reuses them and writes
+    nothing (about 1 s; --force recomputes).
 
     \b
     Writes (under --out): summary.parquet, flowfit/, tracking/, validate/,
@@ -100,7 +103,8 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
         scheduler = os.environ["DASK_SCHEDULER_ADDRESS"]
     try:
         result = run_pipeline(pipe, datas, out_dir=out, workers=workers, scheduler=scheduler,
-                              force=force, quiet=quiet, rig=rig_file, log=log, command=sys.argv)
+                              force=force, quiet=quiet, rig=rig_file, log=log, command=sys.argv,
+                              reuse=True)
     except DataError as exc:  # no run could be read: say which runs were bad and why
         return unusable(data, bad_runs(datas, rig_file, exc), exc)
     if as_json:

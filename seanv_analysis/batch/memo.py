@@ -1,0 +1,93 @@
+"""Whole-pipeline memo: a re-run with nothing changed reuses the last run.
+
+The per-run cache (:mod:`.cache`) spares a re-run the per-run work, but the
+data-set stages (flow fit with its bootstrap, identify, discover, figures)
+would still run. After a run that succeeded, ``<out>/.cache/pipeline.json``
+records a key and the outputs written (size and mtime). The key is the
+SHA-256 of everything the results depend on: the pipeline (stages and
+options), the rig config, the code version (package sources), the versions
+of the numerical libraries, the data folders, and the content of every file
+in every run folder. A later run with the same key whose outputs are all
+still there, untouched, reuses ``result.json`` and writes nothing;
+otherwise (or with ``force``) it runs.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+from importlib import metadata
+from pathlib import Path
+from typing import Any, Iterable
+
+from ..io.atomic import write_json_atomic
+from ..io.hashing import file_sha256
+from .cache import code_version, folder_listing
+
+__all__ = ["pipeline_key", "recorded_run", "record_run", "forget_run", "MEMO_NAME"]
+
+MEMO_NAME = "pipeline.json"
+_SCHEMA = "seanv-pipeline-memo/1"
+#: libraries whose version can move the numbers
+_LIBRARIES = ("numpy", "scipy", "pandas", "pyarrow", "numba", "matplotlib")
+
+
+def _versions() -> dict[str, str]:
+    out = {}
+    for name in _LIBRARIES:
+        try:
+            out[name] = metadata.version(name)
+        except metadata.PackageNotFoundError:
+            out[name] = ""
+    return out
+
+
+def pipeline_key(pipeline: dict, rig: dict, data: Iterable[Path], run_dirs: Iterable[Path],
+                 extra: Any = None) -> str:
+    """SHA-256 (hex) of what a pipeline run's results depend on (module doc)."""
+    runs = []
+    for d in sorted(Path(p).resolve() for p in run_dirs):
+        files = {name: file_sha256(d / name) for name in sorted(folder_listing(d))}
+        runs.append([str(d), files])
+    doc = {"pipeline": pipeline, "rig": rig, "code": code_version(), "libraries": _versions(),
+           "data": [str(Path(p).resolve()) for p in data], "runs": runs, "extra": extra}
+    return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def _stat(path: Path) -> list[int] | None:
+    try:
+        st = path.stat()
+    except OSError:
+        return None
+    return [st.st_size, st.st_mtime_ns]
+
+
+def record_run(out_dir: Path, key: str, outputs: Iterable[Path]) -> None:
+    """Remember a finished run: its key and each output's size and mtime."""
+    out_dir = Path(out_dir)
+    files = {}
+    for p in outputs:
+        st = _stat(Path(p))
+        if st is not None:
+            files[str(Path(p).resolve())] = st
+    write_json_atomic(out_dir / ".cache" / MEMO_NAME,
+                      {"schema": _SCHEMA, "key": key, "outputs": files}, indent=0)
+
+
+def forget_run(out_dir: Path) -> None:
+    """Drop the memo (a run is about to rewrite the outputs it describes)."""
+    (Path(out_dir) / ".cache" / MEMO_NAME).unlink(missing_ok=True)
+
+
+def recorded_run(out_dir: Path, key: str) -> dict | None:
+    """The last run's ``result.json`` document when it had ``key`` and every
+    output it wrote is unchanged; else None."""
+    out_dir = Path(out_dir)
+    try:
+        memo = json.loads((out_dir / ".cache" / MEMO_NAME).read_text())
+        if memo.get("schema") != _SCHEMA or memo.get("key") != key:
+            return None
+        if any(_stat(Path(p)) != st for p, st in memo["outputs"].items()):
+            return None
+        return json.loads((out_dir / "result.json").read_text())
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        return None
