@@ -141,3 +141,22 @@ def test_subprocess_end_to_end(dataset, tmp_path):
                           capture_output=True, text=True, env=env, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["drain"]["C_mm3_s_deg2_sqrtMPa"] < 0
+
+
+def test_figure_options(dataset, tmp_path):
+    """--formats picks the files; --no-figures draws none and never loads matplotlib."""
+    import subprocess
+    import sys
+
+    res = invoke(dataset, "--out", tmp_path / "png", "--n-boot", 0, "--formats", "png")
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "png" / "fig4.png").is_file() and not (tmp_path / "png" / "fig4.svg").exists()
+    assert invoke(dataset, "--out", tmp_path / "x", "--formats", "pdf").exit_code == 2
+    code = ("import sys\nfrom seanv_analysis.cli import cli\n"
+            f"cli.main(args=['flowfit', {str(dataset)!r}, '--out', {str(tmp_path / 'none')!r}, "
+            "'--n-boot', '0', '--no-figures', '-q'], standalone_mode=False)\n"
+            "print('matplotlib' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip().splitlines()[-1] == "False"
+    assert (tmp_path / "none" / "flowfit.json").is_file()
+    assert not list((tmp_path / "none").glob("fig4.*"))

@@ -144,3 +144,17 @@ def test_run_end_to_end_subprocess(data, tmp_path):
     assert "stage ingest done" in proc.stderr       # plain line per stage when not a TTY
     assert "\r" not in proc.stderr                  # no progress bar
     assert "report:" in proc.stdout
+
+
+def test_run_figure_options(data, tmp_path):
+    r = invoke("run", "tracking", data, "--out", tmp_path / "svg", "-q", "--workers", "1",
+               "--formats", "svg", "--json")
+    assert r.exit_code == 0, r.output
+    files = [Path(p) for paths in json.loads(r.stdout)["figures"].values() for p in paths]
+    assert files and {p.suffix for p in files} == {".svg"}
+    r = invoke("run", "tracking", data, "--out", tmp_path / "none", "-q", "--workers", "1",
+               "--no-figures", "--json")
+    assert r.exit_code == 0, r.output
+    doc = json.loads(r.stdout)
+    assert doc["figures"] == {} and "figures" not in [s["name"] for s in doc["pipeline"]["stages"]]
+    assert (tmp_path / "none" / "report.html").is_file()

@@ -46,6 +46,29 @@ def verbosity(command):
     return wrapper
 
 
+def _formats(ctx, param, value: str) -> tuple[str, ...]:
+    out = tuple(dict.fromkeys(v.strip().lower() for v in value.split(",") if v.strip()))
+    bad = [v for v in out if v not in ("png", "svg")]
+    if bad or not out:
+        raise click.BadParameter(f"{value!r}: expected png, svg or png,svg")
+    return out
+
+
+def formats_option(command):
+    """Decorator: ``--formats png,svg`` (the files each figure is written as)."""
+    return click.option("--formats", "formats", default="png,svg", show_default=True,
+                        callback=_formats, metavar="png|svg|png,svg",
+                        help="File formats of the figures.")(command)
+
+
+def figure_options(command):
+    """Decorator: ``--no-figures`` (draw none; matplotlib is never imported)
+    and ``--formats`` (:func:`formats_option`)."""
+    command = formats_option(command)
+    return click.option("--no-figures", is_flag=True,
+                        help="Draw no figure (faster; matplotlib is not loaded).")(command)
+
+
 def default_out_dir(data: str | Path, command: str) -> Path:
     """``outputs/<dataset-name>/<command>/`` (never inside the data folder)."""
     name = Path(data).resolve().name or "dataset"

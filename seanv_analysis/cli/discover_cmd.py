@@ -10,6 +10,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    figure_options,
     result_json,
     sim_default_dataset,
     stage_context,
@@ -39,8 +40,10 @@ __all__ = ["discover_cmd"]
               help="Identify the rig from DATA first (as `seanv-analyze identify`) and discover on "
                    "the identified twin: its valve with the identified needle geometry, and in "
                    "position-control runs delay/backlash fitted on it, replaying the logged cam command.")
+@figure_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document on stdout.")
-def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_first, as_json):
+def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_first, no_figures,
+                 formats, as_json):
     """Find what the flow model (eq. 5) misses in DATA and report the error before/after.
 
     Fits the base model on the fit part of the flow-step runs, looks at the
@@ -95,7 +98,9 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
             return unusable(data, ds.failed, exc)
     ctx.add("discover", result)
     written += discover.write(result, out)
-    written += figures.draw_figures(ctx, figures.figures_of("discovery"), out).all_paths()
+    if not no_figures:
+        written += figures.draw_figures(ctx, figures.figures_of("discovery"), out,
+                                        formats=formats).all_paths()
     write_command_manifest(out, ctx, outputs=written, extra={"holdout": holdout, "seed": seed,
                                             "identify": identify_first,
                                             "model": str(model_file) if model_file else None})

@@ -12,6 +12,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    figure_options,
     result_json,
     sim_default_dataset,
     stage_context,
@@ -51,9 +52,10 @@ BUILTIN_SCENARIO = "paper-flowsteps"
 @click.option("--n-boot", type=click.IntRange(min=0), default=200, show_default=True,
               help="Bootstrap resamples for the 95 % intervals (0: none).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Bootstrap seed.")
+@figure_options
 def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, as_json: bool,
-                side: str, method: str, procedure: str, cam: str, n_boot: int, seed: int
-                ) -> int:
+                side: str, method: str, procedure: str, cam: str, n_boot: int, seed: int,
+                no_figures: bool = False, formats: tuple[str, ...] = ("png", "svg")) -> int:
     """Fit the sealing threshold (z0, eq. 3+4) and flow coefficient (C, eq. 5) per side.
 
     DATA is a data set folder of flow-step runs. Without DATA the built-in
@@ -112,10 +114,10 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
             return unusable(data, ds.failed, exc)
     ctx.add("flowfit", fit)
     paths = flowfit.write(fit, out)
-    drawn = figures.draw_figures(ctx, ["fig4"], out)
-    write_command_manifest(out, ctx, outputs=[*paths, *drawn.all_paths()], extra={"flowfit": {
+    drawn = [] if no_figures else figures.draw_figures(ctx, ["fig4"], out, formats=formats).all_paths()
+    write_command_manifest(out, ctx, outputs=[*paths, *drawn], extra={"flowfit": {
         "data": str(data), "side": side, "method": method, **options,
-        "outputs": [str(p) for p in [*paths, *drawn.all_paths()]]}})
+        "outputs": [str(p) for p in [*paths, *drawn]]}})
     if as_json:
         click.echo(result_json(fit, ds))
     else:

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, unusable, verbosity
+from ._common import check_out_dir, default_out_dir, formats_option, unusable, verbosity
 
 __all__ = ["plots_cmd", "plots_pipeline"]
 
@@ -68,8 +68,10 @@ class _FigureChoice(click.Choice):
               help="Worker processes for the per-run work (1: serial). Default: the CPU count.")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change.")
+@formats_option
 def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: int | None,
-              rig_file: Path | None, quiet: bool) -> int:
+              rig_file: Path | None, quiet: bool, formats: tuple[str, ...] = ("png", "svg")
+              ) -> int:
     """Draw the paper's figures for every run / the whole data set in DATA (PNG + SVG).
 
     \b
@@ -97,7 +99,9 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
     # a line per stage where no progress bar is drawn (-q: none)
     log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
     try:
-        result = run_pipeline(plots_pipeline(figs), data, out_dir=out, workers=workers,
+        pipe = plots_pipeline(figs)
+        pipe["stages"][-1]["formats"] = list(formats)
+        result = run_pipeline(pipe, data, out_dir=out, workers=workers,
                               quiet=quiet, rig=rig_file, log=log, command=sys.argv)
     except DataError as exc:  # no run could be read: say which runs were bad and why
         from .run_cmd import bad_runs

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, unusable, verbosity
+from ._common import check_out_dir, default_out_dir, figure_options, unusable, verbosity
 
 __all__ = ["run_cmd"]
 
@@ -36,9 +36,11 @@ __all__ = ["run_cmd"]
 @click.option("--list-stages", is_flag=True,
               help="List the stages a pipeline can hold: what each does, needs, takes as options "
                    "and writes; then exit.")
+@figure_options
 def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, workers: int | None,
             scheduler: str | None, force: bool, quiet: bool, rig_file: Path | None,
-            as_json: bool, list_stages: bool) -> int:
+            as_json: bool, list_stages: bool, no_figures: bool = False,
+            formats: tuple[str, ...] = ("png", "svg")) -> int:
     """Run PIPELINE (a TOML file, or a shipped name: paper, flowfit, tracking) on DATA.
 
     DATA is a data set folder (run folders at any depth; flow-step and
@@ -83,7 +85,7 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
     if pipeline is None:
         raise click.UsageError("Missing argument 'PIPELINE' (a TOML file or a shipped name: "
                                "paper, flowfit, tracking).")
-    pipe = load_pipeline(pipeline)
+    pipe = with_figure_options(load_pipeline(pipeline), no_figures=no_figures, formats=formats)
     datas: list[Path]
     if data is None:
         from ..demo import demo_datasets
@@ -115,6 +117,23 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
     else:
         click.echo(result.summary_text())
     return 0 if result.success else 1
+
+
+def with_figure_options(pipe, *, no_figures: bool, formats: tuple[str, ...]):
+    """The pipeline without its figures stage (``--no-figures``), or with
+    the figures stage writing ``formats`` when they differ from the default."""
+    from ..batch import parse_pipeline
+
+    if not no_figures and formats == ("png", "svg"):
+        return pipe
+    doc = pipe.to_dict()
+    if no_figures:
+        doc["stages"] = [s for s in doc["stages"] if s["name"] != "figures"]
+    else:
+        for s in doc["stages"]:
+            if s["name"] == "figures":
+                s["formats"] = list(formats)
+    return parse_pipeline(doc, source=pipe.source)
 
 
 def bad_runs(datas: list[Path], rig_file: Path | None, exc: Exception) -> list:

@@ -11,6 +11,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    figure_options,
     result_json,
     sim_default_dataset,
     stage_context,
@@ -37,9 +38,9 @@ __all__ = ["tracking_cmd"]
               help="Rig config TOML. Default: the shipped one.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder. Default: outputs/<dataset>/tracking/.")
-@click.option("--no-figures", is_flag=True, help="Skip the Fig. 6/7 figures.")
+@figure_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document on stdout.")
-def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figures, as_json):
+def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figures, formats, as_json):
     """Flow tracking of the position-control runs in DATA (paper Sec. III-C.2, Fig. 6/7).
 
     Actual flow from the encoder (same derivative as ingest), target flow
@@ -84,7 +85,7 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
         ctx.add("tracking", result)
         written = tracking.write(result, out)
         if not no_figures:  # per-run figures on the command's workers
-            written += figures.draw_figures(ctx, [6, "fig6_runs", 7], out,
+            written += figures.draw_figures(ctx, [6, "fig6_runs", 7], out, formats=formats,
                                             per_run_folders=False).all_paths()
     write_command_manifest(out, ctx, outputs=written, extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
                                             "model": str(model_file) if model_file else None})

@@ -12,6 +12,7 @@ from ._common import (
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
+    figure_options,
     result_json,
     sim_default_dataset,
     stage_context,
@@ -39,10 +40,10 @@ __all__ = ["validate_cmd"]
                    "rig ran) or the --model (plant) one.")
 @click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
               help="Output folder. Default: outputs/<dataset>/validate/.")
-@click.option("--no-figures", is_flag=True, help="Skip the overlay figures.")
+@figure_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document on stdout.")
 def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, out_dir, no_figures,
-                 as_json):
+                 formats, as_json):
     """Closed-loop validation of the position-control runs in DATA.
 
     Each run's controller (Kp, flow model on/off from run.json) is re-run on
@@ -93,7 +94,8 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     ctx.add("validate", result)
     written = validate.write(result, out)
     if not no_figures:
-        written += figures.draw_figures(ctx, figures.figures_of("validation"), out).all_paths()
+        written += figures.draw_figures(ctx, figures.figures_of("validation"), out,
+                                        formats=formats).all_paths()
     write_command_manifest(out, ctx, outputs=written, extra={"model": str(model_file) if model_file else None,
                                             "threshold_pct": threshold_pct,
                                             "controller_model": controller_model})
