@@ -8,6 +8,13 @@ source file that compiled code is built from (and the numba version), under
 ``$SEANV_NUMBA_CACHE`` or the package's user cache folder
 (:func:`seanv_analysis.config.user_cache_dir`, default ``~/.cache/seanv-analysis``). A changed equation gets a new folder and is
 compiled afresh; the package tree itself is never written to.
+
+Inside that folder numba would file each module's cache under a hash of its
+folder's absolute path, so a moved checkout or the same sources installed
+from a wheel would compile everything again (20-30 s). The package's own
+functions are located by :class:`PackageCacheLocator` instead: under their
+folder inside the package (``sim/``, ``models/``); numba stamps entries by
+the source's content hash, so any copy of the same sources reuses them.
 """
 from __future__ import annotations
 
@@ -16,7 +23,12 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["configure_numba_cache"]
+__all__ = ["configure_numba_cache", "PackageCacheLocator"]
+
+_PKG = Path(__file__).resolve().parents[1]
+#: numba's own locators, tried after ours (other libraries' cached functions)
+_NUMBA_LOCATORS = ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCacheLocator",
+                   "IPythonCacheLocator", "ZipCacheLocator")
 
 #: the package sources compiled code is built from (relative to the package)
 _SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "sim/jit.py",
@@ -54,5 +66,36 @@ def configure_numba_cache() -> Path | None:
         folder = Path(tempfile.gettempdir()) / "seanv-analysis" / folder.name
         folder.mkdir(parents=True, exist_ok=True)
     config.CACHE_DIR = str(folder)
+    if not os.environ.get("NUMBA_CACHE_LOCATOR_CLASSES"):  # a user's choice wins
+        config.CACHE_LOCATOR_CLASSES = ",".join((f"{__name__}.PackageCacheLocator",
+                                                 *_NUMBA_LOCATORS))
     _DONE = True
     return folder
+
+
+def _locator_base():
+    from numba.core.caching import UserProvidedCacheLocator
+
+    return UserProvidedCacheLocator
+
+
+class PackageCacheLocator(_locator_base()):
+    """numba cache locator of the package's compiled functions: the cache
+    path is ``CACHE_DIR/pkg/<folder inside the package>``, not a hash of the
+    absolute path (module doc); None for any other file (numba's locators
+    take it)."""
+
+    def __init__(self, py_func, py_file):
+        super().__init__(py_func, py_file)
+        from numba.core import config
+
+        rel = Path(py_file).resolve().parent.relative_to(_PKG)
+        self._cache_path = os.path.join(config.CACHE_DIR, "pkg", *rel.parts)
+
+    @classmethod
+    def from_function(cls, py_func, py_file):
+        try:
+            Path(py_file).resolve().relative_to(_PKG)
+        except ValueError:
+            return None
+        return super().from_function(py_func, py_file)
