@@ -73,7 +73,8 @@ def _record(tmp_path: Path, figures: dict[str, list[Path]]) -> SimpleNamespace:
 # --- the registry -----------------------------------------------------------------
 
 def test_registered_figures_are_consistent():
-    assert list(FIGURES)[:5] == ["fig4", "fig6", "fig6_runs", "fig7", "discover_residuals"]
+    assert list(FIGURES)[:6] == ["fig4", "fig6", "fig6_runs", "fig7", "validate_fit",
+                                 "discover_residuals"]
     numbers = [f.number for f in FIGURES.values() if f.number is not None]
     assert len(numbers) == len(set(numbers)), numbers
     assert {f.number for f in FIGURES.values()} >= {4, 6, 7}

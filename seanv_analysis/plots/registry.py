@@ -158,6 +158,16 @@ def _draw_discovery_residuals(results: Mapping[str, Any], folder: Path, *,
                                     formats=check_formats(formats))
 
 
+def _draw_validation(results: Mapping[str, Any], folder: Path, *,
+                     formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Closed-loop validation: the fit % per run (``validate_fit.<format>``)
+    and measured vs simulated overlays, one per run
+    (:func:`~seanv_analysis.plots.validate.plot_overlay`)."""
+    from .validate import plot_overlay
+
+    return plot_overlay(results["validation"], folder, formats=check_formats(formats))
+
+
 register_figure(Figure(
     name="fig4", number=4, needs=("flowfit",), draw=fig4.draw,
     title="Fig. 4: flow characterisation, flow rate vs cam angle and sealing threshold vs "
@@ -173,6 +183,10 @@ register_figure(Figure(
 register_figure(Figure(
     name="fig7", number=7, needs=("tracking",), draw=fig7.draw,
     title="Fig. 7: flow tracking, target vs actual flow (delay-shifted), all runs and per run"))
+register_figure(Figure(
+    name="validate_fit", needs=("validation",), draw=_draw_validation,
+    title="Closed-loop validation: measured vs simulated position control, fit % per run "
+          "and overlays"))
 register_figure(Figure(
     name="discover_residuals", needs=("discovery",), draw=_draw_discovery_residuals,
     title="Discovery: flow residual (measured - model) before/after the effects found"))

@@ -63,6 +63,9 @@ details{margin:.5em 0} summary{cursor:pointer;color:#24527a}
 .scroll{overflow-x:auto;max-width:100%}
 .grid{display:grid;grid-template-columns:1fr 1fr;gap:.6em}
 nav a{margin-right:1em;color:#24527a;text-decoration:none;font-size:.9em}
+.sub,td.l{overflow-wrap:anywhere}
+@media (max-width:900px){main{padding:.8em 1em 2em}.grid{grid-template-columns:1fr}
+.card{min-width:120px}table{font-size:.82em}}
 """
 
 
@@ -98,11 +101,38 @@ def _ci(ci: Any, digits: int = 4) -> str:
     return f"[{_fmt(lo, digits)}, {_fmt(hi, digits)}]"
 
 
+#: column names said in words (the others: unit suffix -> "[unit]", _ -> space)
+_HEADERS = {"run_id": "run", "run_index": "run #", "fit_position_pct": "position fit [%]",
+            "rmse_position_mm": "position RMSE [mm]", "fit_flow_pct": "flow fit [%]",
+            "rmse_flow_mm3_s": "flow RMSE [mm³/s]", "fit_cam_pct": "cam fit [%]",
+            "rmse_cam_deg": "cam RMSE [deg]", "q_mm3_s": "Q [mm³/s]", "dp_mpa": "Δp [MPa]",
+            "load_mpag": "load [MPaG]", "load_level_mpag": "load level [MPaG]",
+            "cam_deg": "cam [deg]", "excluded": "excluded by", "excluded_detail": "why",
+            "started_at": "started (UTC)", "lag_s": "delay [s]", "target_source": "target Q_ref",
+            "theta_d_deg": "θ_d [deg]", "flagged": "flagged", "n_runs": "runs",
+            "steps": "reference steps"}
+_UNITS = (("_mm3_s_deg2_sqrtMPa", "mm³/(s deg² MPa^0.5)"), ("_mm3_s_per_mm", "mm³/s per mm"),
+          ("_deg_per_mm", "deg/mm"), ("_mm3_s", "mm³/s"), ("_mpag", "MPaG"), ("_mpa", "MPa"),
+          ("_pct", "%"), ("_frac", "fraction"), ("_deg", "deg"), ("_mm", "mm"), ("_s", "s"),
+          ("_n", "N"))
+
+
+def _header(col: Any) -> str:
+    """A column name as a reader wants it: words and the unit in brackets."""
+    col = str(col)
+    if col in _HEADERS:
+        return _HEADERS[col]
+    for suffix, unit in _UNITS:
+        if col.endswith(suffix) and len(col) > len(suffix):
+            return f"{col[:-len(suffix)].replace('_', ' ')} [{unit}]"
+    return col.replace("_", " ")
+
+
 def _table(df: pd.DataFrame, *, left: Iterable[str] = (), max_rows: int = 400) -> str:
     if df is None or len(df) == 0:
         return "<p><i>none</i></p>"
     left = set(left)
-    head = "".join(f"<th>{_e(c)}</th>" for c in df.columns)
+    head = "".join(f"<th>{_e(_header(c))}</th>" for c in df.columns)
     rows = []
     for rec in df.head(max_rows).to_dict(orient="records"):
         cells = []
@@ -112,7 +142,7 @@ def _table(df: pd.DataFrame, *, left: Iterable[str] = (), max_rows: int = 400) -
             cells.append(f"<td{cls}>{_e(v) if isinstance(v, str) else _fmt(v)}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     more = f"<p><i>{len(df) - max_rows} more rows not shown</i></p>" if len(df) > max_rows else ""
-    return (f"<div class='scroll'><table><tr>{head}</tr>{''.join(rows)}</table></div>{more}")
+    return f"<table><tr>{head}</tr>{''.join(rows)}</table>{more}"
 
 
 def _figure(path: Path, caption: str = "") -> str:
@@ -196,7 +226,8 @@ def _overview(r) -> str:
         cards.append((f"{_fmt(r.tracking.lag_s, 3)}", "flow delay [s]"))
     if r.discovery is not None:
         cls = "warn" if r.discovery.verdict != "none" else "ok"
-        cards.append((f"<span class='{cls}'>{_e(r.discovery.verdict)}</span>", "discovery verdict"))
+        cards.append((f"<span class='{cls}'>{_e(verdict_words(r.discovery, short=True))}</span>",
+                      "discovery"))
     body = "".join(f"<div class='card'><b>{v}</b><span>{_e(t)}</span></div>" for v, t in cards)
     parts = [f"<div class='cards'>{body}</div>"]
     for name, msg in r.stage_errors.items():
@@ -212,12 +243,19 @@ def _flowfit(r) -> str:
         why = r.stage_errors.get("flowfit", "stage not in this pipeline")
         return f"<p>No flow fit ({_e(why)}).</p>"
     rows = []
+    found = _effects_by_side(r.discovery)
     for side, f in fit.sides.items():
         ref_z0, ref_c = _rig_side_values(r.rig, side)
+        flags = []  # what later sections say against this side: never "ok" beside them
+        if getattr(f, "lack_of_fit", None):  # eq. (5) does not describe the runs
+            flags.append("lack of fit")
+        if found.get(side):
+            flags.append("discovery: " + ", ".join(found[side])
+                         + " (the fit averages over it)")
         if not f.success:
             status = "<span class='bad'>failed</span>"
-        elif getattr(f, "lack_of_fit", None):  # eq. (5) does not describe the runs: not "ok"
-            status = "<span class='warn'>lack of fit</span>"
+        elif flags:
+            status = f"<span class='warn'>{_e('; '.join(flags))}</span>"
         else:
             status = "<span class='ok'>ok</span>"
         rows.append(
@@ -228,10 +266,14 @@ def _flowfit(r) -> str:
             f"<td>{_fmt(f.rmse_mm3_s, 4)}</td><td>{f.n_runs}</td><td class='l'>{status} "
             f"{_e(f.message)}</td></tr>")
     methods = sorted({f.ci_method for f in fit.sides.values() if f.ci_method})
-    table = ("<table><tr><th class='l'>side</th><th>z0 [mm]</th><th>z0 95 % interval</th>"
-             "<th>z0 paper/rig [mm]</th><th>C [mm^3/(s deg^2 MPa^0.5)]</th><th>C 95 % interval</th>"
-             "<th>C paper/rig</th><th>RMSE [mm^3/s]</th><th>runs used</th><th class='l'>status</th>"
+    table = ("<table><tr><th class='l'>side</th><th>z0 [mm]</th><th>z0 95 % interval [mm]</th>"
+             "<th>z0 paper/rig [mm]</th><th>C [mm³/(s deg² MPa^0.5)]</th><th>C 95 % interval</th>"
+             "<th>C paper/rig</th><th>RMSE [mm³/s]</th><th>runs used</th><th class='l'>status</th>"
              "</tr>" + "".join(rows) + "</table>")
+    both = found.get("both")
+    if both:
+        table += (f"<p>Discovery also found {_e(', '.join(both))} (the plant, both sides): see "
+                  "<a href='#discovery'>Discovery</a>.</p>")
     notes = [f"Residual = measured &minus; model. Intervals: {_e('; '.join(methods) or 'n/a')}."]
     for side, f in fit.sides.items():  # lack-of-fit check (a flagged side says it under status)
         line = f.lack_of_fit_line() if hasattr(f, "lack_of_fit_line") else ""
@@ -244,6 +286,14 @@ def _flowfit(r) -> str:
         pl = "<details><summary>per load level (threshold angle and quadratic coefficient)</summary>" \
              + _table(per_load, left=("side",)) + "</details>"
     return table + "".join(f"<p>{n}</p>" for n in notes) + pl + _figure_links(r, "flowfit")
+
+
+def _effects_by_side(discovery) -> dict[str, list[str]]:
+    """{side ('supply', 'drain', 'both'): names of the effects discovery found}."""
+    out: dict[str, list[str]] = {}
+    for e in getattr(discovery, "effects", None) or []:
+        out.setdefault(str(e.side), []).append(str(e.name))
+    return out
 
 
 def _identify(r) -> str:
@@ -362,6 +412,19 @@ def _validation(r) -> str:
     return "".join(out)
 
 
+def verdict_words(d, *, short: bool = False) -> str:
+    """Discovery's verdict said in words (``short``: for the overview card)."""
+    names = ", ".join(f"{e.name} ({e.side})" for e in d.effects)
+    trend = f"; it trends with {d.trend_variable}" if d.trend_variable else ""
+    if short:
+        return {"none": "nothing found", "effect_found": f"found: {names}",
+                "unexplained": "unexplained residual"}.get(d.verdict, d.verdict)
+    return {"none": "nothing found: the model explains the held-out runs",
+            "effect_found": f"the model misses {names}",
+            "unexplained": "the residual is structured, but no known effect explains it" + trend,
+            }.get(d.verdict, d.verdict)
+
+
 def _discovery(r) -> str:
     d = r.discovery
     if d is None:
@@ -369,8 +432,7 @@ def _discovery(r) -> str:
         return f"<p>No discovery ({_e(why)}).</p>"
     cls = {"effect_found": "warn", "none": "ok", "unexplained": "bad"}.get(d.verdict, "")
     before, after = d.rmse_before_mm3_s, d.rmse_after_mm3_s
-    out = [f"<p>Verdict: <b class='{cls}'>{_e(d.verdict)}</b>"
-           + (f" (residual trends with {_e(d.trend_variable)})" if d.trend_variable else "") + "</p>",
+    out = [f"<p>Verdict: <b class='{cls}'>{_e(verdict_words(d))}</b>.</p>",
            "<table><tr><th class='l'>held-out runs</th><th>flow RMSE before [mm^3/s]</th>"
            "<th>after [mm^3/s]</th><th>change</th></tr>"
            f"<tr><td class='l'>{_e(d.holdout)}, n = {d.n_heldout_runs}</td><td>{_fmt(before)}</td>"
@@ -415,10 +477,10 @@ def _closed_loop_before_after(validation: dict) -> str:
                     f"</td><td>{_fmt(a.get('rmse_position_mm'))}</td><td>{_fmt(b.get('fit_flow_pct'))}"
                     f"</td><td>{_fmt(a.get('fit_flow_pct'))}</td></tr>")
     return ("<p>Closed loop (free-run simulation of the position-control runs), identified "
-            "model before, augmented model after:</p><div class='scroll'><table><tr>"
+            "model before, augmented model after:</p><table><tr>"
             "<th class='l'>controller</th><th>position fit % before</th><th>after</th>"
             "<th>position RMSE [mm] before</th><th>after</th><th>flow fit % before</th>"
-            "<th>after</th></tr>" + "".join(rows) + "</table></div>")
+            "<th>after</th></tr>" + "".join(rows) + "</table>")
 
 
 def _runs(r) -> str:
@@ -537,6 +599,9 @@ def render_report(result: Any) -> str:
                   for sid, title, _ in sections)
     body = "".join(f"<section id='{sid}'><h2>{_e(title)}</h2>{content}</section>"
                    for sid, title, content in sections)
+    # every table in a box that scrolls sideways: nothing is cut on a narrow window
+    body = body.replace("<table>", "<div class='scroll'><table>").replace("</table>",
+                                                                       "</table></div>")
     title = f"seanv-analysis report: {r.pipeline.name}"
     sub = (f"{_e(r.pipeline.description)}<br>data: {_e(', '.join(str(d) for d in r.data))}; "
            f"seanv-analysis {_e(__version__)}. Units: mm, MPa gauge, deg, s, mm^3/s.")
