@@ -283,3 +283,27 @@ def test_paper_flowsteps_simulated_recovers_truth(tmp_path, rig, name):
         assert_allclose(sf.c_flow, t.c_flow, rtol=0.03)
         assert sf.z0_ci95[0] <= t.z0_mm <= sf.z0_ci95[1], (side, sf.z0_ci95, t.z0_mm)
         assert min(sf.c_ci95) <= t.c_flow <= max(sf.c_ci95), (side, sf.c_ci95, t.c_flow)
+
+
+def test_bootstrap_jacobian_is_the_derivative_of_eq5():
+    """The bootstrap's analytic Jacobian of eq. (5) against central differences,
+    and its residual equal to side_flow's, on both sides."""
+    from seanv_analysis.fit._joint import _Eq5Residual
+    from seanv_analysis.fit._perload import side_flow
+
+    model = ValveModel.from_rig(load_rig())
+    rng = np.random.default_rng(3)
+    for name in ("supply", "drain"):
+        side = model.side(name)
+        theta, p1, dp = rng.uniform(-40, 10, 60), rng.uniform(1, 3.3, 60), rng.uniform(0.5, 2, 60)
+        x = np.array([side.z0_mm, side.c_flow])
+        q = side_flow(side, *x, theta, p1, dp) + rng.normal(0, 5, 60)
+        r = _Eq5Residual(side, theta, p1, dp, q, np.full(60, 4.0))
+        assert np.array_equal(r.fun(x), (q - side_flow(side, *x, theta, p1, dp)) / 4.0)
+        h = np.array([1e-7, 1e-6])
+        numeric = np.column_stack([(r.fun(x + e * hi) - r.fun(x - e * hi)) / (2 * hi)
+                                   for e, hi in zip(np.eye(2), h)])
+        assert np.abs(r.jac(x)).max(axis=0) == pytest.approx(np.abs(numeric).max(axis=0),
+                                                             rel=1e-6)
+        np.testing.assert_allclose(r.jac(x), numeric, rtol=0,
+                                   atol=1e-6 * np.abs(numeric).max())

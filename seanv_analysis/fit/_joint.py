@@ -18,7 +18,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..models import ValveSide
+from ..models import ValveSide, signed_power
+from ..models.sealing import fluid_force_n
 from ._perload import _stderr, side_flow
 
 __all__ = ["JointFit", "fit_joint", "bootstrap_joint", "resample_indices"]
@@ -82,6 +83,50 @@ def _solve(side, theta, p1, dp, q, sigma, x0, f_scale):
                          x_scale=[0.01, max(abs(x0[1]), 1e-3)], diff_step=[1e-5, 1e-6])
 
 
+class _Eq5Residual:
+    """Scaled residual r = (q - Q(z0, C)) / sigma of eq. (5) on fixed runs, and
+    its analytic Jacobian [d r / d z0 (1/mm), d r / d C].
+
+    Q = C o^2 dp^n with o = max(s (theta - theta_d), 0), s = +1 supply, -1
+    drain, theta_d = table inverse of eq. (4) at z0 - F_w / k (eq. 1, 3). The
+    table is linear between its nodes, so d theta_d / d z0 is the node
+    interval's slope (0 outside the table, where theta_d is clipped):
+    dQ/dz0 = -2 s C o dp^n d theta_d/dz0, dQ/dC = o^2 dp^n. ``fun`` gives
+    the same values as :func:`~._perload.side_flow` (same arithmetic).
+    """
+
+    def __init__(self, side: ValveSide, theta, p1, dp, q, sigma):
+        geo = side.geometry
+        self.force_k = fluid_force_n(p1, dp, geo) / geo.spring_constant_n_per_mm   # [mm]
+        self.z_tab, self.th_tab = geo.height_table
+        self.sign = 1.0 if side.opens_upward else -1.0
+        self.theta, self.q, self.sigma = theta, q, sigma
+        self.dpn = signed_power(dp, side.dp_exponent)
+        self._at: tuple[float, np.ndarray, np.ndarray] | None = None
+
+    def _opening(self, z0: float) -> tuple[np.ndarray, np.ndarray]:
+        """(opening [deg], z_threshold [mm]) at z0, kept for the Jacobian of the same z0."""
+        if self._at is None or self._at[0] != z0:
+            z = z0 - self.force_k
+            d = self.theta - np.interp(z, self.z_tab, self.th_tab)
+            self._at = (z0, np.maximum(d if self.sign > 0 else -d, 0.0), z)
+        return self._at[1], self._at[2]
+
+    def fun(self, x: np.ndarray) -> np.ndarray:
+        o, _ = self._opening(float(x[0]))
+        return (self.q - x[1] * o * o * self.dpn) / self.sigma
+
+    def jac(self, x: np.ndarray) -> np.ndarray:
+        o, z = self._opening(float(x[0]))
+        k = np.clip(np.searchsorted(self.z_tab, z), 1, self.z_tab.size - 1)
+        slope = (self.th_tab[k] - self.th_tab[k - 1]) / (self.z_tab[k] - self.z_tab[k - 1])
+        slope[(z < self.z_tab[0]) | (z > self.z_tab[-1])] = 0.0
+        jac = np.empty((self.q.size, 2))
+        jac[:, 0] = 2.0 * self.sign * x[1] * o * self.dpn * slope / self.sigma
+        jac[:, 1] = -(o * o * self.dpn) / self.sigma
+        return jac
+
+
 def fit_joint(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_mm3_s, *,
               z0_start_mm: float) -> JointFit:
     """Fit (z0, C) of one side on all its runs, eq. (5), soft_l1 loss.
@@ -132,7 +177,8 @@ def bootstrap_joint(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_m
     With ``clusters`` (one label per run) whole clusters are resampled (all
     their runs together): repeats of one condition share its systematic
     errors, so they are not independent. Each resample starts from
-    ``x_hat`` with the same per-run noise scales and ``f_scale``. Returns an
+    ``x_hat`` (the main fit) with the same per-run noise scales and
+    ``f_scale``, with the analytic Jacobian of eq. (5) (:class:`_Eq5Residual`). Returns an
     (n_ok, 2) array; resamples with fewer than 2 distinct cam angles or a
     failed fit are left out.
     """
@@ -140,13 +186,16 @@ def bootstrap_joint(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_m
                                for a in (theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_mm3_s))
     rng = np.random.default_rng(seed)
     members = _cluster_members(q.size, clusters)
+    x0 = np.asarray(x_hat, dtype=float)
+    x_scale = [0.01, max(abs(x0[1]), 1e-3)]
     out = []
     for _ in range(n_boot):
         idx = resample_indices(rng, members)
         if np.unique(theta[idx]).size < 2:
             continue
-        res = _solve(side, theta[idx], p1[idx], dp[idx], q[idx], sigma[idx],
-                     np.asarray(x_hat, dtype=float), f_scale)
+        r = _Eq5Residual(side, theta[idx], p1[idx], dp[idx], q[idx], sigma[idx])
+        res = least_squares(r.fun, x0, jac=r.jac, loss="soft_l1", f_scale=f_scale,
+                            x_scale=x_scale)
         if res.status > 0 and np.all(np.isfinite(res.x)):
             out.append(res.x)
     return np.asarray(out, dtype=float).reshape(-1, 2)

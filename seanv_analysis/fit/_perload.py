@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.stats import f as f_dist
+from scipy.special import fdtrc  # F survival function, as scipy.stats.f.sf (0.2 s lighter)
 
 from ..models import ValveSide, signed_power
 
@@ -335,7 +335,7 @@ def lack_of_fit_test(residual_mm3_s, conditions, *, sigma_mm3_s=None, flow_mm3_s
         return LackOfFit(None, reason="repeats agree exactly: no repeats' scatter", **base)
     ms_pe = ss_pe / df_pe
     f_stat = (ss_lof / df_lof) / ms_pe
-    p = float(f_dist.sf(f_stat, df_lof, df_pe))
+    p = float(fdtrc(df_lof, df_pe, f_stat))   # = scipy.stats.f.sf(f_stat, df_lof, df_pe)
     ratio = math.sqrt(f_stat)
     flow2 = float(np.sum(w * q ** 2))
     systematic = (math.sqrt(max(ss_lof - df_lof * ms_pe, 0.0) / flow2)

@@ -23,13 +23,12 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
-from scipy.ndimage import uniform_filter1d
-from scipy.signal import savgol_filter
 
 from ..errors import ConfigError, DataError
 from ..io.run import Run
 from ..models import flow_from_velocity, side_pressures
 from .align import align_run, interp_sorted
+from .savgol import moving_average, savgol_derivative
 
 __all__ = [
     "FLOW_METHODS", "DEFAULT_MAX_JITTER", "DEFAULT_SETTLE_BAND",
@@ -132,7 +131,8 @@ def velocity_mm_s(t_s, position_mm, *, window_s: float, polyorder: int,
 
     v(t_i) = d/dt of the least-squares polynomial of order ``polyorder``
     fitted to the ``window_samples`` positions centred on t_i
-    (``scipy.signal.savgol_filter(deriv=1)``).
+    (:func:`.savgol.savgol_derivative`, scipy's ``savgol_filter(deriv=1,
+    mode='interp')`` without importing scipy.signal).
 
     Parameters
     ----------
@@ -168,7 +168,7 @@ def velocity_mm_s(t_s, position_mm, *, window_s: float, polyorder: int,
     interpolated back to the input timestamps (``info.resampled``). Across a
     gap this gives the mean velocity over the gap.
 
-    *Edges.* ``savgol_filter(mode='interp')``: the first and last
+    *Edges.* as ``savgol_filter(mode='interp')``: the first and last
     ``window_samples // 2`` samples take the derivative of the polynomial
     fitted to the first/last full window, evaluated off-centre. Exact for
     polynomial motion up to ``polyorder``, but noisier and (for curved
@@ -229,7 +229,7 @@ def velocity_mm_s(t_s, position_mm, *, window_s: float, polyorder: int,
         raise DataError(f"{x_u.size} samples, fewer than the {n}-sample derivative window "
                         f"({window_s} s at {1 / dt:.4g} Hz); expected a longer record",
                         column="position_mm")
-    v_u = savgol_filter(x_u, n, polyorder, deriv=1, delta=dt, mode="interp")
+    v_u = savgol_derivative(x_u, n, polyorder, deriv=1, delta=dt)   # scipy mode="interp"
     v = np.interp(t, t_u, v_u) if resampled else v_u
     half = n // 2
     info = DerivativeInfo(window_samples=n, window_s=n * dt, requested_window_s=float(window_s),
@@ -307,7 +307,7 @@ def derive_samples(run: Run, *, aligned: pd.DataFrame | None = None,
                                        enc["position_mm"].to_numpy(), window_s=window_s,
                                        polyorder=polyorder)
         if aligned is None and len(enc) >= _OVERLAP_MIN_SAMPLES:
-            # a long record: the derivative (scipy.ndimage) and the alignment
+            # a long record: the derivative (np.correlate) and the alignment
             # (np.interp) both release the GIL, so they run side by side
             helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-derive")
             pending = helper.submit(derivative)
@@ -575,7 +575,7 @@ def _steady(t, v, p1, dp, *, lo, hi, window_s, dt, v_stall, area, band,
                        "the settled hold")
         i1 = cut
     n_smooth = max(1, int(round(smooth_s / dt)))
-    vs = uniform_filter1d(v[i0:i1 + 1], n_smooth, mode="nearest")
+    vs = moving_average(v[i0:i1 + 1], n_smooth)
     mid = (i1 - i0) // 2
     v_ref = float(np.mean(v[i0 + mid:i1 + 1]))
     width = max(band * abs(v_ref), v_stall)
