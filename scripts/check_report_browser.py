@@ -52,6 +52,48 @@ def screenshot(report: Path, out: Path, *, width: int = 1280, height: int = 6000
     return out
 
 
+#: appended to a copy of the report: writes the page's layout into the DOM
+_MEASURE = """<script>
+addEventListener('load', () => {
+  const main = document.querySelector('main');
+  const wide = [...document.querySelectorAll('table')].filter(t => {
+    const box = t.parentElement;
+    const scrolls = box.classList.contains('scroll') && getComputedStyle(box).overflowX === 'auto';
+    return t.getBoundingClientRect().right > main.getBoundingClientRect().right + 1 && !scrolls;
+  }).length;
+  const out = document.createElement('pre');
+  out.id = 'layout';
+  out.textContent = JSON.stringify({inner: innerWidth,
+    page: document.documentElement.scrollWidth, cut_tables: wide});
+  document.body.appendChild(out);
+});
+</script>"""
+
+
+def layout(report: Path, *, width: int, timeout_s: float = 120.0) -> dict:
+    """How the report lays out in a ``width`` px window: ``inner`` (the
+    window), ``page`` (the page's scroll width: > inner when something
+    sticks out sideways) and ``cut_tables`` (tables wider than the page's
+    column without a box that scrolls them)."""
+    import json
+    import re
+
+    exe = find_chromium()
+    if exe is None:
+        raise FileNotFoundError("chromium not found; install it with `apt-get install chromium`")
+    with tempfile.TemporaryDirectory(prefix="chromium-") as profile:
+        copy = Path(profile) / "report.html"
+        copy.write_text(report.read_text().replace("</body>", _MEASURE + "</body>"))
+        cmd = [exe, *FLAGS, f"--user-data-dir={profile}", f"--window-size={width},2000",
+               "--virtual-time-budget=5000", "--dump-dom", copy.as_uri()]
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout_s)
+    m = re.search(r"<pre id=\"layout\">(.*?)</pre>", proc.stdout)
+    if m is None:
+        raise RuntimeError(f"chromium gave no layout (exit {proc.returncode}): "
+                           f"{proc.stderr.strip()[-500:]}")
+    return json.loads(m.group(1).replace("&quot;", '"'))
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("report", nargs="?", type=Path,

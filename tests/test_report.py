@@ -134,3 +134,28 @@ def test_report_renders_in_headless_chromium(report_run, tmp_path):
         assert im.size == (1280, 2000)
         colours = im.convert("RGB").resize((64, 100)).getcolors(64 * 100)
     assert colours is None or len(colours) > 20  # not a blank page
+    # nothing sticks out sideways or is cut, on a laptop and on a narrow window
+    for width in (1280, 800):
+        lay = mod.layout(report_run.report_path, width=width)
+        assert lay["page"] <= lay["inner"] and lay["cut_tables"] == 0, (width, lay)
+
+
+def test_model_table_never_ok_beside_a_discovery_finding(tmp_path, rig):
+    """The drain side that discovery says drifts is marked in the model table,
+    the verdict is said in words, and headers are words with units."""
+    from types import SimpleNamespace
+
+    res = _fake_result(tmp_path, rig)
+    effect = SimpleNamespace(name="drift", side="drain", params={"step": 0.005},
+                             params_ci95={"step": (0.004, 0.006)}, p_value=0.01, f_p_value=0.02,
+                             sentence=lambda: "C of the drain side falls 0.5 % every 3 runs")
+    res.discovery = SimpleNamespace(
+        verdict="effect_found", effects=[effect], trend_variable=None, rmse_before_mm3_s=245.0,
+        rmse_after_mm3_s=4.0, holdout="chrono", n_heldout_runs=52, improvement=0.98,
+        validation=None, report=lambda: "Discovery: the base model misses drift (drain).")
+    html = render_report(res)
+    drain_row = html[html.index("<td class='l'>drain</td>"):].split("</tr>")[0]
+    assert "discovery: drift" in drain_row and "class='ok'" not in drain_row
+    assert "the model misses drift (drain)" in html and "effect_found" not in html
+    assert "<th>why</th>" in html and "run_id" not in html.split("id='runs'")[1].split("<pre")[0]
+    assert html.count("<div class='scroll'><table>") == html.count("<table>")

@@ -358,9 +358,9 @@ class Validation(JsonResult):
         lines = ["Closed-loop validation: measured vs simulated position control "
                  f"(flag: position fit < {self.threshold_pct:g} %)"]
         head = (f"  {'run':<28} {'ctrl':<10} {'fit x %':>8} {'RMSE x':>7} {'fit Q %':>8} "
-                f"{'fit cam %':>9} {'conv m/s':>9} {'t_conv m/s s':>13} {'OS m/s mm':>11} {'settle m/s s':>13}")
+                f"{'fit cam %':>9} {'conv':>9} {'t_conv s':>13} {'OS mm':>11} {'settle s':>13}")
         lines.append(head)
-        lines.append("  (m/s = measured/simulated; conv = fraction of steps reaching +-band; OS = "
+        lines.append("  (pairs are measured/simulated; conv = fraction of steps reaching +-band; OS = "
                  "largest overshoot; settle = mean time to stay in band)")
         for r in self.table.to_dict(orient="records"):
             lines.append(

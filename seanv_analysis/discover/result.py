@@ -256,15 +256,19 @@ class Discovery(JsonResult):
                      f"after ({-self.improvement:+.0%} error, residual = measured - model).")
         if self.position_control and self.position_control.get("method"):
             pc = self.position_control
-            lines.append(f"Position control (n = {pc['n_runs']} runs, {pc.get('n_heldout_runs', 0)} "
-                         f"held out): {pc['method']}: {pc.get('message', '')}; "
+            n = int(pc["n_runs"])
+            lines.append(f"Position control ({n} run{'s' if n != 1 else ''}, "
+                         f"{pc.get('n_heldout_runs', 0)} held out): {pc['method']}: "
+                         f"{pc.get('message', '')}; "
                          + ("an effect is added to the twin." if pc.get("found") else
                             "none kept (significant on training runs and >= 20 % lower held-out "
                             "replayed flow error are both needed)."))
         elif self.position_control:
             pc = self.position_control
-            lines.append(f"Position control (n = {pc['n_runs']} runs; lag from the first 70 % of "
-                         f"each run, confirmed on the last 30 %): {pc.get('message', '')}; "
+            n = int(pc["n_runs"])
+            lines.append(f"Position control ({n} run{'s' if n != 1 else ''} with a target flow; "
+                         "lag from the first 70 % of each, confirmed on the last 30 %): "
+                         f"{pc.get('message', '')}; "
                          + ("an extra delay is added to the model." if pc.get("found") else
                             "no extra delay.")
                          + " The closed-loop error before/after comes from validate.")

@@ -63,7 +63,7 @@ details{margin:.5em 0} summary{cursor:pointer;color:#24527a}
 .scroll{overflow-x:auto;max-width:100%}
 .grid{display:grid;grid-template-columns:1fr 1fr;gap:.6em}
 nav a{margin-right:1em;color:#24527a;text-decoration:none;font-size:.9em}
-.sub,td.l{overflow-wrap:anywhere}
+.sub{overflow-wrap:anywhere} td.l{overflow-wrap:break-word}
 @media (max-width:900px){main{padding:.8em 1em 2em}.grid{grid-template-columns:1fr}
 .card{min-width:120px}table{font-size:.82em}}
 """
@@ -222,7 +222,7 @@ def _overview(r) -> str:
              (str(n_ex), "flow-step runs excluded by the filters"),
              (f"<span class='{'bad' if r.failed else 'ok'}'>{len(r.failed)}</span>", "runs failed")]
     if r.tracking is not None:
-        cards.append((f"{_fmt(r.tracking.rmse_mm3_s, 3)}", "flow tracking RMSE [mm^3/s]"))
+        cards.append((f"{_fmt(r.tracking.rmse_mm3_s, 3)}", "flow tracking RMSE [mm³/s]"))
         cards.append((f"{_fmt(r.tracking.lag_s, 3)}", "flow delay [s]"))
     if r.discovery is not None:
         cls = "warn" if r.discovery.verdict != "none" else "ok"
@@ -433,8 +433,8 @@ def _discovery(r) -> str:
     cls = {"effect_found": "warn", "none": "ok", "unexplained": "bad"}.get(d.verdict, "")
     before, after = d.rmse_before_mm3_s, d.rmse_after_mm3_s
     out = [f"<p>Verdict: <b class='{cls}'>{_e(verdict_words(d))}</b>.</p>",
-           "<table><tr><th class='l'>held-out runs</th><th>flow RMSE before [mm^3/s]</th>"
-           "<th>after [mm^3/s]</th><th>change</th></tr>"
+           "<table><tr><th class='l'>held-out runs</th><th>flow RMSE before [mm³/s]</th>"
+           "<th>after [mm³/s]</th><th>change</th></tr>"
            f"<tr><td class='l'>{_e(d.holdout)}, n = {d.n_heldout_runs}</td><td>{_fmt(before)}</td>"
            f"<td>{_fmt(after)}</td><td>{_fmt(-100 * d.improvement, 3)} %</td></tr></table>"]
     if d.effects:
