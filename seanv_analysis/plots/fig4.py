@@ -3,10 +3,12 @@
 (a) flow rate vs cam angle per load level, both sides, with the fitted
 eq. (5) curves; runs excluded by the filters drawn as grey markers, one
 marker per reason. (b) sealing threshold angle vs pressure difference:
-per-load theta_d (quadratic fits at the load's median dp, +-1 standard
-error), the threshold each run implies (its angle minus the opening that
-gives its flow with the fitted C, eq. 6) and the fitted eq. (3)+(4)
-interpolant, both sides. Written in the formats asked (PNG and SVG by default).
+per-load theta_d (each load's own quadratic Q = alpha (theta - theta_d)^2,
+at the load's median dp, +-1 standard error: the evidence, independent of
+the joint fit's C) and the fitted eq. (3)+(4) interpolant, both sides. (A
+threshold per run computed back from eq. 6 with the fitted C would lie on
+the line by construction, so none is drawn.) Written in the formats asked
+(PNG and SVG by default).
 """
 from __future__ import annotations
 
@@ -113,13 +115,11 @@ def _panel_b(axes, fit) -> None:
             yerr = g["theta_d_se_deg"].to_numpy(float)
             ax.errorbar(g["dp_mpa"], g["theta_d_deg"], yerr=np.where(np.isfinite(yerr), yerr, 0),
                         fmt=marker, color=color, ms=5, mfc="white", capsize=2, lw=0.8,
-                        label=f"{side}: per-load $\\theta_d$ ($\\pm$1 s.e.)", zorder=3)
+                        label=f"{side}: $\\theta_d$ of each load's own quadratic "
+                              "($\\pm$1 s.e.)", zorder=3)
         rows = pr[(pr["side"] == side) & pr["used"].to_numpy(bool)]
         if not sf.success or rows.empty:
             continue
-        if "theta_d_implied_deg" in rows:
-            ax.scatter(rows["dp_mpa"], rows["theta_d_implied_deg"], s=9, color=color, alpha=0.35,
-                       edgecolor="none", zorder=1, label=f"{side}: per run (eq. 6, fitted C)")
         dp_all = rows["dp_mpa"].to_numpy(float)
         dp = np.linspace(max(0.0, dp_all.min() - 0.2), dp_all.max() + 0.2, 200)
         if side == "supply":  # p1 = p_supply, held at its median

@@ -85,7 +85,8 @@ def draw_fig6_column(axes: Sequence, run, *, legend: bool = True) -> None:
     ax_e.set_xlim(t[0], t[-1])
     if legend:
         for ax in axes:
-            ax.legend(loc="upper right", ncol=2)
+            # beside the panel, never over the traces
+            ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
 
 
 def plot_fig6(run, out_dir: str | Path, *, stem: str | None = None,
@@ -105,7 +106,7 @@ def plot_fig6(run, out_dir: str | Path, *, stem: str | None = None,
     list of the written paths
     """
     with paper_style():
-        fig = new_figure(figsize=(6.4, 7.2))
+        fig = new_figure(figsize=(8.4, 7.2))
         axes = fig.subplots(_PANELS, 1, sharex=True)
         draw_fig6_column(axes, run)
         axes[0].set_title(f"{run.run_id}: position control {_controller_label(run)}")
@@ -124,7 +125,7 @@ def plot_fig6_dataset(runs: Sequence, out_dir: str | Path, *, stem: str = "fig6"
     if not runs:
         return []
     with paper_style():
-        fig = new_figure(figsize=(4.6 * len(runs), 7.2))
+        fig = new_figure(figsize=(4.6 * len(runs) + 2.0, 7.2))
         axes = fig.subplots(_PANELS, len(runs), sharex="col", squeeze=False)
         for j, run in enumerate(runs):
             draw_fig6_column(axes[:, j], run, legend=(j == len(runs) - 1))

@@ -32,6 +32,31 @@ __all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", 
 _K = 1e-3  # axes in 10^3 mm^3/s, as the paper
 
 
+#: how each target source is labelled: only a logged Q_ref is the controller's own
+TARGET_LABELS = {"q_ref": "target $Q_{ref}$ (logged)",
+                 "kp_error": "target $Q_{ref} = K_p e$ (from the logged error)",
+                 "model": "$Q_{ref}$ implied by the flow model (not commanded)"}
+
+
+def pooled_rmse(runs) -> float:
+    """RMSE [mm^3/s] over the in-range samples of ``runs`` pooled (each run's
+    RMSE weighted by its sample count, as the tracking stage pools them)."""
+    n = np.array([r.n_samples for r in runs], dtype=float)
+    e = np.array([r.rmse_mm3_s for r in runs], dtype=float)
+    ok = (n > 0) & np.isfinite(e)
+    return float(np.sqrt(np.sum(n[ok] * e[ok] ** 2) / np.sum(n[ok]))) if ok.any() else np.nan
+
+
+def scatter_runs(tracking) -> tuple[list, str]:
+    """The runs of panel (b) and how to say it: as the paper (Fig. 7(b)
+    shows the run with the flow model, Fig. 6(b)), the runs whose target
+    Q_ref was logged; all runs when none was."""
+    logged = [r for r in tracking.runs if r.target_source == "q_ref"]
+    if logged and len(logged) < len(tracking.runs):
+        return logged, "runs with a logged $Q_{ref}$ (flow-model controller)"
+    return list(tracking.runs), "all runs"
+
+
 def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = True) -> None:
     """Panel (a): target and actual flow [10^3 mm^3/s] against time [s]."""
     d = run_tracking.data
@@ -41,7 +66,8 @@ def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = Tr
     hi = float(np.nanmax(d["load_level_mpag"])) if spans else None
     shade_high_load(ax, spans, label=f"load {hi:g} MPaG" if hi is not None else None)
     ax.plot(t, d["q_ref_mm3_s"] * _K, color=TARGET_COLOUR, lw=0.9, drawstyle="steps-post",
-            label="target $Q_{ref}$")
+            label=TARGET_LABELS.get(run_tracking.target_source, "target $Q_{ref}$"),
+            ls="-" if run_tracking.target_source == "q_ref" else "--")
     ax.plot(t, d["q_mm3_s"] * _K, color=ACTUAL_COLOUR, lw=0.8, label="actual $Q$")
     if shifted:
         ax.plot(t, d["q_shifted_mm3_s"] * _K, color="tab:cyan", lw=0.7,
@@ -110,8 +136,12 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
               max_runs: int = 4, formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
     """Fig. 7 for a data set, and per run when ``per_run``.
 
-    The data-set figure has (a) one time panel per run (up to ``max_runs``)
-    and (b) the pooled scatter with the pooled RMSE.
+    The data-set figure has (a) one time panel per run (up to ``max_runs``;
+    the run with a logged Q_ref first; a target only implied by the flow
+    model is dashed and labelled so) and (b) the scatter of the runs whose
+    Q_ref was logged (the paper's Fig. 7(b): the run with the flow model;
+    all runs when no run or every run logged it), with the RMSE of exactly
+    those runs.
 
     Parameters
     ----------
@@ -129,20 +159,24 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
     paths: list[Path] = []
     if not tracking.runs:
         return paths
-    shown = tracking.runs[:max_runs]
+    # the paper's run (logged Q_ref) first: panel (a); the others (a2), (a3), ...
+    ordered = sorted(tracking.runs, key=lambda r: r.target_source != "q_ref")
+    shown = ordered[:max_runs]
+    in_b, which = scatter_runs(tracking)
     with paper_style():
-        fig = new_figure(figsize=(11.0, max(3.8, 2.2 * len(shown))))
+        fig = new_figure(figsize=(11.0, max(3.8, 2.4 * len(shown))))
         gs = fig.add_gridspec(len(shown), 2, width_ratios=[1.6, 1])
         for i, r in enumerate(shown):
             ax = fig.add_subplot(gs[i, 0])
-            draw_flow_time(ax, r, legend=(i == 0))
-            ax.set_title(f"(a) {r.run_id}", loc="left")
+            draw_flow_time(ax, r)
+            label = "(a)" if i == 0 else f"(a{i + 1})"
+            ax.set_title(f"{label} {r.run_id}", loc="left")
             if i < len(shown) - 1:
                 ax.set_xlabel("")
         ax_b = fig.add_subplot(gs[:, 1])
-        draw_flow_scatter(ax_b, [r.data for r in tracking.runs], q_range=tracking.range_mm3_s,
-                          lag_s=tracking.lag_s, rmse_mm3_s=tracking.rmse_mm3_s)
-        ax_b.set_title(f"(b) all runs, shift {tracking.lag_s:.3g} s ({tracking.lag_source})\n"
+        draw_flow_scatter(ax_b, [r.data for r in in_b], q_range=tracking.range_mm3_s,
+                          lag_s=tracking.lag_s, rmse_mm3_s=pooled_rmse(in_b))
+        ax_b.set_title(f"(b) {which}, shift {tracking.lag_s:.3g} s ({tracking.lag_source})\n"
                        + ax_b.get_title())
         fig.tight_layout()
         paths += save_figure(fig, out_dir, stem, formats=formats)

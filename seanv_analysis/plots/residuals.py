@@ -7,13 +7,16 @@ from typing import Sequence
 
 import numpy as np
 
-from ._style import DEFAULT_FORMATS, new_figure, save_figure
+from ._style import DEFAULT_FORMATS, new_figure, paper_style, save_figure
 
 __all__ = ["plot_discovery_residuals"]
 
-_LABELS = {"run_index": "Run index (time order) [-]", "dp_mpa": "Pressure difference [MPa]",
-           "opening_deg": "Opening past threshold [deg]", "cam_approach": "Cam approach direction [-]",
-           "q_mm3_s": "|Flow rate| [mm^3/s]", "load_mpag": "Load [MPaG]"}
+_LABELS = {"run_index": "Run index (time order)", "dp_mpa": r"Pressure difference $\Delta p$ [MPa]",
+           "opening_deg": r"Opening past threshold $\theta - \theta_d$ [deg]",
+           "cam_approach": "Cam approach direction (-1 closing, +1 opening)",
+           "q_mm3_s": "|Flow rate| [mm$^3$/s]", "load_mpag": "Load [MPaG]"}
+_VERDICT = {"none": "nothing found", "effect_found": "the model misses",
+            "unexplained": "unexplained residual"}
 
 
 def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "discover_residuals",
@@ -27,11 +30,21 @@ def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "dis
     """
     if discovery.fit_data is None or discovery.base_fit is None:
         return []
+    with paper_style():
+        return _draw(discovery, out_dir, stem, variables, formats)
+
+
+def _draw(discovery, out_dir, stem, variables, formats) -> list[Path]:
+    """The figure (a grid of two columns), in the house style."""
     # the variables and predictions exactly as discovery saw them
     from ..discover import predict_static, residual_variables
 
-    fig = new_figure(figsize=(4.2 * len(variables), 3.6))
-    axes = np.atleast_1d(fig.subplots(1, len(variables), sharey=True))
+    ncol = 2 if len(variables) > 1 else 1
+    nrow = -(-len(variables) // ncol)
+    fig = new_figure(figsize=(9.0, 3.0 * nrow + 1.0))
+    axes = np.atleast_1d(fig.subplots(nrow, ncol, sharey=True)).ravel()
+    for ax in axes[len(variables):]:
+        ax.set_visible(False)
     for part, data, marker in (("fit", discovery.fit_data, "o"), ("held-out", discovery.heldout_data, "s")):
         if data is None or len(data) == 0:
             continue
@@ -54,13 +67,15 @@ def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "dis
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel(_LABELS.get(name, name))
         ax.grid(alpha=0.3)
-    axes[0].set_ylabel("Flow residual (measured - model) [mm^3/s]")
-    names = ", ".join(f"{e.name} ({e.side})" for e in discovery.effects) or "no effect"
-    fig.suptitle(f"Discovery: {discovery.verdict} - {names}; held-out RMSE "
-                 f"{discovery.rmse_before_mm3_s:.0f} -> {discovery.rmse_after_mm3_s:.0f} mm^3/s")
+    for ax in axes[::ncol]:
+        ax.set_ylabel("Residual $Q - Q_{model}$\n[mm$^3$/s]")
+    names = ", ".join(f"{e.name} ({e.side})" for e in discovery.effects)
+    verdict = _VERDICT.get(discovery.verdict, discovery.verdict) + (f" {names}" if names else "")
+    fig.suptitle(f"Discovery: {verdict}; held-out RMSE {discovery.rmse_before_mm3_s:.0f} "
+                 f"$\\rightarrow$ {discovery.rmse_after_mm3_s:.0f} mm$^3$/s")
     handles, labels = axes[0].get_legend_handles_labels()
     uniq = dict(zip(labels, handles))
-    fig.legend(uniq.values(), uniq.keys(), loc="lower center", ncol=min(len(uniq), 6), fontsize=8,
-               frameon=False)
-    fig.tight_layout(rect=(0, 0.08, 1, 0.95))
-    return save_figure(fig, out_dir, stem, formats=formats, dpi=130, tight=False)
+    fig.legend(uniq.values(), uniq.keys(), loc="lower center", ncol=3, frameon=False,
+               markerscale=1.5)
+    fig.tight_layout(rect=(0, 0.1, 1, 0.95))
+    return save_figure(fig, out_dir, stem, formats=formats, tight=False)
