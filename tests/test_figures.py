@@ -300,3 +300,24 @@ def test_fig7_scatter_is_the_logged_target_run_with_its_own_rmse(position_runs, 
     ax = f.subplots()
     draw_flow_time(ax, implied)
     assert TARGET_LABELS["model"] in [t.get_text() for t in ax.get_legend().get_texts()]
+
+
+def test_dataset_figure_not_redrawn_when_its_inputs_are_unchanged(position_runs, tmp_path,
+                                                                   monkeypatch):
+    from types import SimpleNamespace
+
+    import seanv_analysis.stages.figures as stage
+    from seanv_analysis.analysis.tracking import tracking_runs
+
+    ctx = SimpleNamespace(log=lambda msg: None, result=lambda name: None)
+
+    def draw(tracking):
+        monkeypatch.setattr(stage, "results_for_figures", lambda c: {"tracking": tracking})
+        return stage.draw_figures(ctx, ["fig7"], tmp_path, formats=("png",)).paths["fig7"]
+
+    first = draw(tracking_runs(position_runs, shift_s=0.25))
+    stamps = {p: p.stat().st_mtime_ns for p in first}
+    again = draw(tracking_runs(position_runs, shift_s=0.25))  # equal inputs: files reused
+    assert again == first and {p: p.stat().st_mtime_ns for p in again} == stamps
+    redrawn = draw(tracking_runs(position_runs, shift_s=0.20))  # another shift: drawn again
+    assert any(p.stat().st_mtime_ns != stamps[p] for p in redrawn)

@@ -42,7 +42,7 @@ from typing import Any, Mapping
 
 from .. import __version__
 from ..io.atomic import atomic_path, write_json_atomic
-from ..io.hashing import file_sha256
+from ..io.hashing import code_version, file_sha256
 from .codec import CodecError, decode, encode
 
 __all__ = ["RunCache", "run_key", "code_version", "folder_listing", "CACHE_DIRNAME"]
@@ -53,19 +53,6 @@ _INDEX_SCHEMA = "seanv-batch-index/1"
 
 def _canonical(obj: Any) -> str:
     return json.dumps(obj, sort_keys=True, separators=(",", ":"), default=str)
-
-
-@functools.lru_cache(maxsize=1)
-def code_version() -> str:
-    """Package version plus a hash of every source file of the package
-    (``0.1.0+1a2b3c4d5e6f``): an edited stage invalidates cached results
-    even when the version number was not bumped."""
-    pkg = Path(__file__).resolve().parents[1]
-    h = hashlib.sha256()
-    for path in sorted(pkg.rglob("*.py")):
-        h.update(path.relative_to(pkg).as_posix().encode())
-        h.update(path.read_bytes())
-    return f"{__version__}+{h.hexdigest()[:12]}"
 
 
 #: what a simulated data set depends on (package-relative paths or folders)

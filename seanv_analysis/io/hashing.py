@@ -7,12 +7,15 @@ that changed size, modification or change time, or inode since).
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import threading
 from pathlib import Path
 
-__all__ = ["file_sha256", "remember_sha256", "sha256_bytes"]
+from .. import __version__
+
+__all__ = ["file_sha256", "remember_sha256", "sha256_bytes", "code_version"]
 
 _CACHE: dict[tuple[str, int, int, int, int], str] = {}
 _LOCK = threading.Lock()
@@ -60,3 +63,16 @@ def file_sha256(path: str | Path) -> str:
     with _LOCK:
         _CACHE[key] = digest
     return digest
+
+
+@functools.lru_cache(maxsize=1)
+def code_version() -> str:
+    """Package version plus a hash of every source file of the package
+    (``0.1.0+1a2b3c4d5e6f``): an edited stage invalidates cached results
+    even when the version number was not bumped."""
+    pkg = Path(__file__).resolve().parents[1]  # the package
+    h = hashlib.sha256()
+    for path in sorted(pkg.rglob("*.py")):
+        h.update(path.relative_to(pkg).as_posix().encode())
+        h.update(path.read_bytes())
+    return f"{__version__}+{h.hexdigest()[:12]}"

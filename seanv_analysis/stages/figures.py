@@ -5,6 +5,12 @@ Every registered :class:`~seanv_analysis.plots.Figure` the pipeline asks for
 exist is drawn: data-set figures from the results of earlier stages, per-run
 figures (Fig. 6, one per position-control run) as per-run tasks through the
 context's mapper. A figure that cannot be drawn is noted; it never sinks the run.
+
+A data-set figure whose inputs are unchanged is not drawn again: its key,
+the SHA-256 of the figure's name, the formats, the code version and the
+pickled inputs, is kept with its files' sizes and modification times in
+``<folder>/.figure-keys.json``; the same key with the files untouched
+reuses them (inputs that cannot be pickled are simply drawn).
 """
 from __future__ import annotations
 
@@ -51,9 +57,13 @@ class FiguresResult:
 
     paths: Mapping[str, tuple[Path, ...]] = field(default_factory=dict)
     problems: tuple[str, ...] = ()
+    #: the figure keys file written beside the figures (None: none)
+    keys_file: Path | None = None
 
     def all_paths(self) -> list[Path]:
-        return [p for ps in self.paths.values() for p in ps]
+        """Every file written: the figures and the figure keys beside them."""
+        return [p for ps in self.paths.values() for p in ps] + (
+            [self.keys_file] if self.keys_file is not None else [])
 
     def to_json_dict(self) -> dict[str, Any]:
         return {"figures": {k: [str(p) for p in v] for k, v in self.paths.items()},
@@ -120,6 +130,7 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
     folder = Path(folder)
     ctx.log(f"figures: drawing {figs if isinstance(figs, str) else ', '.join(map(str, figs))} "
             f"into {folder}")
+    keys = _FigureKeys(folder)
     have = results_for_figures(ctx)
     explicit = figs != "all"
     paths: dict[str, tuple[Path, ...]] = {}
@@ -152,13 +163,83 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
                 problems.append(f"{fig.name}: no {', '.join(missing)} result "
                                 "(stage absent or failed)")
             continue
+        inputs = {n: have[n] for n in fig.needs}
+        key = figure_key(fig.name, inputs, formats)
+        reused = keys.reuse(fig.name, key)
+        if reused is not None:
+            paths[fig.name] = reused
+            continue
         try:
-            drawn = fig.draw({n: have[n] for n in fig.needs}, folder, formats=formats)
+            drawn = fig.draw(inputs, folder, formats=formats)
         except Exception as exc:  # a figure must not sink the run
             problems.append(f"{fig.name}: {one_line(exc)}")
             continue
         paths[fig.name] = tuple(Path(p) for p in drawn)
-    return FiguresResult(paths, tuple(problems))
+        keys.remember(fig.name, key, paths[fig.name])
+    return FiguresResult(paths, tuple(problems), keys.save())
+
+
+def figure_key(name: str, inputs: Mapping[str, Any], formats: tuple[str, ...]) -> str | None:
+    """SHA-256 of what a data-set figure shows (module doc); None when the
+    inputs cannot be pickled."""
+    import hashlib
+    import pickle
+
+    from ..io.hashing import code_version
+
+    try:
+        blob = pickle.dumps(inputs, protocol=5)
+    except Exception:  # noqa: BLE001 - any unpicklable input: no key, the figure is drawn
+        return None
+    h = hashlib.sha256(f"{name}|{','.join(formats)}|{code_version()}|".encode())
+    h.update(blob)
+    return h.hexdigest()
+
+
+class _FigureKeys:
+    """``<folder>/.figure-keys.json``: {figure: {key, files: {path: [size, mtime_ns]}}}."""
+
+    NAME = ".figure-keys.json"
+
+    def __init__(self, folder: Path):
+        import json
+
+        self.path = Path(folder) / self.NAME
+        try:
+            self.doc = json.loads(self.path.read_text())
+        except (OSError, ValueError):
+            self.doc = {}
+        self.changed = False
+
+    def reuse(self, name: str, key: str | None) -> tuple[Path, ...] | None:
+        rec = self.doc.get(name)
+        if key is None or not isinstance(rec, dict) or rec.get("key") != key:
+            return None
+        files = rec.get("files") or {}
+        for p, st in files.items():
+            try:
+                s = Path(p).stat()
+            except OSError:
+                return None
+            if [s.st_size, s.st_mtime_ns] != st:
+                return None
+        return tuple(Path(p) for p in files) or None
+
+    def remember(self, name: str, key: str | None, files: tuple[Path, ...]) -> None:
+        if key is None:
+            self.doc.pop(name, None)
+        else:
+            self.doc[name] = {"key": key, "files": {
+                str(p): [p.stat().st_size, p.stat().st_mtime_ns] for p in files if p.is_file()}}
+        self.changed = True
+
+    def save(self) -> Path | None:
+        """Write the keys when they changed; the file's path if it exists."""
+        if self.changed and self.path.parent.is_dir():
+            from ..io.atomic import write_json_atomic
+
+            write_json_atomic(self.path, self.doc, indent=0)
+        return self.path if self.path.is_file() else None
 
 
 def _expected(ctx: Context, missing: list[str]) -> bool:
@@ -173,5 +254,6 @@ def _expected(ctx: Context, missing: list[str]) -> bool:
 
 
 def write(result: FiguresResult, folder: Path) -> list[Path]:
-    """Nothing more: the figure files were written as they were drawn."""
-    return [p for ps in result.paths.values() for p in ps]
+    """Nothing more: the figure files were written as they were drawn (and
+    the figure keys beside them, kept for the next run)."""
+    return result.all_paths()
