@@ -109,6 +109,14 @@ def test_json_contract():
     frame = d.to_frame()
     assert list(frame.name) == ["drift"] and frame.step_lo[0] <= frame.step[0] <= frame.step_hi[0]
     assert "<table" in d._repr_html_()
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    assert d.plot(ax=ax, variable="dp_mpa") is ax and "Delta p" in ax.get_xlabel()
+    plt.close(fig)
     assert e["name"] == "drift" and e["side"] == "drain" and 0 < e["p_value"] <= 0.05
 
 

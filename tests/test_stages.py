@@ -101,4 +101,15 @@ def test_stages_one_by_one_in_a_notebook(data):
     assert len(tr.to_frame()) == 2 and "<table" in tr._repr_html_()
     assert json.loads(tr.to_json())["lag_s"] == 0.05
     assert repr(ctx.rig).startswith("<RigConfig ") and len(repr(ctx.rig)) < 120
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (a, b) = plt.subplots(1, 2)
+    assert tr.plot(ax=a) is a and a.get_xlabel().startswith("Target flow rate")
+    assert tr.plot(ax=b, panel="a", run=tr.runs[0].run_id) is b
+    with pytest.raises(ValueError, match="run"):
+        tr.plot(panel="a", run="nope")
+    plt.close(fig)
     assert ctx.model is None and ctx.valve is not None  # no model given: the rig's where needed

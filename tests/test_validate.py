@@ -110,6 +110,14 @@ def test_identical_plant_fits_perfectly(measured, tmp_path):
     assert repr(v).startswith("<Validation position fit: ") and "100.0 %" in repr(v)
     assert "\n" not in repr(v) and "<table" in v._repr_html_()
     assert list(v.to_frame().index) == list(v.table.run_id)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    assert v.plot(ax=ax, quantity="flow") is ax and len(ax.lines) == 2 * len(v.runs)
+    plt.close(fig)
     from seanv_analysis.stages import validate as validate_stage
 
     paths = validate_stage.write(validate_stage.ValidateResult(v), tmp_path / "out")

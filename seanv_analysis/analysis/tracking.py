@@ -321,6 +321,13 @@ class Tracking(JsonResult):
                 f"{len(self.runs)} runs" + (f", {len(self.skipped)} skipped" if self.skipped
                                              else "") + ">")
 
+    def plot(self, ax=None, **kwargs):
+        """Fig. 7 on ``ax`` (a new pyplot figure when None): ``panel='b'`` actual
+        vs target flow (the logged-Q_ref runs), ``'a'`` flows against time of ``run``; returns the axes."""
+        from ..plotting import plot
+
+        return plot(self, ax, **kwargs)
+
     def to_frame(self) -> pd.DataFrame:
         """One row per tracked run: lag_s, rmse_mm3_s (``per_run``)."""
         return self.per_run

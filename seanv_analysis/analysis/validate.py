@@ -345,6 +345,13 @@ class Validation(JsonResult):
         return (f"<Validation position fit: {fits}; flagged (< {self.threshold_pct:g} %): "
                 f"{', '.join(self.flagged) or 'none'}>")
 
+    def plot(self, ax=None, **kwargs):
+        """Measured and simulated ``quantity`` ('position', 'flow', 'cam') of
+        every run against time on ``ax`` (a new pyplot figure when None); returns the axes."""
+        from ..plotting import plot
+
+        return plot(self, ax, **kwargs)
+
     def to_frame(self) -> pd.DataFrame:
         """The per-run table indexed by run_id (fits, RMSEs, step metrics)."""
         return self.table.set_index("run_id") if "run_id" in self.table else self.table

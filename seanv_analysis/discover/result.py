@@ -207,6 +207,13 @@ class Discovery(JsonResult):
                 f"{self.rmse_before_mm3_s:.4g} -> {self.rmse_after_mm3_s:.4g} mm^3/s "
                 f"({self.heldout_source}, {self.n_heldout_runs} runs)>")
 
+    def plot(self, ax=None, **kwargs):
+        """Flow residual before and after the effects found against
+        ``variable`` (default 'run_index') on ``ax`` (a new pyplot figure when None); returns the axes."""
+        from ..plotting import plot
+
+        return plot(self, ax, **kwargs)
+
     def to_frame(self):
         """One row per effect found: name, side, each parameter with its
         95 % interval (``<param>_lo``, ``<param>_hi``), p value."""

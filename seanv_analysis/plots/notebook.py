@@ -67,12 +67,88 @@ def _dataset(ds, ax):
     return ax
 
 
+def _tracking(tr, ax, panel: str = "b", run: str | None = None):
+    from .fig7 import draw_flow_scatter, draw_flow_time, pooled_rmse, scatter_runs
+
+    if panel == "a":
+        r = next((r for r in tr.runs if run in (None, r.run_id)), None)
+        if r is None:
+            raise ValueError(f"run: {run!r} is not a tracked run; expected one of "
+                             + ", ".join(x.run_id for x in tr.runs))
+        ax = _axes(ax, figsize=(8.0, 3.2))
+        draw_flow_time(ax, r)
+        ax.set_title(f"(a) {r.run_id}", loc="left", fontsize=10)
+        return ax
+    if panel == "b":
+        ax = _axes(ax, figsize=(5.0, 4.6))
+        runs, which = scatter_runs(tr)
+        draw_flow_scatter(ax, [r.data for r in runs], q_range=tr.range_mm3_s, lag_s=tr.lag_s,
+                          rmse_mm3_s=pooled_rmse(runs))
+        ax.set_title(f"(b) {which}\n" + ax.get_title(), fontsize=9)
+        return ax
+    raise ValueError(f"panel: expected 'a' (flows against time) or 'b' (actual vs target), "
+                     f"got {panel!r}")
+
+
+def _validation(val, ax, quantity: str = "position"):
+    cols = {"position": ("position_mm", "position_sim_mm", "Position [mm]"),
+            "flow": ("q_mm3_s", "q_sim_mm3_s", "Flow rate [mm$^3$/s]"),
+            "cam": ("cam_deg", "cam_sim_deg", "Cam angle [deg]")}
+    if quantity not in cols:
+        raise ValueError(f"quantity: expected one of {', '.join(cols)}, got {quantity!r}")
+    measured, simulated, label = cols[quantity]
+    ax = _axes(ax, figsize=(8.0, 3.2 * max(1, len(val.runs))) if ax is None else ax)
+    for r in val.runs:
+        ov = r.overlay
+        line, = ax.plot(ov["t_s"], ov[measured], lw=0.9, label=f"{r.run_id}: measured")
+        ax.plot(ov["t_s"], ov[simulated], lw=0.9, ls="--", color=line.get_color(),
+                label=f"{r.run_id}: simulated")
+    ax.set_xlabel("Time [s]")
+    ax.set_ylabel(label)
+    ax.legend(fontsize=7, frameon=False)
+    ax.grid(True, lw=0.3, alpha=0.5)
+    return ax
+
+
+def _discovery(d, ax, variable: str = "run_index"):
+    from ..discover import predict_static, residual_variables
+    from .residuals import LABELS
+
+    if d.fit_data is None or d.base_fit is None:
+        raise ValueError("this discovery had no flow-step runs: nothing to plot (its evidence "
+                         "is the position-control check)")
+    ax = _axes(ax)
+    for part, data, marker in (("fit", d.fit_data, "o"), ("held-out", d.heldout_data, "s")):
+        if data is None or len(data) == 0:
+            continue
+        x = residual_variables(d.base_model, data).get(variable)
+        if x is None:
+            raise ValueError(f"variable: {variable!r} is not a residual variable")
+        before = data.q_mm3_s - predict_static(d.base_fit.model, data)
+        after = data.q_mm3_s - predict_static(d.final_fit.model, data, d.final_fit.effects)
+        ax.scatter(x, before, s=10, marker=marker, facecolors="none", edgecolors="0.6",
+                   label=f"before ({part})")
+        ax.scatter(x, after, s=10, marker=marker, label=f"after ({part})")
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xlabel(LABELS.get(variable, variable.replace("_", " ")))
+    ax.set_ylabel("Residual $Q - Q_{model}$ [mm$^3$/s]")
+    ax.legend(fontsize=7, frameon=False)
+    ax.grid(True, lw=0.3, alpha=0.5)
+    return ax
+
+
+_PLOTS = {"FlowFit": _flowfit, "DatasetResult": _dataset, "Tracking": _tracking,
+          "Validation": _validation, "Discovery": _discovery}
+
+
 def plot(obj: Any, ax: Any = None, **kwargs: Any) -> Any:
-    """Draw ``obj`` (a ``FlowFit``: ``panel='a'`` flow vs cam angle, ``'b'``
-    threshold vs dp; a ``DatasetResult``: steady flow per run) on ``ax``."""
+    """Draw ``obj`` on ``ax``: a ``FlowFit`` (``panel='a'`` flow vs cam angle,
+    ``'b'`` threshold vs dp), a ``DatasetResult`` (steady flow per run), a
+    ``Tracking`` (``panel='b'`` actual vs target as Fig. 7(b), ``'a'`` flows
+    against time of ``run``), a ``Validation`` (measured and simulated
+    ``quantity``: position, flow or cam) or a ``Discovery`` (residual before
+    and after against ``variable``)."""
     kind = type(obj).__name__
-    if kind == "FlowFit":
-        return _flowfit(obj, ax, **kwargs)
-    if kind == "DatasetResult":
-        return _dataset(obj, ax, **kwargs)
-    raise TypeError(f"no plot for {kind}; expected a FlowFit or a DatasetResult")
+    if kind not in _PLOTS:
+        raise TypeError(f"no plot for {kind}; expected one of {', '.join(_PLOTS)}")
+    return _PLOTS[kind](obj, ax, **kwargs)

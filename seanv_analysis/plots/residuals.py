@@ -11,7 +11,8 @@ from ._style import DEFAULT_FORMATS, new_figure, paper_style, save_figure
 
 __all__ = ["plot_discovery_residuals"]
 
-_LABELS = {"run_index": "Run index (time order)", "dp_mpa": r"Pressure difference $\Delta p$ [MPa]",
+#: axis label of each residual variable (also for Discovery.plot)
+LABELS = {"run_index": "Run index (time order)", "dp_mpa": r"Pressure difference $\Delta p$ [MPa]",
            "opening_deg": r"Opening past threshold $\theta - \theta_d$ [deg]",
            "cam_approach": "Cam approach direction (-1 closing, +1 opening)",
            "q_mm3_s": "|Flow rate| [mm$^3$/s]", "load_mpag": "Load [MPaG]"}
@@ -65,7 +66,7 @@ def _draw(discovery, out_dir, stem, variables, formats) -> list[Path]:
                            label=f"after, {side} ({part})")
     for ax, name in zip(axes, variables):
         ax.axhline(0, color="k", lw=0.8)
-        ax.set_xlabel(_LABELS.get(name, name))
+        ax.set_xlabel(LABELS.get(name, name))
         ax.grid(alpha=0.3)
     for ax in axes[::ncol]:
         ax.set_ylabel("Residual $Q - Q_{model}$\n[mm$^3$/s]")
