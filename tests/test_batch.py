@@ -124,14 +124,20 @@ def test_simulated_paper_pipeline_identical_on_all_executors(golden_data, golden
     data = [golden_data / "flow", golden_data / "position"]
     keys = ("flowfit", "identify", "tracking", "validation", "validation_augmented", "discovery", "excluded",
             "stage_errors", "runs_read")
-    pool = run_pipeline(doc, data, out_dir=tmp_path / "p", workers=2, quiet=True).to_json_dict()
+    # the pool without discover (its per-run work, closed-loop re-runs, is
+    # validate's, checked here; the dask run below runs it all): 10 s less
+    pool_doc = {"stages": doc["stages"][:-1]}
+    pool_keys = keys[:4] + keys[6:]
+    pool = run_pipeline(pool_doc, data, out_dir=tmp_path / "p", workers=2,
+                        quiet=True).to_json_dict()
     with Client(dask_cluster) as client:
         dask = run_pipeline(doc, data, out_dir=tmp_path / "d", client=client, quiet=True).to_json_dict()
     assert serial["runs_read"] == 26 and pool["executor"].startswith("process pool (2")
     assert serial["stage_errors"] == {} and serial["flowfit"] is not None
     assert serial["validation"] is not None and serial["validation_augmented"] is not None
-    for k in keys:
+    for k in pool_keys:
         assert json.loads(json.dumps(pool[k])) == serial[k], k
+    for k in keys:
         assert json.loads(json.dumps(dask[k])) == serial[k], k
 
 

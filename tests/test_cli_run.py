@@ -38,24 +38,28 @@ def test_run_shipped_pipeline_by_name(data, tmp_path):
 
 def test_run_json_and_cache(data, tmp_path):
     out = tmp_path / "o"
-    r1 = invoke("run", "tracking", data, "--out", out, "--workers", "2", "-q", "--json")
+    r1 = invoke("run", "tracking", data, "--out", out, "--workers", "2", "-q", "--json",
+                "--no-figures")
     assert r1.exit_code == 0, r1.output
     doc = json.loads(r1.stdout)
     assert doc["runs_read"] == 8 and doc["computed"]["ingest"] == 8
     stamp = (out / "result.json").stat().st_mtime_ns
     # nothing changed (the executor is not an input): the last run is reused, nothing written
-    r2 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json")
+    r2 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json",
+                "--no-figures")
     doc2 = json.loads(r2.stdout)
     assert doc2.pop("reused") is True and doc2 == doc
     assert (out / "result.json").stat().st_mtime_ns == stamp
     # an output removed: the run runs, its per-run work from the cache
     (out / "report.html").unlink()
-    r3 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json")
+    r3 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json",
+                "--no-figures")
     doc3 = json.loads(r3.stdout)
     assert "reused" not in doc3 and (out / "report.html").is_file()
     assert doc3["computed"]["ingest"] == 0 and doc3["cached"]["ingest"] == 8
     assert doc3["tracking"] == doc["tracking"]
-    r4 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json", "--force")
+    r4 = invoke("run", "tracking", data, "--out", out, "--workers", "1", "-q", "--json",
+                "--force", "--no-figures")
     assert json.loads(r4.stdout)["computed"]["ingest"] == 8
 
 
@@ -65,15 +69,15 @@ def test_run_reuses_nothing_after_an_input_changed(data, tmp_path):
     copy = tmp_path / "data"
     shutil.copytree(data, copy)
     out = tmp_path / "o"
-    assert invoke("run", "tracking", copy, "--out", out, "-q", "--workers", "1").exit_code == 0
-    assert "reused" in invoke("run", "tracking", copy, "--out", out, "-q", "--workers",
-                              "1").output
+    assert invoke("run", "tracking", copy, "--out", out, "-q", "--workers", "1", "--no-figures").exit_code == 0
+    assert "reused" in invoke("run", "tracking", copy, "--out", out, "-q", "--workers", "1",
+                              "--no-figures").output
     table = next(copy.rglob("encoder.csv"))
     lines = table.read_text().splitlines()
     head, value = lines[1].rsplit(",", 1)
     lines[1] = f"{head},{float(value) + 0.001}"  # one value of one log
     table.write_text("\n".join(lines) + "\n")
-    r = invoke("run", "tracking", copy, "--out", out, "-q", "--workers", "1", "--json")
+    r = invoke("run", "tracking", copy, "--out", out, "-q", "--workers", "1", "--no-figures", "--json")
     doc = json.loads(r.stdout)
     assert "reused" not in doc and doc["computed"]["ingest"] == 1 and doc["cached"]["ingest"] == 7
 
