@@ -168,9 +168,11 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
         gs = fig.add_gridspec(len(shown), 2, width_ratios=[1.6, 1])
         for i, r in enumerate(shown):
             ax = fig.add_subplot(gs[i, 0])
-            draw_flow_time(ax, r)
+            draw_flow_time(ax, r, legend=(i == 0))  # one legend: it would cover the others' data
             label = "(a)" if i == 0 else f"(a{i + 1})"
-            ax.set_title(f"{label} {r.run_id}", loc="left")
+            target = "" if i == 0 and r.target_source == "q_ref" else \
+                f"; red: {TARGET_LABELS.get(r.target_source, 'target')}"
+            ax.set_title(f"{label} {r.run_id}{target}", loc="left")
             if i < len(shown) - 1:
                 ax.set_xlabel("")
         ax_b = fig.add_subplot(gs[:, 1])
