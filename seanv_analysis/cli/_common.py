@@ -188,14 +188,17 @@ def unusable(data, failed, exc: Exception | None = None) -> int:
     return echo_bad_runs(errors)
 
 
-def result_json(result, ds, *, failed=()) -> str:
+def result_json(result, ds, *, failed=(), filtered: bool = False) -> str:
     """A command's ``--json`` document: the result's contract plus the
     ``inputs`` block (runs found, read, failed with why, skipped with why;
-    :meth:`~seanv_analysis.stages.dataset.DatasetResult.runs_json`)."""
+    :meth:`~seanv_analysis.stages.dataset.DatasetResult.runs_json`);
+    ``filtered``: the command works on the flow steps the paper's filters
+    keep, so the runs they exclude are listed as skipped, with the filter."""
     from ..jsonable import dumps
 
     skipped = getattr(result, "skipped_runs", None)
-    left_out = {**ds.excluded_runs(), **(skipped() if callable(skipped) else {})}
+    left_out = {**(ds.excluded_runs() if filtered else {}),
+                **(skipped() if callable(skipped) else {})}
     doc = result.to_json_dict()
     doc["inputs"] = ds.runs_json(failed=failed, skipped=left_out)
     return dumps(doc)

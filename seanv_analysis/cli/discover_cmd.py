@@ -105,7 +105,7 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
                                             "identify": identify_first,
                                             "model": str(model_file) if model_file else None})
     if as_json:
-        click.echo(result_json(result, ds, failed=result.failed))
+        click.echo(result_json(result, ds, failed=result.failed, filtered=True))
     else:
         click.echo(result.report())
         if result.note:

@@ -119,7 +119,7 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
         "data": str(data), "side": side, "method": method, **options,
         "outputs": [str(p) for p in [*paths, *drawn]]}})
     if as_json:
-        click.echo(result_json(fit, ds))
+        click.echo(result_json(fit, ds, filtered=True))
     else:
         click.echo(fit.report())
         click.echo(f"outputs: {out}")
