@@ -53,7 +53,7 @@ from seanv_analysis.sim.kernel import PP
 
 __all__ = ["AUX_SIZE", "make_aux", "layout", "initial_state", "servo_rate", "derivs", "rhs",
            "fixed_step", "check_supported", "OpenLoopStep", "open_loop_step", "solve_ivp_grid",
-           "atol_scale"]
+           "odeint_grid", "jacobian", "atol_scale"]
 
 # numba reads module globals, not class attributes: the packed-parameter
 # indices this module's compiled functions use, bound once
@@ -158,6 +158,26 @@ def rhs(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     dydt = np.empty(y.size)
     derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
     return dydt
+
+
+@njit(cache=True, nogil=True)
+def jacobian(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+    """df/dy by forward differences, compiled (what a user without an
+    analytic Jacobian would hand ``odeint``): one f call per state."""
+    n = y.size
+    f0 = np.empty(n)
+    derivs(t, y, f0, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
+    jac = np.empty((n, n))
+    f1 = np.empty(n)
+    yy = y.copy()
+    for j in range(n):
+        h = 1e-7 * max(1.0, abs(y[j]))
+        yy[j] = y[j] + h
+        derivs(t, yy, f1, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
+        for i in range(n):
+            jac[i, j] = (f1[i] - f0[i]) / h
+        yy[j] = y[j]
+    return jac
 
 
 @njit(cache=True, nogil=True)
@@ -322,3 +342,34 @@ def solve_ivp_grid(case: OpenLoopStep, *, method: str = "LSODA", rtol: float = 1
         y = s.y[:, -1]
         parts.append(s.y if last else s.y[:, :-1])
     return np.hstack(parts).T, int(nfev), bool(ok)
+
+
+def odeint_grid(case: OpenLoopStep, *, rtol: float = 1e-6, atol: float | np.ndarray | None = None,
+                with_jacobian: bool = False):
+    """``scipy.integrate.odeint`` (LSODA, without ``solve_ivp``'s per-call
+    Python layer) on :func:`rhs` over the case, restarted at the servo-target
+    switch, on ``t_grid``; ``with_jacobian``: the compiled :func:`jacobian`
+    as ``Dfun``. Returns (states ``(len(t_grid), n)``, RHS calls, success)."""
+    from scipy.integrate import odeint
+
+    if atol is None:
+        atol = rtol * atol_scale(case.lay)
+    args = case.args
+    tg = case.t_grid
+    parts, nfev, ok = [], 0, True
+    y = case.y0
+    cuts = [0.0, case.t_on, case.duration]
+    for k, (a, b) in enumerate(zip(cuts[:-1], cuts[1:])):
+        last = k == len(cuts) - 2
+        sel = tg[(tg >= a) & ((tg <= b) if last else (tg < b))]
+        te = np.unique(np.r_[a, sel, b])
+        ys, info = odeint(rhs, y, te, args=args, tfirst=True, rtol=rtol, atol=atol,
+                          Dfun=jacobian if with_jacobian else None, full_output=True,
+                          mxstep=50000)
+        nfev += int(info["nfe"][-1]) + (int(info["nje"][-1]) * y.size if with_jacobian else 0)
+        ok = ok and info["message"].startswith("Integration successful")
+        keep = np.isin(te, sel)
+        parts.append(ys[keep])
+        y = ys[-1]
+    return np.vstack(parts), nfev, bool(ok)
+
