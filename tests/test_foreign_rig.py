@@ -131,7 +131,7 @@ def test_discover_says_unexplained_for_an_effect_it_has_no_name_for(tmp_path):
 def test_run_paper_pipeline(foreign):
     root, truth = foreign
     doc = run_cli("run", "paper", root / "data", "--out", root / "out" / "run", "--workers", 1,
-                  "--json", "-q")
+                  "--json", "-q", "--no-figures")  # the figures are tested on their own
     assert doc["runs_read"] == len(PLAN) + 2 and not doc["failed"]
     assert not doc["stage_errors"], doc["stage_errors"]
     for side, z0, c in (("supply", truth.supply_z0_mm, truth.supply_c),

@@ -54,6 +54,7 @@ def test_wheel_carries_the_package_data(installed):
     names = set(zipfile.ZipFile(wheel).namelist())
     for need in ("seanv_analysis/_data_schema/contract.toml",
                  "seanv_analysis/_data_schema/rig/default.toml",
+                 "seanv_analysis/_data_schema/json/run.schema.json",
                  "seanv_analysis/_pipelines/paper.toml"):
         assert need in names
 
