@@ -303,21 +303,45 @@ def test_fig7_scatter_is_the_logged_target_run_with_its_own_rmse(position_runs, 
 
 
 def test_dataset_figure_not_redrawn_when_its_inputs_are_unchanged(position_runs, tmp_path,
-                                                                   monkeypatch):
+                                                                   monkeypatch, rig):
+    """A second draw with equal inputs (new objects) writes nothing; another
+    input, another rig or other formats draw again."""
+    import dataclasses
+    import json
     from types import SimpleNamespace
 
     import seanv_analysis.stages.figures as stage
     from seanv_analysis.analysis.tracking import tracking_runs
 
-    ctx = SimpleNamespace(log=lambda msg: None, result=lambda name: None)
+    def tiny_fig7(results, folder, *, formats):   # the registry's draw, but light: fast test
+        from seanv_analysis.plots._style import new_figure, save_figure
 
-    def draw(tracking):
+        fig = new_figure(figsize=(1.0, 1.0))
+        fig.subplots().plot([0, 1], [0, results["tracking"].lag_s])
+        return save_figure(fig, folder, "fig7", formats=formats, dpi=30)
+
+    monkeypatch.setitem(FIGURES, "fig7", dataclasses.replace(FIGURES["fig7"], draw=tiny_fig7))
+
+    def draw(tracking, rig=rig, formats=("png",)):
+        ctx = SimpleNamespace(log=lambda msg: None, result=lambda name: None, rig=rig)
         monkeypatch.setattr(stage, "results_for_figures", lambda c: {"tracking": tracking})
-        return stage.draw_figures(ctx, ["fig7"], tmp_path, formats=("png",)).paths["fig7"]
+        res = stage.draw_figures(ctx, ["fig7"], tmp_path, formats=formats)
+        return res.paths["fig7"], res.keys_file
 
-    first = draw(tracking_runs(position_runs, shift_s=0.25))
+    first, keys_file = draw(tracking_runs(position_runs, shift_s=0.25))
     stamps = {p: p.stat().st_mtime_ns for p in first}
-    again = draw(tracking_runs(position_runs, shift_s=0.25))  # equal inputs: files reused
+    keys_stamp = keys_file.stat().st_mtime_ns
+    assert json.loads(keys_file.read_text())["fig7"]["key"] == stage.figure_key(
+        "fig7", {"tracking": tracking_runs(position_runs, shift_s=0.25)}, ("png",), rig)
+    again, _ = draw(tracking_runs(position_runs, shift_s=0.25))  # equal inputs: files reused
     assert again == first and {p: p.stat().st_mtime_ns for p in again} == stamps
-    redrawn = draw(tracking_runs(position_runs, shift_s=0.20))  # another shift: drawn again
-    assert any(p.stat().st_mtime_ns != stamps[p] for p in redrawn)
+    assert keys_file.stat().st_mtime_ns == keys_stamp            # nothing written at all
+    redrawn, _ = draw(tracking_runs(position_runs, shift_s=0.20))  # another shift: drawn again
+    assert all(p.stat().st_mtime_ns != stamps[p] for p in redrawn)
+    stamps = {p: p.stat().st_mtime_ns for p in redrawn}
+    other_rig = dataclasses.replace(rig, data={**rig.data, "name": "another rig"})
+    redrawn, _ = draw(tracking_runs(position_runs, shift_s=0.20), rig=other_rig)
+    assert all(p.stat().st_mtime_ns != stamps[p] for p in redrawn)
+    assert stage.figure_key("fig7", {"x": 1}, ("png",), rig) != stage.figure_key(
+        "fig7", {"x": 1}, ("svg",), rig)
+    assert stage.figure_key("fig7", {"x": object()}, ("png",), rig) is None  # not hashable: drawn

@@ -7,15 +7,20 @@ that changed size, modification or change time, or inode since).
 """
 from __future__ import annotations
 
+import dataclasses
+import datetime
+import enum
 import functools
 import hashlib
+import math
 import os
 import threading
-from pathlib import Path
+from pathlib import Path, PurePath
+from typing import Any
 
 from .. import __version__
 
-__all__ = ["file_sha256", "remember_sha256", "sha256_bytes", "code_version"]
+__all__ = ["file_sha256", "remember_sha256", "sha256_bytes", "code_version", "content_sha256"]
 
 _CACHE: dict[tuple[str, int, int, int, int], str] = {}
 _LOCK = threading.Lock()
@@ -76,3 +81,77 @@ def code_version() -> str:
         h.update(path.relative_to(pkg).as_posix().encode())
         h.update(path.read_bytes())
     return f"{__version__}+{h.hexdigest()[:12]}"
+
+
+def content_sha256(value: Any) -> str:
+    """Hex SHA-256 of a result's content, the same in every process.
+
+    Walks plain data (None, bool, int, float bit for bit, str, bytes, paths),
+    dicts (items in their order), sets (sorted by their items' digests),
+    lists and tuples, enums, numpy arrays and scalars (dtype, shape, raw
+    bytes), pandas DataFrames, Series and Index (column names, dtypes,
+    values), dates and times (ISO text) and dataclasses (class name and
+    fields), tagging each type;
+    never ``id()``, ``hash()`` or pickle. Raises TypeError for anything else.
+    """
+    h = hashlib.sha256()
+    _feed(h, value)
+    return h.hexdigest()
+
+
+def _feed(h, v: Any) -> None:
+    import numpy as np
+    import pandas as pd
+
+    if v is None or isinstance(v, (bool, str, bytes)):
+        h.update(f"{type(v).__name__}:{len(v) if isinstance(v, (str, bytes)) else v}:".encode())
+        if isinstance(v, (str, bytes)):
+            h.update(v.encode() if isinstance(v, str) else v)
+    elif isinstance(v, int) and not isinstance(v, enum.Enum):
+        h.update(f"int:{v};".encode())
+    elif isinstance(v, float):
+        h.update(f"float:{v.hex() if math.isfinite(v) else repr(v)};".encode())
+    elif isinstance(v, PurePath):
+        _feed(h, ("path", str(v)))
+    elif isinstance(v, (datetime.date, datetime.time, datetime.timedelta)):
+        _feed(h, (type(v).__name__, str(v) if isinstance(v, datetime.timedelta) else v.isoformat()))
+    elif isinstance(v, enum.Enum):
+        _feed(h, ("enum", type(v).__qualname__, v.name))
+    elif isinstance(v, np.generic):
+        _feed(h, np.asarray(v))
+    elif isinstance(v, np.ndarray):
+        if v.dtype.kind == "O":
+            _feed(h, ("objarray", v.shape, v.ravel().tolist()))
+        else:
+            a = np.ascontiguousarray(v)
+            h.update(f"ndarray:{a.dtype.str}:{a.shape};".encode())
+            h.update(memoryview(a).cast("B"))
+    elif isinstance(v, pd.DataFrame):
+        h.update(f"frame:{v.shape};".encode())
+        _feed(h, v.index)
+        for name in v.columns:
+            _feed(h, name)
+            _feed(h, v[name])
+    elif isinstance(v, (pd.Series, pd.Index)):
+        h.update(f"{type(v).__name__}:{v.dtype};".encode())
+        if isinstance(v, pd.Series):
+            _feed(h, v.name)
+        if isinstance(v, pd.RangeIndex):
+            _feed(h, (v.start, v.stop, v.step))
+        elif isinstance(v.dtype, np.dtype) and v.dtype.kind != "O":
+            _feed(h, v.to_numpy())
+        else:
+            _feed(h, [None if x is pd.NA else x for x in v.tolist()])
+    elif isinstance(v, (list, tuple)):
+        h.update(f"{type(v).__name__}:{len(v)};".encode())
+        for x in v:
+            _feed(h, x)
+    elif isinstance(v, dict):
+        _feed(h, ("dict", list(v.items())))   # insertion order: it orders what is drawn
+    elif isinstance(v, (set, frozenset)):
+        _feed(h, ("set", sorted(content_sha256(x) for x in v)))
+    elif dataclasses.is_dataclass(v) and not isinstance(v, type):
+        _feed(h, ("dataclass", type(v).__qualname__,
+                  [(f.name, getattr(v, f.name)) for f in dataclasses.fields(v)]))
+    else:
+        raise TypeError(f"value: cannot hash a {type(v).__name__} by content")

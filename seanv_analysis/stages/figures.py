@@ -6,11 +6,12 @@ exist is drawn: data-set figures from the results of earlier stages, per-run
 figures (Fig. 6, one per position-control run) as per-run tasks through the
 context's mapper. A figure that cannot be drawn is noted; it never sinks the run.
 
-A data-set figure whose inputs are unchanged is not drawn again: its key,
-the SHA-256 of the figure's name, the formats, the code version and the
-pickled inputs, is kept with its files' sizes and modification times in
-``<folder>/.figure-keys.json``; the same key with the files untouched
-reuses them (inputs that cannot be pickled are simply drawn).
+A data-set figure whose inputs are unchanged is not drawn again: its key
+(:func:`figure_key`: the SHA-256 of the figure's name, the formats, the code
+and matplotlib versions, the rig and the content of its input results) is
+kept with its files' sizes and modification times in
+``<folder>/.figure-keys.json`` (written atomically); the same key with the
+files untouched reuses them (inputs that cannot be hashed are simply drawn).
 """
 from __future__ import annotations
 
@@ -164,7 +165,7 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
                                 "(stage absent or failed)")
             continue
         inputs = {n: have[n] for n in fig.needs}
-        key = figure_key(fig.name, inputs, formats)
+        key = figure_key(fig.name, inputs, formats, getattr(ctx, "rig", None))
         reused = keys.reuse(fig.name, key)
         if reused is not None:
             paths[fig.name] = reused
@@ -179,21 +180,24 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
     return FiguresResult(paths, tuple(problems), keys.save())
 
 
-def figure_key(name: str, inputs: Mapping[str, Any], formats: tuple[str, ...]) -> str | None:
-    """SHA-256 of what a data-set figure shows (module doc); None when the
-    inputs cannot be pickled."""
-    import hashlib
-    import pickle
+def figure_key(name: str, inputs: Mapping[str, Any], formats: tuple[str, ...],
+               rig: Any = None) -> str | None:
+    """SHA-256 of what a data-set figure shows: its name, the formats, the
+    code version (package version + hash of its sources: the plotting code),
+    the matplotlib version, the rig's constants and the content of its input
+    results (:func:`~seanv_analysis.io.hashing.content_sha256`: the same in
+    every process). None when an input cannot be hashed by content (the
+    figure is then simply drawn)."""
+    import matplotlib
 
-    from ..io.hashing import code_version
+    from ..io.hashing import code_version, content_sha256
 
     try:
-        blob = pickle.dumps(inputs, protocol=5)
-    except Exception:  # noqa: BLE001 - any unpicklable input: no key, the figure is drawn
+        return content_sha256({"figure": name, "formats": list(formats),
+                               "code": code_version(), "matplotlib": matplotlib.__version__,
+                               "rig": getattr(rig, "data", rig), "inputs": dict(inputs)})
+    except TypeError:  # an input of a type not hashed by content: no key, the figure is drawn
         return None
-    h = hashlib.sha256(f"{name}|{','.join(formats)}|{code_version()}|".encode())
-    h.update(blob)
-    return h.hexdigest()
 
 
 class _FigureKeys:
