@@ -188,13 +188,13 @@ def figure_key(name: str, inputs: Mapping[str, Any], formats: tuple[str, ...],
     results (:func:`~seanv_analysis.io.hashing.content_sha256`: the same in
     every process). None when an input cannot be hashed by content (the
     figure is then simply drawn)."""
-    import matplotlib
+    from importlib.metadata import version  # not matplotlib itself: a reused figure loads none
 
     from ..io.hashing import code_version, content_sha256
 
     try:
         return content_sha256({"figure": name, "formats": list(formats),
-                               "code": code_version(), "matplotlib": matplotlib.__version__,
+                               "code": code_version(), "matplotlib": version("matplotlib"),
                                "rig": getattr(rig, "data", rig), "inputs": dict(inputs)})
     except TypeError:  # an input of a type not hashed by content: no key, the figure is drawn
         return None
