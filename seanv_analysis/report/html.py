@@ -367,8 +367,7 @@ def _side_verdict(f, discovery) -> str:
     flags = _side_findings(f.side, discovery)
     if status == "lack of fit":
         flags.insert(0, "lack of fit (flowfit's check against the repeated runs, below)")
-    # a lack of fit's message is the check's sentence, in the notes under the table
-    msg = f" <small>{_e(f.message)}</small>" if f.message and status != "lack of fit" else ""
+    msg = f" <small>{_e(f.message)}</small>" if f.message else ""
     if status == "failed":
         return f"<span class='bad'>fit failed</span>{msg}"
     if flags:
