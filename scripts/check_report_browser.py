@@ -53,28 +53,52 @@ def screenshot(report: Path, out: Path, *, width: int = 1280, height: int = 6000
 
 
 #: appended to a copy of the report: writes the page's layout into the DOM
-_MEASURE = """<script>
+_MEASURE = r"""<script>
 addEventListener('load', () => {
+  document.querySelectorAll('details').forEach(d => { d.open = true; });  // folded tables too
   const main = document.querySelector('main');
-  const wide = [...document.querySelectorAll('table')].filter(t => {
-    const box = t.parentElement;
-    const scrolls = box.classList.contains('scroll') && getComputedStyle(box).overflowX === 'auto';
-    return t.getBoundingClientRect().right > main.getBoundingClientRect().right + 1 && !scrolls;
-  }).length;
+  const right = el => el.getBoundingClientRect().right;
+  const scrollBox = t => {  // the nearest ancestor (inside main) that scrolls sideways
+    for (let el = t.parentElement; el && el !== main; el = el.parentElement) {
+      const o = getComputedStyle(el).overflowX;
+      if (o === 'auto' || o === 'scroll') return el;
+    }
+    return null;
+  };
+  let cut = 0, scrolling = 0; const what = [];
+  for (const t of document.querySelectorAll('table')) {
+    const box = scrollBox(t);
+    if (box === null) {  // no scroll box: the table must fit its container
+      if (right(t) > right(t.parentElement) + 1 || right(t) > right(main) + 1) cut++;
+    } else if (right(box) > right(main) + 1) {
+      cut++;  // the box itself sticks out
+    } else if (box.scrollWidth > box.clientWidth + 1) {
+      scrolling++;
+      what.push(t.textContent.slice(0, 30).replace(/\s+/g, ' ') + ' (+' + (box.scrollWidth - box.clientWidth) + ' px)');
+    }
+  }
+  const imgs = [...document.querySelectorAll('img')];
   const out = document.createElement('pre');
   out.id = 'layout';
   out.textContent = JSON.stringify({inner: innerWidth,
-    page: document.documentElement.scrollWidth, cut_tables: wide});
+    page: document.documentElement.scrollWidth, tables: document.querySelectorAll('table').length,
+    cut_tables: cut, scrolling_tables: scrolling, scrolling_what: what, images: imgs.length,
+    broken_images: imgs.filter(i => !(i.complete && i.naturalWidth > 0)).length});
   document.body.appendChild(out);
 });
 </script>"""
 
 
 def layout(report: Path, *, width: int, timeout_s: float = 120.0) -> dict:
-    """How the report lays out in a ``width`` px window: ``inner`` (the
-    window), ``page`` (the page's scroll width: > inner when something
-    sticks out sideways) and ``cut_tables`` (tables wider than the page's
-    column without a box that scrolls them)."""
+    """How the report lays out in a ``width`` px window, every ``<details>``
+    unfolded (one Chromium launch).
+
+    Returns a dict: ``inner`` (the window's width [px]), ``page`` (the
+    page's scroll width: > inner when something sticks out sideways),
+    ``tables``, ``cut_tables`` (tables wider than their container without a
+    box that scrolls them sideways, or whose box sticks out of the page's
+    column), ``scrolling_tables`` (tables that fit only by scrolling their
+    box; ``scrolling_what``: their first words), ``images`` and ``broken_images`` (not decoded: not embedded)."""
     import json
     import re
 

@@ -216,12 +216,12 @@ def test_html_model_table_says_lack_of_fit(drift_fit, clean_fit, tmp_path):
     def table_rows(fit):
         html = render_report(PipelineResult(load_pipeline("flowfit"), [tmp_path], tmp_path,
                                             flowfit=fit, rig=_rig(), command=["x"]))
-        start = html.index("<th class='l'>status</th>")
+        start = html.index("<th class='l verdict'>verdict (flowfit")
         return {side: html[html.index(f"<td class='l'>{side}</td>", start):].split("</tr>")[0]
                 for side in ("supply", "drain")}, html
 
     rows, html = table_rows(drift_fit)
-    assert "<span class='warn'>lack of fit</span>" in rows["drain"]
+    assert "<span class='warn'>lack of fit (flowfit&#x27;s check" in rows["drain"]
     assert "class='ok'" not in rows["drain"]
     assert "does not describe these runs" in rows["drain"]
     assert "<span class='ok'>ok</span>" in rows["supply"]

@@ -6,11 +6,14 @@ the file can be mailed or archived as is. Sections:
 
 1. overview: runs read / failed / excluded, the key numbers;
 2. identified flow model (eq. 5): z0 and C per side with 95 % intervals
-   (method named), next to the rig config's (the paper's) values;
+   (method named), next to the rig config's (the paper's) values, and a
+   verdict per side: flowfit's lack-of-fit check and what discovery found
+   on that side (never a green "ok" beside a finding);
 3. flow tracking during position control: delay with its 95 % interval,
    RMSE (residual = shifted actual - target);
 4. closed-loop validation table (free-run simulation of each run), with the
-   identified and, when discovery found an effect, the augmented model;
+   identified and, when discovery found an effect, the augmented model,
+   each with its run count and links to its drawn figures;
 5. discovery: verdict, effects, held-out error before/after;
 6. figures: every figure of the registry :data:`seanv_analysis.plots.FIGURES`
    that was drawn, in registry order, its title as caption (the sections
@@ -19,8 +22,12 @@ the file can be mailed or archived as is. Sections:
 8. provenance: version, git SHA, command line, pipeline, rig config, input
    file hashes, executor, timings.
 
-The report only formats results (``.to_json_dict()``, tables) and the figure files
-already written; it computes nothing.
+Headers are words with units; every table sits in a box that scrolls
+sideways, so nothing is cut on a narrow window (checked in headless Chromium
+at 1280 and 800 px by ``scripts/check_report_browser.py``).
+
+The report only formats results (their attributes, tables) and the figure
+files already written; it computes nothing.
 """
 from __future__ import annotations
 
@@ -28,6 +35,7 @@ import base64
 import html
 import json
 import math
+import re
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Iterable
@@ -37,6 +45,7 @@ import pandas as pd
 from .. import __version__
 from ..io.atomic import write_text_atomic
 from ..io.manifest import git_sha
+from ..models import effects as fx
 from ..plots import FIGURES, Figure
 
 __all__ = ["render_report", "write_report"]
@@ -63,7 +72,7 @@ details{margin:.5em 0} summary{cursor:pointer;color:#24527a}
 .scroll{overflow-x:auto;max-width:100%}
 .grid{display:grid;grid-template-columns:1fr 1fr;gap:.6em}
 nav a{margin-right:1em;color:#24527a;text-decoration:none;font-size:.9em}
-.sub{overflow-wrap:anywhere} td.l{overflow-wrap:break-word}
+.sub{overflow-wrap:anywhere} td.l{overflow-wrap:break-word} td small{color:#5b6570} th.verdict{min-width:12em} td.w{overflow-wrap:anywhere}
 @media (max-width:900px){main{padding:.8em 1em 2em}.grid{grid-template-columns:1fr}
 .card{min-width:120px}table{font-size:.82em}}
 """
@@ -101,20 +110,46 @@ def _ci(ci: Any, digits: int = 4) -> str:
     return f"[{_fmt(lo, digits)}, {_fmt(hi, digits)}]"
 
 
-#: column names said in words (the others: unit suffix -> "[unit]", _ -> space)
+#: units as the report prints them (``_unit`` turns a plain "mm^3/s" into these)
+MM3_S = "mm³/s"
+C_UNIT = "mm³/(s·deg²·MPa^0.5)"
+ALPHA_UNIT = "mm³/(s·deg²)"
+
+#: column names said in words (the others: unit suffix -> "[unit]", words from _WORDS)
 _HEADERS = {"run_id": "run", "run_index": "run #", "fit_position_pct": "position fit [%]",
             "rmse_position_mm": "position RMSE [mm]", "fit_flow_pct": "flow fit [%]",
-            "rmse_flow_mm3_s": "flow RMSE [mm³/s]", "fit_cam_pct": "cam fit [%]",
-            "rmse_cam_deg": "cam RMSE [deg]", "q_mm3_s": "Q [mm³/s]", "dp_mpa": "Δp [MPa]",
+            "rmse_flow_mm3_s": f"flow RMSE [{MM3_S}]", "fit_cam_pct": "cam fit [%]",
+            "rmse_cam_deg": "cam RMSE [deg]", "q_mm3_s": f"Q [{MM3_S}]", "dp_mpa": "Δp [MPa]",
+            "p1_mpa": "p₁ [MPa]", "p1_threshold_mpa": "p₁ at θ_d [MPa]",
+            "dp_threshold_mpa": "Δp at θ_d [MPa]",
             "load_mpag": "load [MPaG]", "load_level_mpag": "load level [MPaG]",
             "cam_deg": "cam [deg]", "excluded": "excluded by", "excluded_detail": "why",
             "started_at": "started (UTC)", "lag_s": "delay [s]", "target_source": "target Q_ref",
-            "theta_d_deg": "θ_d [deg]", "flagged": "flagged", "n_runs": "runs",
-            "steps": "reference steps"}
-_UNITS = (("_mm3_s_deg2_sqrtMPa", "mm³/(s deg² MPa^0.5)"), ("_mm3_s_per_mm", "mm³/s per mm"),
-          ("_deg_per_mm", "deg/mm"), ("_mm3_s", "mm³/s"), ("_mpag", "MPaG"), ("_mpa", "MPa"),
-          ("_pct", "%"), ("_frac", "fraction"), ("_deg", "deg"), ("_mm", "mm"), ("_s", "s"),
-          ("_n", "N"))
+            "lag_ci95_lo_s": "delay 95 % interval, low [s]",
+            "lag_ci95_hi_s": "delay 95 % interval, high [s]", "lag_applied_s": "delay applied [s]",
+            "rmse_mm3_s": f"RMSE [{MM3_S}]", "bias_mm3_s": f"bias [{MM3_S}]",
+            "rmse_supply_mm3_s": f"RMSE, supply targets [{MM3_S}]",
+            "rmse_drain_mm3_s": f"RMSE, drain targets [{MM3_S}]", "n_samples": "samples",
+            "theta_d_deg": "θ_d [deg]", "theta_d_se_deg": "θ_d standard error [deg]",
+            "theta_d_model_deg": "θ_d of the model [deg]", "alpha": f"α [{ALPHA_UNIT}]",
+            "alpha_se": f"α standard error [{ALPHA_UNIT}]",
+            "alpha_model": f"α of the model [{ALPHA_UNIT}]", "success": "fit converged",
+            "flagged": "flagged", "n_runs": "runs", "steps": "reference steps",
+            "sha256": "SHA-256", "overshoot_measured_mm": "overshoot, measured [mm]",
+            "overshoot_simulated_mm": "overshoot, simulated [mm]"}
+_UNITS = (("_mm3_s_deg2_sqrtMPa", C_UNIT), ("_mm3_s_deg2", ALPHA_UNIT),
+          ("_mm3_s_per_mm", f"{MM3_S} per mm"), ("_deg_per_mm", "deg/mm"), ("_mm3_s", MM3_S),
+          ("_mpag", "MPaG"), ("_mpa", "MPa"), ("_pct", "%"), ("_frac", "fraction"),
+          ("_deg", "deg"), ("_mm", "mm"), ("_s", "s"), ("_n", "N"))
+#: words of a column name said as a reader says them
+_WORDS = {"rmse": "RMSE", "ci95": "95 % interval", "lo": "low", "hi": "high",
+          "se": "standard error", "n": "number of", "theta": "θ", "alpha": "α", "kp": "Kp", "dp": "Δp", "q": "Q",
+          "sha256": "SHA-256"}
+
+
+def _words(name: str) -> str:
+    """``rmse_supply`` -> 'RMSE supply'."""
+    return " ".join(_WORDS.get(w, w) for w in name.split("_") if w)
 
 
 def _header(col: Any) -> str:
@@ -124,22 +159,44 @@ def _header(col: Any) -> str:
         return _HEADERS[col]
     for suffix, unit in _UNITS:
         if col.endswith(suffix) and len(col) > len(suffix):
-            return f"{col[:-len(suffix)].replace('_', ' ')} [{unit}]"
-    return col.replace("_", " ")
+            return f"{_words(col[:-len(suffix)])} [{unit}]"
+    return _words(col)
 
 
-def _table(df: pd.DataFrame, *, left: Iterable[str] = (), max_rows: int = 400) -> str:
+def _unit(text: Any) -> str:
+    """A plain-text unit as printed: 'mm^3/(s deg^2 MPa^0.5)' -> 'mm³/(s·deg²·MPa^0.5)',
+    'N s/mm' -> 'N·s/mm'."""
+    return re.sub(r"(?<=[A-Za-z²³)]) (?=[A-Za-z(])", "·", _superscripts(text))
+
+
+def _superscripts(text: Any) -> str:
+    """'mm^3/s' -> 'mm³/s' (squares and cubes; 'MPa^0.5' stays)."""
+    return re.sub(r"\^([23])(?![\d.])", lambda m: "²³"[int(m.group(1)) - 2], str(text))
+
+
+def _plural(n: int, word: str, plural: str | None = None) -> str:
+    """'1 run', '2 runs' (``plural``: the plural when it is not word + 's')."""
+    return f"{n} {word if n == 1 else (plural or word + 's')}"
+
+
+def _table(df: pd.DataFrame, *, left: Iterable[str] = (), wrap: Iterable[str] = (),
+           max_rows: int = 400) -> str:
+    """``df`` as an HTML table: headers in words with units (:func:`_header`),
+    text left-aligned (and the ``left`` columns), the ``wrap`` columns (long
+    names, hashes) free to break anywhere on a narrow window."""
     if df is None or len(df) == 0:
         return "<p><i>none</i></p>"
-    left = set(left)
+    left, wrap = set(left), set(wrap)
     head = "".join(f"<th>{_e(_header(c))}</th>" for c in df.columns)
     rows = []
     for rec in df.head(max_rows).to_dict(orient="records"):
         cells = []
         for c in df.columns:
             v = rec[c]
-            cls = " class='l'" if c in left or isinstance(v, str) else ""
-            cells.append(f"<td{cls}>{_e(v) if isinstance(v, str) else _fmt(v)}</td>")
+            cls = ["l"] if c in left or isinstance(v, str) else []
+            cls += ["w"] if c in wrap else []
+            attr = f" class='{' '.join(cls)}'" if cls else ""
+            cells.append(f"<td{attr}>{_e(v) if isinstance(v, str) else _fmt(v)}</td>")
         rows.append("<tr>" + "".join(cells) + "</tr>")
     more = f"<p><i>{len(df) - max_rows} more rows not shown</i></p>" if len(df) > max_rows else ""
     return f"<table><tr>{head}</tr>{''.join(rows)}</table>{more}"
@@ -243,41 +300,31 @@ def _flowfit(r) -> str:
         why = r.stage_errors.get("flowfit", "stage not in this pipeline")
         return f"<p>No flow fit ({_e(why)}).</p>"
     rows = []
-    found = _effects_by_side(r.discovery)
     for side, f in fit.sides.items():
         ref_z0, ref_c = _rig_side_values(r.rig, side)
-        flags = []  # what later sections say against this side: never "ok" beside them
-        if getattr(f, "lack_of_fit", None):  # eq. (5) does not describe the runs
-            flags.append("lack of fit")
-        if found.get(side):
-            flags.append("discovery: " + ", ".join(found[side])
-                         + " (the fit averages over it)")
-        if not f.success:
-            status = "<span class='bad'>failed</span>"
-        elif flags:
-            status = f"<span class='warn'>{_e('; '.join(flags))}</span>"
-        else:
-            status = "<span class='ok'>ok</span>"
         rows.append(
             f"<tr><td class='l'>{_e(side)}</td><td>{_fmt(f.z0_mm, 5)}</td><td>{_ci(f.z0_ci95, 5)}</td>"
             f"<td>{_fmt(ref_z0, 5)}</td>"
             f"<td>{_fmt(f.c_flow, 4)}</td><td>{_ci(f.c_ci95)}</td>"
             f"<td>{_fmt(ref_c, 4)}</td>"
-            f"<td>{_fmt(f.rmse_mm3_s, 4)}</td><td>{f.n_runs}</td><td class='l'>{status} "
-            f"{_e(f.message)}</td></tr>")
+            f"<td>{_fmt(f.rmse_mm3_s, 4)}</td><td>{f.n_runs}</td>"
+            f"<td class='l'>{_side_verdict(f, r.discovery)}</td></tr>")
     methods = sorted({f.ci_method for f in fit.sides.values() if f.ci_method})
     table = ("<table><tr><th class='l'>side</th><th>z0 [mm]</th><th>z0 95 % interval [mm]</th>"
-             "<th>z0 paper/rig [mm]</th><th>C [mm³/(s deg² MPa^0.5)]</th><th>C 95 % interval</th>"
-             "<th>C paper/rig</th><th>RMSE [mm³/s]</th><th>runs used</th><th class='l'>status</th>"
+             f"<th>z0 paper/rig [mm]</th><th>C [{C_UNIT}]</th><th>C 95 % interval [{C_UNIT}]</th>"
+             f"<th>C paper/rig [{C_UNIT}]</th><th>RMSE [{MM3_S}]</th><th>runs used</th>"
+             "<th class='l verdict'>verdict (flowfit's lack-of-fit check; discovery)</th>"
              "</tr>" + "".join(rows) + "</table>")
-    both = found.get("both")
-    if both:
-        table += (f"<p>Discovery also found {_e(', '.join(both))} (the plant, both sides): see "
+    plant = [e for e in _effects(r.discovery)  # in no side's row: the plant's
+             if e.side not in fit.sides and not (e.side == "both" and _static(e))]
+    if plant:
+        names = ", ".join(f"{e.name} ({e.sentence()})" for e in plant)
+        table += (f"<p>Discovery also found {_e(names)}: the plant, not eq. (5); see "
                   "<a href='#discovery'>Discovery</a>.</p>")
     notes = [f"Residual = measured &minus; model. Intervals: {_e('; '.join(methods) or 'n/a')}."]
-    for side, f in fit.sides.items():  # lack-of-fit check (a flagged side says it under status)
+    for side, f in fit.sides.items():  # the lack-of-fit check of every side, flagged or not
         line = f.lack_of_fit_line() if hasattr(f, "lack_of_fit_line") else ""
-        if line and not getattr(f, "lack_of_fit", None):
+        if line:
             notes.append(f"{_e(side)}: {_e(line)}")
     notes += [f"<span class='warn'>warning:</span> {_e(w)}" for w in getattr(fit, "warnings", [])]
     per_load = getattr(fit, "per_load", None)
@@ -288,12 +335,46 @@ def _flowfit(r) -> str:
     return table + "".join(f"<p>{n}</p>" for n in notes) + pl + _figure_links(r, "flowfit")
 
 
-def _effects_by_side(discovery) -> dict[str, list[str]]:
-    """{side ('supply', 'drain', 'both'): names of the effects discovery found}."""
-    out: dict[str, list[str]] = {}
-    for e in getattr(discovery, "effects", None) or []:
-        out.setdefault(str(e.side), []).append(str(e.name))
+def _effects(discovery) -> list:
+    """The effects discovery found (none when it did not run)."""
+    return list(getattr(discovery, "effects", None) or [])
+
+
+def _static(effect) -> bool:
+    """Whether ``effect`` changes the steady flow of eq. (5) (it has a static
+    form), so a side's fit averages over it; a dynamic one (a delay, the
+    line's stiffness) does not."""
+    cls = fx.EFFECTS.get(str(effect.name))
+    return cls is not None and getattr(cls, "STATIC", None) is not None
+
+
+def _side_findings(side: str, discovery) -> list[str]:
+    """What discovery says against ``side``'s eq. (5) fit: each effect found on
+    it (or a static one on both sides), named with its meaning; a structured
+    residual no effect explains."""
+    out = [f"discovery found {e.name}: {e.sentence()}" for e in _effects(discovery)
+           if e.side == side or (e.side == "both" and _static(e))]
+    if getattr(discovery, "verdict", None) == "unexplained":
+        out.append("discovery: the residual is structured and no known effect explains it")
     return out
+
+
+def _side_verdict(f, discovery) -> str:
+    """The model table's verdict cell of one side: flowfit's status
+    (``SideFit.status``: failed / lack of fit / ok) and discovery's findings;
+    green "ok" only when neither flags the side."""
+    status = getattr(f, "status", None) or ("ok" if f.success else "failed")
+    flags = _side_findings(f.side, discovery)
+    if status == "lack of fit":
+        flags.insert(0, "lack of fit (flowfit's check against the repeated runs, below)")
+    msg = f" <small>{_e(f.message)}</small>" if f.message else ""
+    if status == "failed":
+        return f"<span class='bad'>fit failed</span>{msg}"
+    if flags:
+        return f"<span class='warn'>{'<br>'.join(_e(x) for x in flags)}</span>{msg}"
+    if getattr(f, "lack_of_fit", None) is None:
+        return f"ok (lack of fit not tested){msg}"
+    return f"<span class='ok'>ok</span>{msg}"
 
 
 def _identify(r) -> str:
@@ -306,9 +387,10 @@ def _identify(r) -> str:
     for c in ident.constants:
         status = ("<span class='ok'>identified</span>" if c.identified
                   else "<span class='warn'>rig file</span>")
-        rows.append(f"<tr><td class='l'>{_e(c.name)}</td><td class='l'>{_e(c.key or '(reported)')}"
+        key = _e(c.key).replace(".", ".<wbr>") if c.key else "(reported)"  # may wrap at a dot
+        rows.append(f"<tr><td class='l'>{_e(c.name)}</td><td class='l'><code>{key}</code>"
                     f"</td><td>{_fmt(c.value)}</td><td>{_ci(c.ci95)}</td><td>{_fmt(c.default)}</td>"
-                    f"<td class='l'>{_e(c.unit)}</td><td class='l'>{status} {_e(c.constrained_by)}"
+                    f"<td class='l'>{_e(_unit(c.unit))}</td><td class='l'>{status} {_e(c.constrained_by)}"
                     f"{'; ' + _e(c.note) if c.note else ''}</td></tr>")
     table = ("<table><tr><th class='l'>constant</th><th class='l'>rig key</th><th>identified</th>"
              "<th>95 % interval</th><th>rig file</th><th class='l'>unit</th>"
@@ -320,7 +402,9 @@ def _identify(r) -> str:
         for label, g in subs:
             if not any(k in g for k in ("train", "heldout")):
                 continue
-            fit_rows.append(f"<tr><td class='l'>{_e(label)}</td><td class='l'>{_e(g.get('metric', ''))}"
+            measure = _superscripts(g.get("metric", ""))
+            fit_rows.append(f"<tr><td class='l'>{_e(label.replace('_', ' '))}</td>"
+                            f"<td class='l'>{_e(measure)}"
                             f"</td><td>{_fmt(g.get('train_default'))}</td><td>{_fmt(g.get('train'))}</td>"
                             f"<td>{_fmt(g.get('heldout_default'))}</td><td>{_fmt(g.get('heldout'))}"
                             "</td></tr>")
@@ -367,17 +451,28 @@ def _tracking(r) -> str:
         out.append("<table>"
                    f"<tr><td class='l'>flow delay (actual behind target)</td><td>{lag}</td></tr>"
                    f"<tr><td class='l'>RMSE of shifted actual &minus; target, targets in "
-                   f"[{_fmt(lo)}, {_fmt(hi)}] mm^3/s</td><td>{_fmt(tr.rmse_mm3_s, 4)} mm^3/s "
-                   f"(paper: 516 mm^3/s)</td></tr>"
-                   f"<tr><td class='l'>bias (actual &minus; target)</td><td>{_fmt(tr.bias_mm3_s, 4)} mm^3/s</td></tr>"
+                   f"[{_fmt(lo)}, {_fmt(hi)}] {MM3_S}</td><td>{_fmt(tr.rmse_mm3_s, 4)} {MM3_S} "
+                   f"(paper: 516 {MM3_S})</td></tr>"
+                   f"<tr><td class='l'>bias (actual &minus; target)</td><td>{_fmt(tr.bias_mm3_s, 4)} {MM3_S}"
+                   "</td></tr>"
                    f"<tr><td class='l'>RMSE supply / drain targets</td><td>{_fmt(tr.rmse_supply_mm3_s, 4)} / "
-                   f"{_fmt(tr.rmse_drain_mm3_s, 4)} mm^3/s</td></tr>"
+                   f"{_fmt(tr.rmse_drain_mm3_s, 4)} {MM3_S}</td></tr>"
                    f"<tr><td class='l'>samples in range</td><td>{tr.n_samples}</td></tr></table>")
-        out.append("<h3>Per run</h3>" + _table(tr.per_run, left=("run_id", "target_source")))
+        out.append(f"<h3>Per run ({_plural(len(tr.per_run), 'position-control run')})</h3>"
+                   + _table(tr.per_run, left=("run_id", "target_source")))
         for rid, why in tr.skipped.items():
             out.append(f"<div class='note'>skipped {_e(rid)}: {_e(why)}</div>")
     out.append(_figure_links(r, "tracking"))
     return "".join(out)
+
+
+def _n_kind(r, kind: str) -> int | None:
+    """Runs of ``kind`` ('position_control', 'flow_step') the data set holds,
+    counted in the per-run summary; None without one."""
+    s = getattr(r, "summary", None)
+    if s is None or s.empty or "kind" not in s:
+        return None
+    return int((s["kind"] == kind).sum())
 
 
 def _validation_table(val) -> str:
@@ -388,27 +483,62 @@ def _validation_table(val) -> str:
     out = _table(df, left=("run_id", "controller"))
     by = val.by_controller()
     if len(by):
-        out += "<p>Mean per controller:</p>" + _table(by.reset_index()[[
-            c for c in ["controller", "fit_position_pct", "rmse_position_mm", "fit_flow_pct",
-                        "rmse_flow_mm3_s"] if c in by.reset_index().columns]], left=("controller",))
+        by = by.reset_index()
+        out += "<p>Mean per controller:</p>" + _table(by[[
+            c for c in ["controller", "n_runs", "fit_position_pct", "rmse_position_mm", "fit_flow_pct",
+                        "rmse_flow_mm3_s"] if c in by.columns]], left=("controller",))
     if val.flagged:
         out += f"<div class='note'>flagged (position fit &lt; {_fmt(val.threshold_pct)} %): " \
                f"{_e(', '.join(val.flagged))}</div>"
+    for rid, why in (getattr(val, "skipped", None) or {}).items():
+        out += f"<div class='note'>not validated: {_e(rid)}: {_e(why)}</div>"
     return out
+
+
+def _validation_count(r, val) -> str:
+    """'2 position-control runs re-run (of 2 in the data set).'"""
+    n_data = _n_kind(r, "position_control")
+    of = f" (of {n_data} in the data set)" if n_data is not None else ""
+    return f"<p>{_plural(len(val.table), 'position-control run')} re-run{of}.</p>"
+
+
+def _is_augmented(fig: Figure) -> bool:
+    """Whether a registered figure draws the augmented model's validation
+    (a need or a name that says so) rather than the identified model's."""
+    return "validation_augmented" in fig.needs or "augmented" in fig.name
+
+
+def _validation_figures(r, *, augmented: bool) -> str:
+    """Links to the drawn figures of validate's result: the identified
+    model's (figures that need "validation") or the augmented model's."""
+    drawn = [fig for fig, _ in _drawn(r)
+             if ("validation" in fig.needs or "validation_augmented" in fig.needs
+                 or fig.name.startswith("validate"))
+             and _is_augmented(fig) == augmented]
+    if not drawn:
+        which = "the augmented model" if augmented else "this model"
+        return f"<p>No validation figure drawn for {which}.</p>"
+    links = "; ".join(f"<a href='#fig-{_e(fig.name)}'>{_e(fig.title)}</a>" for fig in drawn)
+    return f"<p>Figures: {links}.</p>"
 
 
 def _validation(r) -> str:
     if r.validation is None:
         why = r.stage_errors.get("validate") or r.stage_notes.get("validate") or "stage not in this pipeline"
         return f"<p>No validation ({_e(why)}).</p>"
-    out = ["<p>Each position-control run's controller is re-run on the simulated plant with the "
-           "identified valve model (free-run simulation, not one-step prediction); fit % = "
-           "100 (1 &minus; ||y &minus; y_sim|| / ||y &minus; mean(y)||).</p>",
-           "<h3>Identified model</h3>", _validation_table(r.validation)]
-    if r.validation_augmented is not None:
-        out += ["<h3>Augmented model (identified model + effects found by discovery)</h3>",
-                _validation_table(r.validation_augmented)]
-    out.append(_figure_links(r, "validation"))
+    twin = ("identified twin (the flow model of eq. 5 on the rig identified above)"
+            if getattr(r, "identify", None) is not None else "identified flow model (eq. 5)")
+    out = ["<p>Each position-control run's controller is re-run on the simulated plant "
+           "(free-run simulation, not one-step prediction); fit % = "
+           "100 (1 &minus; ||y &minus; y_sim|| / ||y &minus; mean(y)||), y measured, "
+           "y_sim simulated.</p>",
+           f"<h3>The {_e(twin)}</h3>", _validation_count(r, r.validation),
+           _validation_table(r.validation), _validation_figures(r, augmented=False)]
+    aug = getattr(r, "validation_augmented", None)
+    if aug is not None:
+        out += ["<h3>Augmented model (the same, plus the effects discovery found)</h3>",
+                _validation_count(r, aug), _validation_table(aug),
+                _validation_figures(r, augmented=True)]
     return "".join(out)
 
 
@@ -433,16 +563,16 @@ def _discovery(r) -> str:
     cls = {"effect_found": "warn", "none": "ok", "unexplained": "bad"}.get(d.verdict, "")
     before, after = d.rmse_before_mm3_s, d.rmse_after_mm3_s
     out = [f"<p>Verdict: <b class='{cls}'>{_e(verdict_words(d))}</b>.</p>",
-           "<table><tr><th class='l'>held-out runs</th><th>flow RMSE before [mm³/s]</th>"
-           "<th>after [mm³/s]</th><th>change</th></tr>"
-           f"<tr><td class='l'>{_e(d.holdout)}, n = {d.n_heldout_runs}</td><td>{_fmt(before)}</td>"
-           f"<td>{_fmt(after)}</td><td>{_fmt(-100 * d.improvement, 3)} %</td></tr></table>"]
+           f"<table><tr><th class='l'>held-out runs</th><th>flow RMSE before [{MM3_S}]</th>"
+           f"<th>flow RMSE after [{MM3_S}]</th><th>change [%]</th></tr>"
+           f"<tr><td class='l'>{_plural(int(d.n_heldout_runs), 'run')} ({_e(d.holdout)})</td>"
+           f"<td>{_fmt(before)}</td><td>{_fmt(after)}</td><td>{_fmt(-100 * d.improvement, 3)}</td>"
+           "</tr></table>"]
     if d.effects:
         rows = "".join(
             f"<tr><td class='l'>{_e(e.name)}</td><td class='l'>{_e(e.side)}</td>"
-            f"<td class='l'>{_e(e.sentence())}</td><td class='l'>"
-            + ", ".join(f"{_e(k)} = {_fmt(v)} {_ci(e.params_ci95.get(k))}" for k, v in e.params.items())
-            + f"</td><td>{_fmt(e.p_value, 3)}</td><td>{_fmt(e.f_p_value, 3)}</td></tr>"
+            f"<td class='l'>{_e(e.sentence())}</td><td class='l'>{_effect_params(e)}</td>"
+            f"<td>{_fmt(e.p_value, 3)}</td><td>{_fmt(e.f_p_value, 3)}</td></tr>"
             for e in d.effects)
         out.append("<table><tr><th class='l'>effect</th><th class='l'>side</th><th class='l'>meaning</th>"
                    "<th class='l'>parameters (95 % Wald interval)</th><th>permutation p</th>"
@@ -450,10 +580,30 @@ def _discovery(r) -> str:
     if getattr(d, "validation", None):
         out.append(_closed_loop_before_after(d.validation))
     text = "\n".join(line for line in d.report().splitlines()
-                     if not line.startswith("Closed loop (validate)"))
+                     if not line.startswith("Closed loop (validate"))
     out.append(f"<pre>{_e(text)}</pre>")
     out.append(_figure_links(r, "discovery"))
     return "".join(out)
+
+
+def _param_units(effect) -> dict[str, str]:
+    """{parameter: unit} of an effect's parameters, from its JSON form
+    (``params_units``; empty when it has none)."""
+    try:
+        units = effect.to_json_dict().get("params_units") or {}
+    except (AttributeError, TypeError):
+        return {}
+    return {str(k): str(v) for k, v in units.items()}
+
+
+def _effect_params(effect) -> str:
+    """'step = 0.005 [-] [0.0048, 0.0051]; every = 3 (no interval)'."""
+    units = _param_units(effect)
+    parts = []
+    for k, v in effect.params.items():
+        unit = f" {_e(_unit(units[k]))}" if units.get(k) not in (None, "", "-") else ""
+        parts.append(f"{_e(k)} = {_fmt(v)}{unit} {_ci(effect.params_ci95.get(k))}")
+    return "<br>".join(parts)
 
 
 def _figures_section(r) -> str:
@@ -465,22 +615,31 @@ def _figures_section(r) -> str:
 
 
 def _closed_loop_before_after(validation: dict) -> str:
-    """Mean closed-loop fit per controller, identified vs augmented model."""
+    """Mean closed-loop fit per controller, identified vs augmented model
+    (read from discovery's ``validation`` dict by :func:`_metric`)."""
     before, after = validation.get("before") or {}, validation.get("after") or {}
     if not isinstance(before, dict) or not isinstance(after, dict):
         return ""
+    metrics = (("fit_position_pct", "position fit", "%"), ("rmse_position_mm", "position RMSE", "mm"),
+               ("fit_flow_pct", "flow fit", "%"), ("rmse_flow_mm3_s", "flow RMSE", MM3_S))
+    head = "".join(f"<th>{_e(name)}, identified [{unit}]</th><th>{_e(name)}, augmented [{unit}]</th>"
+                   for _, name, unit in metrics)
     rows = []
     for ctrl in sorted(set(before) | set(after)):
         b, a = before.get(ctrl) or {}, after.get(ctrl) or {}
-        rows.append(f"<tr><td class='l'>{_e(ctrl)}</td><td>{_fmt(b.get('fit_position_pct'))}</td>"
-                    f"<td>{_fmt(a.get('fit_position_pct'))}</td><td>{_fmt(b.get('rmse_position_mm'))}"
-                    f"</td><td>{_fmt(a.get('rmse_position_mm'))}</td><td>{_fmt(b.get('fit_flow_pct'))}"
-                    f"</td><td>{_fmt(a.get('fit_flow_pct'))}</td></tr>")
-    return ("<p>Closed loop (free-run simulation of the position-control runs), identified "
-            "model before, augmented model after:</p><table><tr>"
-            "<th class='l'>controller</th><th>position fit % before</th><th>after</th>"
-            "<th>position RMSE [mm] before</th><th>after</th><th>flow fit % before</th>"
-            "<th>after</th></tr>" + "".join(rows) + "</table>")
+        cells = "".join(f"<td>{_fmt(_metric(b, key))}</td><td>{_fmt(_metric(a, key))}</td>"
+                        for key, _, _ in metrics)
+        rows.append(f"<tr><td class='l'>{_e(ctrl)}</td>{cells}</tr>")
+    return ("<p>Closed loop (free-run simulation of the position-control runs), mean per "
+            "controller, identified model vs augmented model:</p>"
+            f"<table><tr><th class='l'>controller</th>{head}</tr>" + "".join(rows) + "</table>")
+
+
+def _metric(means: Any, key: str) -> Any:
+    """``means[key]`` of one controller's mean metrics in discovery's
+    ``validation`` dict (validate's column names); None when absent. The one
+    place the report reads that dict's keys."""
+    return means.get(key) if isinstance(means, dict) else None
 
 
 def _runs(r) -> str:
@@ -492,6 +651,7 @@ def _runs(r) -> str:
         ex = s[s["excluded"].fillna("") != ""]
         if len(ex):
             by = ex.groupby(["excluded", "side"]).size().unstack(fill_value=0)
+            by.columns = [f"{side} side [runs]" for side in by.columns]
             out.append("<p>Excluded runs by reason and side:</p>"
                        + _table(by.reset_index().rename(columns={"excluded": "reason"}),
                                 left=("reason",)))
@@ -554,11 +714,20 @@ def _provenance(r) -> str:
                    + _e(json.dumps(r.rig.to_dict(), indent=2, default=str)) + "</pre></details>")
     hashes = pd.DataFrame([{"file": k, "sha256": v} for k, v in sorted(r.input_hashes.items())])
     out.append("<details><summary>input files and SHA-256</summary>"
-               + _table(hashes, left=("file", "sha256"), max_rows=5000) + "</details>")
+               + _table(hashes, left=("file", "sha256"), wrap=("file", "sha256"), max_rows=5000)
+               + "</details>")
     if r.warnings:
         out.append("<details><summary>warnings</summary><pre>" + _e("\n".join(r.warnings))
                    + "</pre></details>")
     return "".join(out)
+
+
+def _responsive(body: str) -> str:
+    """Tables that fit a narrow window: each in a box that scrolls sideways
+    (nothing is cut), headers that may wrap after a '/' or '·' of a unit."""
+    body = re.sub(r"(<th[^>]*>)([^<]*)(</th>)",
+                  lambda m: m[1] + re.sub(r"([/·])(?=\S)", r"\1<wbr>", m[2]) + m[3], body)
+    return body.replace("<table>", "<div class='scroll'><table>").replace("</table>", "</table></div>")
 
 
 def render_report(result: Any) -> str:
@@ -599,12 +768,10 @@ def render_report(result: Any) -> str:
                   for sid, title, _ in sections)
     body = "".join(f"<section id='{sid}'><h2>{_e(title)}</h2>{content}</section>"
                    for sid, title, content in sections)
-    # every table in a box that scrolls sideways: nothing is cut on a narrow window
-    body = body.replace("<table>", "<div class='scroll'><table>").replace("</table>",
-                                                                       "</table></div>")
+    body = _responsive(body)
     title = f"seanv-analysis report: {r.pipeline.name}"
     sub = (f"{_e(r.pipeline.description)}<br>data: {_e(', '.join(str(d) for d in r.data))}; "
-           f"seanv-analysis {_e(__version__)}. Units: mm, MPa gauge, deg, s, mm^3/s.")
+           f"seanv-analysis {_e(__version__)}. Units: mm, MPa gauge, deg, s, {MM3_S}.")
     return ("<!DOCTYPE html><html lang='en'><head><meta charset='utf-8'>"
             f"<meta name='viewport' content='width=device-width, initial-scale=1'><title>{_e(title)}</title>"
             f"<style>{_CSS}</style></head><body><main><h1>{_e(title)}</h1><p class='sub'>{sub}</p>"
