@@ -40,7 +40,7 @@ import numpy as np
 from scipy.signal import correlate
 
 from ..errors import DataError
-from ..jsonable import JsonResult
+from ..jsonable import JsonResult, json_num
 
 __all__ = ["LagEstimate", "estimate_lag", "estimate_lag_segments", "DEFAULT_BLOCK_S",
            "DEFAULT_N_BOOT"]
@@ -88,9 +88,9 @@ class LagEstimate(JsonResult):
 
     def to_json_dict(self) -> dict[str, Any]:
         """JSON-ready dict (without the correlation curve)."""
-        return {"lag_s": _num(self.lag_s),
-                "ci95_s": None if self.ci95_s is None else [_num(v) for v in self.ci95_s],
-                "peak_correlation": _num(self.peak_correlation), "method": self.method,
+        return {"lag_s": json_num(self.lag_s),
+                "ci95_s": None if self.ci95_s is None else [json_num(v) for v in self.ci95_s],
+                "peak_correlation": json_num(self.peak_correlation), "method": self.method,
                 "dt_s": self.dt_s, "n_samples": self.n_samples, "n_blocks": self.n_blocks,
                 "success": self.success, "message": self.message}
 
@@ -101,11 +101,6 @@ class LagEstimate(JsonResult):
         text = (f"lag {self.lag_s:.4f} s ({ci}), peak correlation {self.peak_correlation:.3f}, "
                 f"{self.n_samples} samples, {self.n_blocks} blocks")
         return text + (f"; {self.message}" if self.message else "")
-
-
-def _num(v) -> float | None:
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 def _uniform(t_s, target, actual, dt_s: float | None):

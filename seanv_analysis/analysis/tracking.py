@@ -33,7 +33,7 @@ import pandas as pd
 
 from ..errors import ConfigError, DataError
 from ..io.run import Run
-from ..jsonable import JsonResult
+from ..jsonable import JsonResult, json_num
 from ..signals.derive import derive_samples
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments
 
@@ -44,13 +44,6 @@ __all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "load_level_holds", "
 DEFAULT_Q_RANGE_MM3_S = (-2.5e3, 8e3)
 #: Load pressures are grouped into levels on this grid [MPa].
 LOAD_LEVEL_STEP_MPA = 0.05
-
-
-def _num(v) -> float | None:
-    if v is None:
-        return None
-    v = float(v)
-    return v if math.isfinite(v) else None
 
 
 def _rmse(r: np.ndarray) -> float:
@@ -294,22 +287,22 @@ class Tracking(JsonResult):
     def to_json_dict(self) -> dict[str, Any]:
         """The ``tracking --json`` document (``runs[].lag_s`` = the run's own estimate)."""
         ci = self.lag_ci95_s
-        return {"lag_s": _num(self.lag_s), "lag_source": self.lag_source,
-                "lag_ci95_s": None if ci is None else [_num(ci[0]), _num(ci[1])],
-                "rmse_mm3_s": _num(self.rmse_mm3_s), "bias_mm3_s": _num(self.bias_mm3_s),
+        return {"lag_s": json_num(self.lag_s), "lag_source": self.lag_source,
+                "lag_ci95_s": None if ci is None else [json_num(ci[0]), json_num(ci[1])],
+                "rmse_mm3_s": json_num(self.rmse_mm3_s), "bias_mm3_s": json_num(self.bias_mm3_s),
                 "range_mm3_s": [float(self.range_mm3_s[0]), float(self.range_mm3_s[1])],
                 "n_samples": int(self.n_samples),
-                "runs": [{"run_id": r.run_id, "lag_s": _num(r.lag_s),
-                          "rmse_mm3_s": _num(r.rmse_mm3_s)} for r in self.runs]}
+                "runs": [{"run_id": r.run_id, "lag_s": json_num(r.lag_s),
+                          "rmse_mm3_s": json_num(r.rmse_mm3_s)} for r in self.runs]}
 
     def details(self) -> dict[str, Any]:
         """More than :meth:`to_json_dict`: per side/load RMSE, lag estimates, skipped runs."""
         return {**self.to_json_dict(),
-                "rmse_supply_mm3_s": _num(self.rmse_supply_mm3_s),
-                "rmse_drain_mm3_s": _num(self.rmse_drain_mm3_s),
-                "rmse_by_load_mm3_s": {f"{k:g}": _num(v) for k, v in self.rmse_by_load_mm3_s.items()},
+                "rmse_supply_mm3_s": json_num(self.rmse_supply_mm3_s),
+                "rmse_drain_mm3_s": json_num(self.rmse_drain_mm3_s),
+                "rmse_by_load_mm3_s": {f"{k:g}": json_num(v) for k, v in self.rmse_by_load_mm3_s.items()},
                 "lag_estimate": None if self.lag is None else self.lag.to_json_dict(),
-                "runs_detail": [{k: (_num(v) if isinstance(v, float) else v)
+                "runs_detail": [{k: (json_num(v) if isinstance(v, float) else v)
                                  for k, v in r.row().items()} for r in self.runs],
                 "skipped": dict(self.skipped), "warnings": list(self.warnings),
                 "residual_sign": "actual (shifted) - target"}

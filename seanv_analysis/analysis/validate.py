@@ -33,7 +33,7 @@ import pandas as pd
 
 from ..errors import ConfigError, DataError
 from ..io.run import Run
-from ..jsonable import JsonResult
+from ..jsonable import JsonResult, clean_json
 from ..signals.derive import derive_samples
 from .tracking import load_level_holds
 
@@ -319,23 +319,14 @@ class Validation(JsonResult):
 
     def to_json_dict(self) -> dict[str, Any]:
         """JSON document: threshold, flagged runs, per-run table, per-controller means."""
-        def clean(v):
-            if isinstance(v, (bool, np.bool_)):
-                return bool(v)
-            if isinstance(v, (int, np.integer)):
-                return int(v)
-            if isinstance(v, (float, np.floating)):
-                return float(v) if math.isfinite(v) else None
-            return v
-
         by = self.by_controller()
         return {"threshold_pct": self.threshold_pct, "flagged": list(self.flagged),
                 "controller_model": self.controller_model,
                 "metric": "fit % = 100 (1 - ||y - y_sim|| / ||y - mean(y)||); RMSE of "
                           "measured - simulated",
-                "runs": [_applicable({k: clean(v) for k, v in rec.items()})
+                "runs": [_applicable({k: clean_json(v) for k, v in rec.items()})
                          for rec in self.table.to_dict(orient="records")],
-                "by_controller": {str(c): _applicable({k: clean(v) for k, v in row.items()})
+                "by_controller": {str(c): _applicable({k: clean_json(v) for k, v in row.items()})
                                   for c, row in by.to_dict(orient="index").items()},
                 "skipped": dict(self.skipped), "warnings": list(self.warnings)}
 

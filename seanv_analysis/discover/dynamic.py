@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from ..jsonable import json_num
 from .result import EffectFinding
 
 __all__ = ["DelayDiscovery", "discover_delay", "flow_signals", "DELAY_EVIDENCE"]
@@ -53,15 +54,11 @@ class DelayDiscovery:
 
     def to_json_dict(self) -> dict:
         return {"n_runs": self.n_runs, "nominal_lag_s": self.nominal_lag_s,
-                "lag_s": _f(self.lag_s),
-                "lag_ci95_s": None if self.lag_ci95_s is None else [_f(v) for v in self.lag_ci95_s],
-                "shifted_rmse_nominal_mm3_s": _f(self.rmse_before_mm3_s),
-                "shifted_rmse_estimated_mm3_s": _f(self.rmse_after_mm3_s),
+                "lag_s": json_num(self.lag_s),
+                "lag_ci95_s": None if self.lag_ci95_s is None else [json_num(v) for v in self.lag_ci95_s],
+                "shifted_rmse_nominal_mm3_s": json_num(self.rmse_before_mm3_s),
+                "shifted_rmse_estimated_mm3_s": json_num(self.rmse_after_mm3_s),
                 "found": self.finding is not None}
-
-
-def _f(v):
-    return None if v is None or not np.isfinite(v) else float(v)
 
 
 def flow_signals(run) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:

@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
-from ..jsonable import JsonResult
+from ..jsonable import JsonResult, clean_json
 from ..models import ValveModel
 from ..models import effects as fx
 
@@ -63,10 +63,10 @@ class EffectFinding:
 
     def to_json_dict(self) -> dict[str, Any]:
         return {"name": self.name, "side": self.side,
-                "params": {k: _num(v) for k, v in self.params.items()},
-                "params_ci95": {k: [_num(a), _num(b)] for k, (a, b) in self.params_ci95.items()},
+                "params": {k: clean_json(v) for k, v in self.params.items()},
+                "params_ci95": {k: [clean_json(a), clean_json(b)] for k, (a, b) in self.params_ci95.items()},
                 "params_units": _param_units(self.name, self.params),
-                "p_value": _num(self.p_value)}
+                "p_value": clean_json(self.p_value)}
 
 
 def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
@@ -81,14 +81,6 @@ def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
         if "[" in text and "]" in text.rsplit("[", 1)[1]:
             out[k] = text.rsplit("[", 1)[1].split("]", 1)[0]
     return out
-
-
-def _num(v):
-    if isinstance(v, (np.floating, float)):
-        return None if not np.isfinite(v) else float(v)
-    if isinstance(v, np.integer):
-        return int(v)
-    return v
 
 
 @dataclass(frozen=True)
@@ -142,8 +134,8 @@ class Discovery(JsonResult):
         out = {"verdict": self.verdict,
                "effects": [e.to_json_dict() for e in self.effects],
                "heldout": {"n_runs": int(self.n_heldout_runs),
-                           "rmse_before_mm3_s": _num(self.rmse_before_mm3_s),
-                           "rmse_after_mm3_s": _num(self.rmse_after_mm3_s)},
+                           "rmse_before_mm3_s": clean_json(self.rmse_before_mm3_s),
+                           "rmse_after_mm3_s": clean_json(self.rmse_after_mm3_s)},
                "trend_variable": self.trend_variable,
                # where the held-out numbers come from
                "heldout_source": self.heldout_source}

@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..jsonable import JsonResult, json_num
+from ..jsonable import JsonResult, clean_json, json_num
 
 __all__ = ["Constant", "Identification", "json_num", "nest_constants"]
 
@@ -119,7 +119,7 @@ class Identification(JsonResult):
                 "not_separable": [{"key": c.key, "from": list(c.confounded_with),
                                    "note": c.note} for c in self.constants
                                   if c.confounded_with],
-                "fits": _unit_keys(_clean(self.fits)), "notes": list(self.notes)}
+                "fits": _unit_keys(clean_json(self.fits)), "notes": list(self.notes)}
 
     def report(self) -> str:
         lines = ["identify: the rig's unpublished constants from its own logs",
@@ -176,11 +176,3 @@ def _unit_keys(x: Any) -> Any:
     return out
 
 
-def _clean(x: Any) -> Any:
-    if isinstance(x, dict):
-        return {k: _clean(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_clean(v) for v in x]
-    if isinstance(x, float):
-        return json_num(x)
-    return x
