@@ -114,11 +114,11 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[st
         if is_run_dir(root) and errors:
             raise DataError(errors[0].message)
         if ds.runs_read == 0:  # no writer was opened: nothing is written
-            return _result(root, out_dir, by_kind, errors, {}, None, excluded={})
+            return _result(root, out_dir, by_kind, ds, {}, None, excluded={})
         summary = ds.contract_table()
     tables = {kind: str(writer.path(kind)) for kind in writer.rows}
     summary_path = write_table_parquet(summary, out_dir / "summary.parquet", metadata=meta)
-    result = _result(root, out_dir, by_kind, errors, tables, summary_path,
+    result = _result(root, out_dir, by_kind, ds, tables, summary_path,
                      excluded={k: v for k, v in ds.excluded.items() if v})
     result["rows"] = dict(writer.rows)
     manifest = write_manifest(out_dir, config=rig, inputs=ds.input_hashes, command=sys.argv,
@@ -128,18 +128,16 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[st
     return result
 
 
-def _result(root, out_dir, by_kind, errors, tables, summary_path, *, excluded):
+def _result(root, out_dir, by_kind, ds, tables, summary_path, *, excluded):
     return {
         "data": str(root),
         "out": str(out_dir),
         "runs": sum(by_kind.values()),
         "runs_by_kind": by_kind,
-        "bad_runs": [e.to_json_dict() for e in errors],
+        "bad_runs": [e.to_json_dict() for e in ds.failed],
         # the block every command's --json carries (ingest keeps excluded runs:
         # their reason is in summary.parquet, none is skipped)
-        "inputs": {"runs_found": sum(by_kind.values()) + len(errors),
-                   "runs_read": sum(by_kind.values()),
-                   "failed": [e.to_json_dict() for e in errors], "skipped": []},
+        "inputs": ds.runs_json(),
         "tables": tables,
         "summary": None if summary_path is None else str(summary_path),
         "excluded": excluded,
