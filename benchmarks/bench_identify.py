@@ -104,6 +104,7 @@ def _one(args) -> dict:
 
     dead, tau = c["servo.dead_time_s"].value, c["servo.time_constant_s"].value
     cl = res.fits.get("closed_loop", {})
+    cls = res.fits.get("closed_loop_segments", {})
     rep = res.fits.get("flow_path", {}).get("replay", {})
     line = next(k for k in res.constants if k.name.startswith("line time constant"))
     lag_true = truth.flow_lag_s("position_control")
@@ -129,7 +130,9 @@ def _one(args) -> dict:
             "load_tau_rel_err": c["load.regulator_time_constant_s"].value / 0.1 - 1,
             "replay_heldout": {k: rep.get(k) for k in ("heldout_default", "heldout")},
             "closed_loop_heldout": {k: cl.get(k) for k in ("heldout_default", "heldout",
-                                                           "heldout_default_flow", "heldout_flow")}}
+                                                           "heldout_default_flow", "heldout_flow")},
+            "closed_loop_segments_heldout": {k: cls.get(k) for k in (
+                "heldout_default", "heldout", "heldout_default_flow", "heldout_flow")}}
 
 
 #: dynamic effects injected between servo and needle of the foreign rig
@@ -163,13 +166,17 @@ def _dynamic(args) -> list[dict]:
             row = {"seed": seed, "injected": name, "true": true, "wall_s": round(wall, 1),
                    "named": [e.name for e in d.effects]}
             if kept is not None:
+                unit = kept["param"].rsplit("_", 1)[-1]         # the unit is in the keys
+                kept = {**kept, "value": kept[f"value_{unit}"], "ci95": kept[f"ci95_{unit}"]}
                 row.update(value=kept["value"], ci95=kept["ci95"],
                            in_ci=bool(true is not None and kept["ci95"][0] <= true
                                       <= kept["ci95"][1]),
                            replay=[kept["replay_heldout_before"].get("rmse_flow_mm3_s"),
                                    kept["replay_heldout_after"].get("rmse_flow_mm3_s")],
                            closed_loop=[kept["heldout_before"].get("rmse_flow_mm3_s"),
-                                        kept["heldout_after"].get("rmse_flow_mm3_s")])
+                                        kept["heldout_after"].get("rmse_flow_mm3_s")],
+                           closed_loop_free=[kept["heldout_before"].get("free_rmse_flow_mm3_s"),
+                                             kept["heldout_after"].get("free_rmse_flow_mm3_s")])
             out.append(row)
     return out
 
@@ -241,6 +248,8 @@ def _dynamic_summary(rows: list[dict]) -> dict:
                                         for r in hit]
             d["closed_loop_heldout_drop"] = [round(1 - r["closed_loop"][1] / r["closed_loop"][0], 3)
                                              for r in hit]
+            d["closed_loop_free_heldout_drop"] = [
+                round(1 - r["closed_loop_free"][1] / r["closed_loop_free"][0], 3) for r in hit]
         d["wall_s_median"] = sorted(r["wall_s"] for r in rs)[len(rs) // 2] if rs else None
         out[name] = d
     out["rows"] = rows
@@ -275,6 +284,12 @@ def main() -> dict:
         "load_regulator_tau_rel_err": [round(r["load_tau_rel_err"], 3) for r in rows],
         "replay_heldout_flow_fit_pct": [r["replay_heldout"] for r in rows],
         "closed_loop_heldout": [r["closed_loop_heldout"] for r in rows],
+        # each segment re-run from the logged state (the validation headline)
+        "closed_loop_segments_heldout": [r["closed_loop_segments_heldout"] for r in rows],
+        "closed_loop_segments_heldout_flow_fit_min_pct": min(
+            r["closed_loop_segments_heldout"]["heldout_flow"] for r in rows),
+        "closed_loop_segments_heldout_position_fit_min_pct": min(
+            r["closed_loop_segments_heldout"]["heldout"] for r in rows),
         "dynamic_effects": _dynamic_summary(dyn),
         "servo_fit_vs_solve_ivp": _servo_baseline(quick),
     }

@@ -4,8 +4,8 @@
 An extra transport delay between the servo and the needle does not show in
 the servo's feedback: identify's line (bulk modulus) takes part of it, and
 discover must still name it, refitting the line with the candidate, and
-cut the held-out flow error of the runs replayed on the twin (their logged
-cam command in).
+cut the held-out flow error of the runs re-run in closed loop on the twin,
+segment by segment from the logged state.
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def test_extra_delay_named_on_the_identified_twin(delayed_position):
     found = d.effects[0].params["delay_s"]
     lo, hi = d.effects[0].params_ci95["delay_s"]
     assert found == pytest.approx(0.1, abs=0.02) and lo <= 0.1 <= hi, (found, lo, hi)
-    assert d.heldout_source == "replay_heldout"
+    assert d.heldout_source == "closed_loop_heldout"     # each segment re-run
     assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
     pc = d.position_control
     assert pc["found"] and pc["n_heldout_runs"] == 1

@@ -139,14 +139,21 @@ def test_supply_pressure_and_unidentified_mass(foreign_own):
 
 def test_closed_loop_on_heldout_runs(foreign_own):
     """The identified twin re-runs the held-out position-control run closer
-    to the measurement than the rig file's twin (position), and no worse in
-    flow (the twin's 3-segment tube is not the foreign lumped line: its flow
-    fit stays near 60-65 % either way, see docs/identify.md)."""
+    to the measurement than the rig file's twin. Whole runs: position fit
+    >= 88 %, flow no worse (a hold's end, decided by hundredths of a
+    millimetre under stick-slip, is carried into every later step, see
+    docs/identify.md). Each segment re-run from the logged state (the
+    issue's acceptance): position fit >= 90 %, flow fit >= 75 %, where the
+    rig file's twin stays below 70 %."""
     _, _, doc = foreign_own
     cl = doc["fits"]["closed_loop"]
     assert cl["heldout_pct"] >= 88.0
     assert cl["heldout_pct"] > cl["heldout_default_pct"] + 1.0
     assert cl["heldout_flow_pct"] >= cl["heldout_default_flow_pct"] - 1.0
+    seg = doc["fits"]["closed_loop_segments"]
+    assert seg["heldout_pct"] >= 90.0 and seg["train_pct"] >= 90.0
+    assert seg["heldout_flow_pct"] >= 75.0 and seg["train_flow_pct"] >= 75.0
+    assert seg["heldout_default_flow_pct"] < 70.0
 
 
 def test_rig_file_round_trip(foreign_own):
@@ -191,7 +198,9 @@ def test_dynamic_effect_named_in_position_control(foreign_own, tmp_path, effect,
     and the needle, invisible in the cam feedback, in the foreign rig's
     position-control runs: with its flow steps, identify + discover name it,
     near the truth, and the held-out runs' replayed flow error (their logged
-    cam command into the twin) drops by >= 20 %. Measured over position
+    cam command into the twin) drops by >= 20 %, and the headline, their
+    closed-loop error re-run segment by segment from the logged state,
+    drops by >= 25 % (30-37 % measured, see the bench). Measured over position
     seeds 1-3: delay 0.075, 0.075, 0.068 s (truth inside the interval in
     2 of 3), backlash 2.09, 2.56 deg (seeds 1, 3); clean runs: nothing, 3 of 3."""
     from seanv_analysis.stages import run_stages
@@ -207,9 +216,11 @@ def test_dynamic_effect_named_in_position_control(foreign_own, tmp_path, effect,
         d.position_control["message"]
     found = d.effects[0].params[param]
     assert found == pytest.approx(true_value, rel=0.25)
-    assert d.heldout_source == "replay_heldout"
-    assert d.rmse_after_mm3_s <= 0.8 * d.rmse_before_mm3_s
+    assert d.heldout_source == "closed_loop_heldout"
+    assert d.rmse_after_mm3_s <= 0.75 * d.rmse_before_mm3_s
     kept = next(c for c in d.position_control["candidates"] if c["named"])
+    rep = kept["replay_heldout_before"], kept["replay_heldout_after"]
+    assert rep[1]["rmse_flow_mm3_s"] <= 0.8 * rep[0]["rmse_flow_mm3_s"]
     lo, hi = kept["ci95_" + param.rsplit("_", 1)[-1]]   # the unit in the key
     assert lo < found < hi and hi - lo < 0.5 * true_value
     # the closed-loop held-out numbers are reported beside the headline

@@ -18,6 +18,12 @@ and cam angle [deg] are compared on the measured time base:
   rig's band (+-0.5 mm), overshoot past the reference [mm], settling time
   [s] (from the step until |e| stays inside the band to the step's end).
 
+Each run is also re-run segment by segment (:mod:`.rerun`): from the
+logged state just before each reference step and load change, so that no
+hold's end is carried into the next step (``*_segments_*`` metrics; with
+stick-slip these, not the whole run's, measure the twin's response to the
+inputs).
+
 Runs whose position fit % is below ``threshold_pct`` (default 80) are
 flagged: the plant disagrees with the data (what discovery looks at).
 """
@@ -304,6 +310,8 @@ class Validation(JsonResult):
         g = self.table.drop(columns=["run_id", "flagged"]).groupby("controller")
         out = g.mean(numeric_only=True)
         out["steps"] = g["steps"].sum().astype(int)  # a count stays a count
+        if "n_segments" in self.table:
+            out["n_segments"] = g["n_segments"].sum().astype(int)
         out.insert(0, "n_runs", g.size().astype(int))
         return out
 
@@ -373,6 +381,10 @@ class Validation(JsonResult):
         for c, row in by.iterrows():
             lines.append(f"  mean {c}: position fit {row['fit_position_pct']:.1f} %, flow fit "
                          f"{row['fit_flow_pct']:.1f} %, cam fit {row['fit_cam_pct']:.1f} %")
+            if math.isfinite(row.get("fit_flow_segments_pct", math.nan)):
+                lines.append(f"  mean {c}, each segment re-run from the logged state: position "
+                             f"fit {row['fit_position_segments_pct']:.1f} %, flow fit "
+                             f"{row['fit_flow_segments_pct']:.1f} %")
         lines.append(f"  flagged: {', '.join(self.flagged) if self.flagged else 'none'}")
         for rid, why in self.skipped.items():
             lines.append(f"  skipped {rid}: {why}")
@@ -421,10 +433,31 @@ def _on_run_clock(run: Run) -> Run:
     return dataclasses.replace(run, tables=tables)
 
 
+def _segments(wanted: bool, dm: pd.DataFrame, sim_fn, rig, ctrl, reference, load, model,
+              effects, seed: int, run_id: str, ticks):
+    """The per-segment re-run (:mod:`.rerun`), or an all-NaN one when not wanted."""
+    from .rerun import SegmentRerun, rerun_segments
+
+    if not wanted:
+        nan = np.full(len(dm), np.nan)
+        return SegmentRerun(nan, nan, np.zeros(0))
+    return rerun_segments(dm, simulate=sim_fn, rig=rig, controller=ctrl, reference=reference,
+                          load=load, valve=model, effects=effects, seed=seed, run_id=run_id,
+                          ticks=ticks)
+
+
 def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[str] = (),
                  threshold_pct: float = DEFAULT_THRESHOLD_PCT, controller_model="rig",
-                 simulate: Callable | None = None) -> RunValidation:
-    """Re-simulate one position_control run and compare (see module docstring)."""
+                 simulate: Callable | None = None, segments: bool | None = None
+                 ) -> RunValidation:
+    """Re-simulate one position_control run and compare (see module docstring).
+
+    ``segments``: also re-run it per segment from the logged state
+    (:mod:`.rerun`; the ``*_segments_*`` metrics); default: with the
+    built-in simulator (a ``simulate`` given may not take an initial state).
+    """
+    if segments is None:
+        segments = simulate is None
     if run.meta.kind != "position_control":
         raise DataError(f"kind {run.meta.kind!r}; expected position_control", path=run.meta.path)
     sim_fn = simulate or _default_simulate()
@@ -480,6 +513,9 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
         return float(how(v)) if v.size else math.nan
 
     fit_x = fit_percent(ov.position_mm, ov.position_sim_mm)
+    seg = _segments(segments, dm, sim_fn, plant_rig, ctrl, (ref_t, ref_v), (load_t, load_v),
+                    model, effects, seed, run.run_id, run.tables["controller"]["t_s"].to_numpy(float))
+    ov["position_seg_mm"], ov["q_seg_mm3_s"] = seg.position_mm, seg.q_mm3_s
     kp = float(c["kp"]) if c.get("kp") is not None else math.nan
     row = {"run_id": run.run_id,
            "controller": "flow_model" if c.get("flow_model", True) else "cam",
@@ -492,6 +528,13 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
            "rmse_flow_mm3_s": _rmse(ov.q_mm3_s.to_numpy(), ov.q_sim_mm3_s.to_numpy()),
            "fit_cam_pct": fit_percent(ov.cam_deg, ov.cam_sim_deg),
            "rmse_cam_deg": _rmse(ov.cam_deg.to_numpy(), ov.cam_sim_deg.to_numpy()),
+           # re-run per segment from the logged state (NaN when not asked)
+           "fit_position_segments_pct": fit_percent(ov.position_mm, ov.position_seg_mm),
+           "rmse_position_segments_mm": _rmse(ov.position_mm.to_numpy(),
+                                              ov.position_seg_mm.to_numpy()),
+           "fit_flow_segments_pct": fit_percent(ov.q_mm3_s, ov.q_seg_mm3_s),
+           "rmse_flow_segments_mm3_s": _rmse(ov.q_mm3_s.to_numpy(), ov.q_seg_mm3_s.to_numpy()),
+           "n_segments": seg.n_segments,
            "steps": int((sm.step_mm.abs() > band).sum()) if not sm.empty else 0,
            "converged_measured_frac": agg(sm, "converged", np.mean),
            "converged_simulated_frac": agg(ss, "converged", np.mean),

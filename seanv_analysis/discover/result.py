@@ -244,7 +244,8 @@ class Discovery(JsonResult):
                          "`seanv-analyze identify` gives it with intervals.")
         what = {"closed_loop": "closed-loop flow RMSE (validate: controller re-run on the plant)",
                 "closed_loop_heldout": "closed-loop flow RMSE on held-out position-control runs "
-                                       "(controller re-run on the identified twin)",
+                                       "(controller re-run on the identified twin, each "
+                                       "segment from the logged state)",
                 "replay_heldout": "flow RMSE on held-out position-control runs replayed on the "
                                   "identified twin (its logged cam command in, open loop)",
                 "position_control_shift": "flow RMSE of actual flow shifted by the nominal "

@@ -34,8 +34,11 @@ over the training runs' reference-step segments (right when they are the
 twin's misfit, which differs from step to step).
 
 The headline numbers are the held-out closed-loop errors (flow RMSE, flow
-and position fit: what ``validate`` reports) before and after; the
-held-out replay errors that decided are given beside them.
+and position fit) before and after, of each segment re-run from the logged
+state (:mod:`seanv_analysis.analysis.rerun`: the controller in the loop,
+no hold's end carried into the next step), with the whole runs' free
+re-runs (``free_*``) beside them; the held-out replay errors that decided
+are given too.
 """
 from __future__ import annotations
 
@@ -85,7 +88,8 @@ class DynamicFinding:
 
     @property
     def heldout_improvement(self) -> float:
-        """Drop of the held-out closed-loop flow RMSE (the headline)."""
+        """Drop of the held-out closed-loop flow RMSE (per-segment re-runs
+        from the logged state: the headline)."""
         return _drop(self.heldout_before, self.heldout_after)
 
     @property
@@ -109,15 +113,26 @@ def _drop(before: dict[str, float], after: dict[str, float]) -> float:
 
 
 def _summary(validations) -> dict[str, float]:
-    """RMS flow error, mean flow fit (and position fit of closed-loop re-runs)."""
+    """RMS flow error [mm^3/s], mean flow fit [%] (and position fit of
+    closed-loop re-runs). Closed-loop re-runs give the per-segment re-run's
+    numbers (:mod:`~seanv_analysis.analysis.rerun`: the headline) and the
+    whole run's beside them (``free_*``); replays give theirs."""
     if not validations:
         return {}
     rows = [v.row for v in validations]
-    out = {"rmse_flow_mm3_s": float(np.sqrt(np.mean([r["rmse_flow_mm3_s"] ** 2 for r in rows]))),
-           "fit_flow_pct": float(np.mean([r["fit_flow_pct"] for r in rows]))}
-    if all("fit_position_pct" in r for r in rows):
-        out["fit_position_pct"] = float(np.mean([r["fit_position_pct"] for r in rows]))
-    return out
+
+    def block(sfx: str, prefix: str = "") -> dict[str, float]:
+        out = {f"{prefix}rmse_flow_mm3_s": float(np.sqrt(np.mean(
+                   [r[f"rmse_flow{sfx}_mm3_s"] ** 2 for r in rows]))),
+               f"{prefix}fit_flow_pct": float(np.mean([r[f"fit_flow{sfx}_pct"] for r in rows]))}
+        if all(f"fit_position{sfx}_pct" in r for r in rows):
+            out[f"{prefix}fit_position_pct"] = float(np.mean(
+                [r[f"fit_position{sfx}_pct"] for r in rows]))
+        return out
+
+    if all(math.isfinite(r.get("rmse_flow_segments_mm3_s", math.nan)) for r in rows):
+        return {**block("_segments"), **block("", "free_")}
+    return block("")
 
 
 def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *,

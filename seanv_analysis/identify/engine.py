@@ -160,7 +160,7 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         current = take("flow_path", flow_path_constants(train_pos, held_pos, current, valve))
     if position_runs and {"servo", "flow_path", "friction", "load"} & set(parts):
         log("identify: closed-loop check on the training and held-out runs")
-        fits["closed_loop"] = closed_loop_fits(train_pos, held_pos, valve, rig, current)
+        fits.update(closed_loop_fits(train_pos, held_pos, valve, rig, current))
     constants.append(_mass(position_runs, rig, current))
     return Identification(constants, current, model, fits, notes)
 

@@ -210,14 +210,20 @@ def _replay_fits(runs, valve, rig) -> dict[str, Any]:
             "runs": {r.run_id: r.row["fit_flow_pct"] for r in reps}}
 
 
-def _fits(validations) -> dict[str, Any]:
+def _fits(validations, *, segments: bool = False) -> dict[str, Any]:
+    """Mean position and flow fit [%] of closed-loop re-runs: of the whole
+    runs, or (``segments``) of the per-segment re-runs from the logged state."""
     if not validations:
         return {}
+    sfx = "_segments" if segments else ""
     rows = [v.row for v in validations]
-    return {"fit_position_pct": float(np.mean([r["fit_position_pct"] for r in rows])),
-            "fit_flow_pct": float(np.mean([r["fit_flow_pct"] for r in rows])),
-            "runs": {r["run_id"]: {"fit_position_pct": r["fit_position_pct"],
-                                   "fit_flow_pct": r["fit_flow_pct"]} for r in rows}}
+    fx, fq = f"fit_position{sfx}_pct", f"fit_flow{sfx}_pct"
+    if not all(np.isfinite(r.get(fx, np.nan)) for r in rows):
+        return {}
+    return {"fit_position_pct": float(np.mean([r[fx] for r in rows])),
+            "fit_flow_pct": float(np.mean([r[fq] for r in rows])),
+            "runs": {r["run_id"]: {"fit_position_pct": r[fx], "fit_flow_pct": r[fq]}
+                     for r in rows}}
 
 
 def flow_path_constants(train_runs, held_runs, rig, valve
@@ -274,17 +280,27 @@ def flow_path_constants(train_runs, held_runs, rig, valve
     return consts, fits, []
 
 
-def closed_loop_fits(train_runs, held_runs, valve, rig_default, rig_identified) -> dict[str, Any]:
-    """Position and flow fit % of the re-simulated position-control runs,
-    training and held-out, on the rig file's twin and the identified one."""
-    out = {"metric": "closed-loop position fit [%] (flow fit in 'runs')"}
+def closed_loop_fits(train_runs, held_runs, valve, rig_default, rig_identified
+                     ) -> dict[str, dict[str, Any]]:
+    """Position and flow fit % of the position-control runs re-run in closed
+    loop on the rig file's twin and the identified one, training and
+    held-out: ``{"closed_loop": whole runs, "closed_loop_segments": each
+    segment from the logged state (:mod:`~seanv_analysis.analysis.rerun`)}``."""
+    blocks = {"closed_loop": {"metric": "closed-loop position fit [%] of whole runs re-run "
+                                        "(flow fit in '_flow')"},
+              "closed_loop_segments": {"metric": "closed-loop position fit [%] of each segment "
+                                                 "re-run from the logged state (flow fit in "
+                                                 "'_flow')"}}
     for part, runs in (("train", train_runs), ("heldout", held_runs)):
         for which, r in (("_default", rig_default), ("", rig_identified)):
             if part == "train" and which == "_default" and held_runs:
                 continue        # the headline is held-out; training: the identified twin only
-            f = _fits(validate_on_twin(runs, valve, r))
-            if f:
-                out[part + which] = f["fit_position_pct"]
-                out[part + which + "_flow"] = f["fit_flow_pct"]
-                out[part + which + "_runs"] = f["runs"]
-    return out
+            vals = validate_on_twin(runs, valve, r)
+            for name, seg in (("closed_loop", False), ("closed_loop_segments", True)):
+                f = _fits(vals, segments=seg)
+                if f:
+                    out = blocks[name]
+                    out[part + which] = f["fit_position_pct"]
+                    out[part + which + "_flow"] = f["fit_flow_pct"]
+                    out[part + which + "_runs"] = f["runs"]
+    return blocks

@@ -98,7 +98,7 @@ def _step_value(t_breaks, values, t):
 def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
                     ctrl_kind, cp, csup, csup_z, csup_th, cdr, cdr_z, cdr_th,
                     ref_t, ref_v, load_t, load_v, cmd_t, cmd_v,
-                    noise, n_fast, x0_mm, cam0_deg):
+                    noise, n_fast, x0_mm, cam0_deg, p0_mpag, hold0_deg):
     """Run the plant for ``n_fast`` 1 kHz samples.
 
     Parameters
@@ -114,6 +114,10 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     noise : (n_fast, 3) standard-normal draws scaled to pressure noise [MPa]
         for p_supply, p_head, p_load
     x0_mm, cam0_deg : initial position and cam angle
+    p0_mpag : initial pressure of every tube node and the head [MPaG];
+        NaN: the pressure that balances the initial load (at rest)
+    hold0_deg : the controller starts holding this cam angle [deg] (it had
+        converged on the initial reference); NaN: it starts free
 
     Returns
     -------
@@ -148,10 +152,12 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     slow = np.empty((n_ctrl, 6))
 
     # state (layout of .rosenbrock): at rest, head pressure balancing the load
+    # (or the given one: a run re-started from a logged state)
     p_load = _step_value(load_t, load_v, 0.0)
     y = np.zeros(2 * nseg + 5)
+    p_init = p_load * load_area / area if math.isnan(p0_mpag) else p0_mpag
     for k in range(nnode):
-        y[k] = p_load * load_area / area
+        y[k] = p_init
     y[ix] = x0_mm
     y[ith] = cam0_deg
     y[ipl] = p_load
@@ -169,6 +175,10 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     di = 0
     cstate = np.zeros(3)
     cstate[2] = np.nan
+    if not math.isnan(hold0_deg):       # (held, hold angle, reference it holds for)
+        cstate[0] = 1.0
+        cstate[1] = hold0_deg
+        cstate[2] = _step_value(ref_t, ref_v, 0.0)
     cam_cmd = cam0_deg
     q_ref = np.nan
     x_ref = np.nan

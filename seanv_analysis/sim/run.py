@@ -57,7 +57,8 @@ def _steps(seq, name: str) -> tuple[np.ndarray, np.ndarray]:
 
 def _run(plant: Plant, *, ctrl_kind: int, cp, ctrl_tables, ref, load, cmd, duration_s: float,
          seed: int, run_index: int, x0_mm: float, cam0_deg: float, neutral_deg: float,
-         x_stop_mm: tuple[float, float]):
+         x_stop_mm: tuple[float, float], p0_mpag: float = math.nan,
+         hold0_deg: float = math.nan):
     rig = plant.rig
     with config_errors():  # the rig's valve geometry and the effects meet here
         pp = plant.packed_params(neutral_deg=neutral_deg, x_stop_mm=x_stop_mm)
@@ -69,7 +70,7 @@ def _run(plant: Plant, *, ctrl_kind: int, cp, ctrl_tables, ref, load, cmd, durat
     fast, slow, t_release = simulate_kernel(
         pp, *valve, ctrl_kind, cp, *ctrl_tables,
         ref[0], ref[1], load[0], load[1], cmd[0], cmd[1], noise, n_fast, float(x0_mm),
-        float(cam0_deg))
+        float(cam0_deg), float(p0_mpag), float(hold0_deg))
     return (pd.DataFrame(fast, columns=OUT_FAST), pd.DataFrame(slow, columns=OUT_SLOW),
             float(t_release))
 
@@ -163,7 +164,10 @@ def simulate_position_control(rig: RigConfig | None = None, *,
                               effects: Iterable[str | Effect | dict] = (),
                               plant: Plant | None = None, x0_mm: float = 0.0,
                               run_index: int = 0, run_id: str = "sim",
-                              started_at: datetime | None = None) -> tuple[Run, SimTrace]:
+                              started_at: datetime | None = None,
+                              cam0_deg: float | None = None,
+                              p0_mpag: float | None = None,
+                              hold_deg: float | None = None) -> tuple[Run, SimTrace]:
     """One closed-loop position-control run (paper Sec. III) on the plant.
 
     Parameters
@@ -178,6 +182,12 @@ def simulate_position_control(rig: RigConfig | None = None, *,
     seed : noise seed
     valve, effects, plant : the true valve and injected effects
     x0_mm : initial position [mm]
+    cam0_deg : initial servo angle (and command) [deg]; default the servo's neutral
+    p0_mpag : initial line and head pressure [MPaG]; default the pressure
+        that balances the initial load (a run re-started from a logged state
+        gives both)
+    hold_deg : the controller starts holding this cam angle [deg] (it had
+        converged on the initial reference); default: it starts free
 
     Returns
     -------
@@ -191,8 +201,11 @@ def simulate_position_control(rig: RigConfig | None = None, *,
     neutral = float(rig["servo"]["neutral_deg"])
     fast, slow, _ = _run(plant, ctrl_kind=kind, cp=cp, ctrl_tables=tables, ref=ref, load=ld,
                          cmd=(np.array([0.0]), np.array([neutral])), duration_s=duration_s,
-                         seed=seed, run_index=run_index, x0_mm=x0_mm, cam0_deg=neutral,
-                         neutral_deg=neutral, x_stop_mm=(-math.inf, math.inf))
+                         seed=seed, run_index=run_index, x0_mm=x0_mm,
+                         cam0_deg=neutral if cam0_deg is None else float(cam0_deg),
+                         neutral_deg=neutral, x_stop_mm=(-math.inf, math.inf),
+                         p0_mpag=math.nan if p0_mpag is None else float(p0_mpag),
+                         hold0_deg=math.nan if hold_deg is None else float(hold_deg))
     load_meta = float(ld[1][0]) if ld[1].size == 1 else None
     meta = _meta(run_id, "position_control", started_at, load_mpag=load_meta,
                  controller=controller.run_json())

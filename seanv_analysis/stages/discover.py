@@ -164,7 +164,7 @@ def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
     change: dict[str, Any] = {"position_control": {
         "method": ("dynamic effects fitted on the identified twin replaying the logged cam "
                    "command (open loop), checked on held-out runs replayed and re-run in "
-                   "closed loop"),
+                   "closed loop (each segment from the logged state; whole runs as free_*)"),
         "n_runs": len(position), "n_heldout_runs": len(held), "found": bool(named),
         "message": msg or "no candidate", "candidates": [f.to_json_dict() for f in findings],
         "heldout_twin": base_held}}
@@ -174,14 +174,14 @@ def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
             f_p_value=f.p_value, evidence=CLOSED_LOOP_EVIDENCE)]
         change["twin_overrides"] = {"tube": {"effective_bulk_modulus_mpa": f.bulk_mpa}}
         if result.verdict != "effect_found":
-            # the headline: the held-out runs replayed (the same commands in,
-            # so the error moves with the model, not with where a re-run
-            # controller's holds happen to end); the closed-loop numbers are
-            # in the candidates and the closed-loop check
+            # the headline: the held-out runs re-run in closed loop, each
+            # segment from the logged state (the controller in the loop, no
+            # hold's end carried into the next step); the replayed and the
+            # whole-run numbers are in the candidates
             change.update(verdict="effect_found", trend_variable=None,
-                          rmse_before_mm3_s=f.replay_before["rmse_flow_mm3_s"],
-                          rmse_after_mm3_s=f.replay_after["rmse_flow_mm3_s"],
-                          n_heldout_runs=len(held), heldout_source="replay_heldout",
+                          rmse_before_mm3_s=f.heldout_before["rmse_flow_mm3_s"],
+                          rmse_after_mm3_s=f.heldout_after["rmse_flow_mm3_s"],
+                          n_heldout_runs=len(held), heldout_source="closed_loop_heldout",
                           holdout="position-control runs: every other one held out")
     return dataclasses.replace(result, **change)
 

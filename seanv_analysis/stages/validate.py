@@ -185,9 +185,12 @@ def write(result: ValidateResult, folder: Path) -> list[Path]:
 def controller_numbers(validation) -> dict[str, dict[str, Any]] | None:
     """Mean closed-loop fit per controller of a validation (what the discovery
     result quotes before/after): {controller: {fit_position_pct,
-    rmse_position_mm, fit_flow_pct, rmse_flow_mm3_s}}."""
+    rmse_position_mm, fit_flow_pct, rmse_flow_mm3_s}} of whole runs, and the
+    same of the per-segment re-runs (``*_segments_*``) when there are any."""
     if validation is None:
         return None
     doc = validation.to_json_dict()
-    keys = ("fit_position_pct", "rmse_position_mm", "fit_flow_pct", "rmse_flow_mm3_s")
+    keys = ("fit_position_pct", "rmse_position_mm", "fit_flow_pct", "rmse_flow_mm3_s",
+            "fit_position_segments_pct", "rmse_position_segments_mm", "fit_flow_segments_pct",
+            "rmse_flow_segments_mm3_s")
     return {c: {k: row.get(k) for k in keys} for c, row in doc["by_controller"].items()}
