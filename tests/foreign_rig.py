@@ -126,6 +126,8 @@ SERVO_STEP_DEG = 0.087890625        # 360/4096
 FLOW_PATHS = ("first_order", "tube")
 LEAK_MM3_S_PER_MPA = 1.5            # seat leakage of each needle, open or sealed
 STICK_V_MM_S = 0.05                 # first-order path: sticks again below this speed
+CAM_NEUTRAL_DEG = -15.0             # controller without flow model: the paper's neutral ...
+CAM_KP_DEG_PER_MM = 8.0             # ... and a gain this rig's loop is stable with
 JST = timezone(timedelta(hours=9))
 
 
@@ -720,12 +722,14 @@ def _controller_model(tr: ForeignTruth):
 
 
 def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_load,
-                       duration_s, kp=480.0, rate_hz=50.0, h=1e-3, p_tank=0.0):
+                       duration_s, kp=480.0, rate_hz=50.0, h=1e-3, p_tank=0.0, cam_law=None):
     model = _controller_model(tr)
     if not tr._simple_plant:
         return _simulate_position_plant(tr, needles, model, refs=refs, t_ref=t_ref, loads=loads,
                                         t_load=t_load, duration_s=duration_s, kp=kp,
-                                        rate_hz=rate_hz, h=h, p_tank=p_tank)
+                                        rate_hz=rate_hz, h=h, p_tank=p_tank, cam_law=cam_law)
+    if cam_law is not None:
+        raise ValueError("the cam controller needs the opt-in plant (own_rig())")
     t = np.arange(0.0, duration_s, h)
     n = t.size
     nd = int(round(tr.delay_s / h))
@@ -770,8 +774,10 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
 
 
 def _simulate_position_plant(tr: ForeignTruth, needles, model, *, refs, t_ref, loads, t_load,
-                             duration_s, kp, rate_hz, h, p_tank):
-    """:func:`_simulate_position` with the opt-in plant (:class:`_Plant`)."""
+                             duration_s, kp, rate_hz, h, p_tank, cam_law=None):
+    """:func:`_simulate_position` with the opt-in plant (:class:`_Plant`);
+    ``cam_law(e_mm) -> cam [deg]``: a controller without flow model instead
+    of eq. (6) (Q_ref logged as NaN)."""
     t = np.arange(0.0, duration_s, h)
     n = t.size
     t_l = t.tolist()
@@ -797,8 +803,12 @@ def _simulate_position_plant(tr: ForeignTruth, needles, model, *, refs, t_ref, l
         if i % ctrl_every == 0:
             x_ref = refs[i_ref[i]]
             x_meas = round(plant.x / 0.01) * 0.01
-            q_ref = kp * (x_ref - x_meas)
-            cam_cmd = float(model.cam_for_flow(q_ref, ps, plant.p, p_tank))
+            if cam_law is None:
+                q_ref = kp * (x_ref - x_meas)
+                cam_cmd = float(model.cam_for_flow(q_ref, ps, plant.p, p_tank))
+            else:
+                q_ref = math.nan
+                cam_cmd = float(cam_law(x_ref - x_meas))
             ctrl_t.append(ti)
             ctrl_x.append(x_ref)
             ctrl_q.append(q_ref)
@@ -817,12 +827,16 @@ def _simulate_position_plant(tr: ForeignTruth, needles, model, *, refs, t_ref, l
 def write_position(out: str | Path, *, seed: int = 0, truth: ForeignTruth | None = None,
                    n_runs: int = 2, duration_s: float = 64.0,
                    start: datetime | None = None, empty_qref_run: bool = True,
-                   trace: bool = False) -> ForeignTruth:
+                   trace: bool = False, controllers: Sequence[str] | None = None
+                   ) -> ForeignTruth:
     """Write ``n_runs`` position-control runs (flow model, kp 480, 50 Hz) of
     the foreign rig under ``out``. The last one logs an empty q_ref column
     when ``empty_qref_run`` (the analysis must rebuild Q_ref from kp).
-    ``trace``: also write the true 1 kHz signals (``_trace.parquet``, not a
-    contract table)."""
+    ``controllers``: per run ``"flow_model"`` (eq. 6, the default) or
+    ``"cam"`` (no flow model: cam = -15 deg + 8 deg/mm x e, the paper's
+    law with a gain this rig's faster loop does not limit-cycle with, no
+    hold; opt-in plant only). ``trace``: also write the true 1 kHz
+    signals (``_trace.parquet``, not a contract table)."""
     tr, out, rng, needles = _start(out, truth, [seed, 0xB0B])
     t_wall = start or datetime(2026, 5, 12, 0, 30, 0, tzinfo=timezone.utc)
     for k in range(n_runs):
@@ -831,9 +845,14 @@ def write_position(out: str | Path, *, seed: int = 0, truth: ForeignTruth | None
         t_ref = np.array([0.0] + [4.0 + 10.0 * j for j in range(6)])
         loads = np.array([0.3, 0.4, 0.3, 0.4, 0.3, 0.4, 0.3])
         t_load = np.array([0.0] + [4.0 + 10.0 * j + 5.0 for j in range(6)])
+        kind = "flow_model" if controllers is None else controllers[k]
+        if kind not in ("flow_model", "cam"):
+            raise ValueError(f"controllers: expected 'flow_model' or 'cam', got {kind!r}")
+        law = None if kind == "flow_model" else (
+            lambda e: min(max(CAM_NEUTRAL_DEG + CAM_KP_DEG_PER_MM * e, -40.0), 10.0))
         t, X, Q, PS, PH, PL, cam_cmd, cam_valve, ctrl = _simulate_position(
             tr, needles, rng, refs=refs, t_ref=t_ref, loads=loads, t_load=t_load,
-            duration_s=duration_s)
+            duration_s=duration_s, cam_law=law)
         enc_rate = 2000.0 if k % 2 == 0 else 500.0
         te = _stamps(rng, t[-1], enc_rate, jitter=0.04)
         tp = _stamps(rng, t[-1], 200.0, jitter=0.02)
@@ -858,7 +877,9 @@ def write_position(out: str | Path, *, seed: int = 0, truth: ForeignTruth | None
         rid = f"B-pos-{k + 1:02d}"
         meta = {"schema": "seanv-run/1", "run_id": rid, "kind": "position_control",
                 "started_at": _iso(t_wall), "load_mpag": None,
-                "controller": {"kp": 480.0, "flow_model": True, "rate_hz": 50},
+                "controller": ({"kp": 480.0, "flow_model": True, "rate_hz": 50} if law is None
+                               else {"kp": CAM_KP_DEG_PER_MM, "flow_model": False,
+                                     "rate_hz": 50}),
                 "rig": {}, "operator": "foreign-lab"}
         formats = {"encoder": "parquet" if k % 2 else "csv", "pressure": "csv",
                    "servo": "csv", "controller": "parquet" if k % 2 == 0 else "csv"}

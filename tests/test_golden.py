@@ -91,3 +91,13 @@ def test_paper_pipeline_numbers_unchanged(golden_data, golden_run):
     assert want["stage_errors"] == {}
     assert want["flowfit"] and want["tracking"] and want["validation"]
     assert want["discovery"]["verdict"] == "effect_found"
+
+
+def test_line_structure_kept_on_our_own_plant(golden_run):
+    """On our simulator's runs (its tube an R-I-C ladder, inertance factor 1)
+    identify keeps the rig file's line: every more lumped line fits the
+    replayed training run worse (its SSE grows as the inertance shrinks)."""
+    doc, _ = golden_run
+    c = next(c for c in doc["identify"]["constants"] if c["key"] == "tube.inertance_factor")
+    assert c["value"] == 1.0 and c["default"] == 1.0
+    assert "kept" in c["note"]

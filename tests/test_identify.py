@@ -138,9 +138,9 @@ def test_supply_pressure_and_unidentified_mass(foreign_own):
 
 
 def test_closed_loop_on_heldout_runs(foreign_own):
-    """The identified twin re-runs the held-out position-control run closer
-    to the measurement than the rig file's twin. Whole runs: position fit
-    >= 88 %, flow no worse (a hold's end, decided by hundredths of a
+    """The identified twin (its line found lumped: ``tube.inertance_factor``)
+    re-runs the held-out position-control run closer to the measurement than
+    the rig file's twin. Whole runs: position fit >= 88 %, flow no worse (a hold's end, decided by hundredths of a
     millimetre under stick-slip, is carried into every later step, see
     docs/identify.md). Each segment re-run from the logged state (the
     issue's acceptance): position fit >= 90 %, flow fit >= 75 %, where the
@@ -148,12 +148,23 @@ def test_closed_loop_on_heldout_runs(foreign_own):
     _, _, doc = foreign_own
     cl = doc["fits"]["closed_loop"]
     assert cl["heldout_pct"] >= 88.0
-    assert cl["heldout_pct"] > cl["heldout_default_pct"] + 1.0
+    assert cl["heldout_pct"] > cl["heldout_default_pct"]
     assert cl["heldout_flow_pct"] >= cl["heldout_default_flow_pct"] - 1.0
-    seg = doc["fits"]["closed_loop_segments"]
+    seg = doc["fits"]["closed_loop_segments"]        # measured: 96 / 84 %, rig file 79 / 63 %
     assert seg["heldout_pct"] >= 90.0 and seg["train_pct"] >= 90.0
     assert seg["heldout_flow_pct"] >= 75.0 and seg["train_flow_pct"] >= 75.0
+    assert seg["heldout_default_pct"] < seg["heldout_pct"] - 10.0
     assert seg["heldout_default_flow_pct"] < 70.0
+
+
+def test_line_found_lumped(foreign_own):
+    """The foreign line is a lumped compliance behind a resistance (no
+    water-column inertance): identify takes a small inertance factor, the
+    rig file's tube (factor 1) outside its interval."""
+    _, _, doc = foreign_own
+    c = _const(doc, "tube.inertance_factor")
+    assert c["identified"] and c["default"] == 1.0
+    assert c["value"] <= 0.1 and c["ci95"][1] < 1.0, c
 
 
 def test_rig_file_round_trip(foreign_own):

@@ -31,11 +31,12 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
-from .closedloop import flow_sse, replay_on_twin, replay_targets, validate_on_twin, with_bulk
+from .closedloop import (ReplayTarget, flow_sse, replay_on_twin, replay_targets, validate_on_twin,
+                         with_bulk)
 from .result import Constant
 
-__all__ = ["FlowPathData", "flow_path_data", "fit_lag", "fit_bulk_modulus",
-           "flow_path_constants", "closed_loop_fits"]
+__all__ = ["FlowPathData", "flow_path_data", "fit_lag", "fit_bulk_modulus", "fit_line",
+           "with_inertance", "INERTANCE_FACTORS", "flow_path_constants", "closed_loop_fits"]
 
 _GRID_S = 0.002
 _MAX_DEAD_S = 0.5
@@ -134,19 +135,72 @@ def lag_rmse(data: Sequence[FlowPathData], tau, dead) -> float:
     return float(np.sqrt(np.mean(_residual(data, tau, dead, 1.0) ** 2)))
 
 
-def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
+#: the line's inertance, x the tube's water column rho L / A, compared by
+#: :func:`fit_line` (1: the tube as the rig file has it, an R-I-C ladder
+#: whose water column rings; small: a lumped compliance behind a resistance)
+INERTANCE_FACTORS = (1.0, 0.3, 0.1, 0.03)
+
+
+def with_inertance(rig, factor: float):
+    """``rig`` with the line's inertance ``factor`` x the tube's water column."""
+    return rig.with_overrides({"tube": {"inertance_factor": float(factor)}}, where="identify")
+
+
+def fit_line(runs, valve, rig, *, alpha: float = 1e-3) -> dict[str, Any]:
+    """The line's structure and bulk modulus: :func:`fit_bulk_modulus` at each
+    inertance factor of :data:`INERTANCE_FACTORS`; a factor other than the
+    rig file's is taken when its training flow SSE beats the rig file's
+    significantly (the drop over the residual variance with the residuals'
+    effective sample size beats the chi-square(1) 1 - ``alpha`` quantile).
+    Returns :func:`fit_bulk_modulus`'s dict plus ``inertance_factor``,
+    ``inertance_ci95`` (the factors whose SSE stays within the chi-square(1)
+    95 % quantile of the best), ``inertance_sse`` {factor: SSE} and
+    ``inertance_p``."""
+    from scipy import stats
+
+    f0 = float(rig["tube"]["inertance_factor"])
+    targets = replay_targets(runs, rig)
+    fits = {f0: fit_bulk_modulus(targets, valve, with_inertance(rig, f0), interval=False)}
+    for f in INERTANCE_FACTORS:        # the bulk modulus near the rig file line's
+        if f not in fits and math.isfinite(fits[f0]["sse"]):
+            fits[f] = fit_bulk_modulus(targets, valve, with_inertance(rig, f),
+                                       around=fits[f0]["bulk_mpa"], interval=False)
+    ok = {f: r for f, r in fits.items() if math.isfinite(r["sse"]) and not r["at_edge"]}
+    if f0 not in ok or len(ok) < 2:
+        out = fit_bulk_modulus(targets, valve, with_inertance(rig, f0))
+        out.update(inertance_factor=f0, inertance_ci95=(math.nan, math.nan),
+                   inertance_sse={f: r["sse"] for f, r in fits.items()}, inertance_p=math.nan)
+        return out
+    best = min(ok, key=lambda f: ok[f]["sse"])
+    n_eff = ok[best]["n_eff"]
+    s2 = ok[best]["sse"] / max(n_eff - 1.0, 1.0)
+    p = float(stats.chi2.sf(max((ok[f0]["sse"] - ok[best]["sse"]) / s2, 0.0), 1)) if s2 > 0 \
+        else 1.0
+    chosen = best if p < alpha else f0
+    lim = ok[chosen]["sse"] + stats.chi2.ppf(0.95, 1) * s2
+    inside = [f for f, r in ok.items() if r["sse"] <= lim] + [chosen]
+    out = fit_bulk_modulus(targets, valve, with_inertance(rig, chosen),
+                           around=ok[chosen]["bulk_mpa"])          # with its interval
+    out.update(inertance_factor=chosen, inertance_ci95=(min(inside), max(inside)),
+               inertance_sse={f: r["sse"] for f, r in fits.items()}, inertance_p=p)
+    return out
+
+
+def fit_bulk_modulus(runs, valve, rig, *, around: float | None = None,
+                     interval: bool = True) -> dict[str, Any]:
     """The line's effective bulk modulus [MPa] that makes the twin move like
     the measured runs when it is driven by their logged cam commands (open
     loop, :func:`~.closedloop.replay_on_twin`): the flow error minimised over
-    log B (a grid over 0.1-10x the rig file's value, then Brent's method
-    between the best point's neighbours); 95 % profile interval (the values
-    whose error stays within the chi-square(1) quantile of the residual
-    variance, with the residuals' effective sample size)."""
+    log B (a grid over 0.1-10x the rig file's value, or over 1/3-3x
+    ``around`` [MPa] when given, then Brent's method between the best point's
+    neighbours); 95 % profile interval (the values whose error stays within
+    the chi-square(1) quantile of the residual variance, with the residuals'
+    effective sample size), unless not ``interval`` (NaN then)."""
     from scipy.optimize import brentq, minimize_scalar
 
     b0 = float(rig["tube"]["effective_bulk_modulus_mpa"])
     cache: dict[float, tuple[float, float]] = {}
-    runs = replay_targets(runs, rig)
+    runs = replay_targets(runs, rig) if runs and not isinstance(runs[0], ReplayTarget) else runs
 
     def cost(logb: float) -> float:
         key = round(float(logb), 9)
@@ -155,7 +209,8 @@ def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
         return cache[key][0]
 
     lo_edge, hi_edge = math.log(b0 / 10.0), math.log(b0 * 10.0)
-    grid = np.linspace(lo_edge, hi_edge, 13)
+    grid = np.linspace(lo_edge, hi_edge, 13) if around is None else \
+        np.linspace(math.log(around / 3.0), math.log(around * 3.0), 5)
     costs = [cost(g) for g in grid]
     k = int(np.argmin(costs))
     if not math.isfinite(costs[k]) or costs[k] <= 0:
@@ -166,6 +221,11 @@ def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
     best = float(r.x) if r.fun < costs[k] else float(grid[k])
     cost(best)                              # in the cache from here on
     sse_min, n_eff = cache[round(best, 9)]
+    at_edge = best <= lo_edge + 1e-6 or best >= hi_edge - 1e-6 or (
+        around is not None and (best <= grid[0] + 1e-6 or best >= grid[-1] - 1e-6))
+    if not interval:
+        return {"bulk_mpa": math.exp(best), "ci95": (math.nan, math.nan), "sse": sse_min,
+                "n_eff": n_eff, "evaluations": len(cache), "at_edge": at_edge}
     lim = sse_min * (1.0 + 3.84 / max(n_eff - 1.0, 1.0))
 
     def side(edge: float) -> float:
@@ -175,9 +235,20 @@ def fit_bulk_modulus(runs, valve, rig) -> dict[str, Any]:
                             xtol=0.002))
 
     ci = (math.exp(side(lo_edge)), math.exp(side(hi_edge)))
-    at_edge = best <= grid[0] + 1e-6 or best >= grid[-1] - 1e-6
     return {"bulk_mpa": math.exp(best), "ci95": ci, "sse": sse_min, "n_eff": n_eff,
             "evaluations": len(cache), "at_edge": at_edge}
+
+
+def _inertance_note(fb: dict[str, Any], f0: float) -> str:
+    """Why the line's inertance is what it is (the SSE per factor)."""
+    sse = ", ".join(f"{f:g}: {v:.4g}" for f, v in fb["inertance_sse"].items())
+    if fb["inertance_factor"] == f0:
+        return (f"the rig file's line is kept: no other inertance fits significantly better "
+                f"(training flow SSE by factor {sse} (mm^3/s)^2)")
+    return (f"the line behaves with {fb['inertance_factor']:g} x the tube's water-column "
+            f"inertance (p = {fb['inertance_p']:.2g} against the rig file's {f0:g}; training "
+            f"flow SSE by factor {sse} (mm^3/s)^2): a more lumped, damped line than the "
+            "rig file's tube")
 
 
 def _line_time_constant(rig, bulk: float, ci, ok: bool) -> Constant:
@@ -242,9 +313,11 @@ def flow_path_constants(train_runs, held_runs, rig, valve
                 [f"flow path: {why}"])
     f = fit_lag(tr)
     by = f"valve flow -> actuator flow in {len(tr)} training position-control run(s)"
-    fb = fit_bulk_modulus(train_runs, valve, rig)
+    fb = fit_line(train_runs, valve, rig)
     ok = not fb["at_edge"]
     bulk = fb["bulk_mpa"] if ok else b0
+    f0 = float(rig["tube"]["inertance_factor"])
+    inert = fb["inertance_factor"]
     lo, hi = f["tau_ci95"]
     lag_ok = math.isfinite(lo) and hi / max(lo, 1e-12) < 4.0
     why = "" if lag_ok else ("the time constant and the dead time are not told apart by these "
@@ -263,12 +336,18 @@ def flow_path_constants(train_runs, held_runs, rig, valve
                  f"({fb['evaluations']} simulations)",
                  fb["ci95"] if ok else (math.nan, math.nan),
                  note="" if ok else "the best value lies at the edge of 0.1-10x the rig file's"),
+        Constant("tube.inertance_factor", "line inertance (x the tube's water column)", inert,
+                 f0, "", ok,
+                 "training runs replayed open loop, the bulk modulus refitted at each of "
+                 + ", ".join(f"{f:g}" for f in INERTANCE_FACTORS),
+                 tuple(fb["inertance_ci95"]) if ok else (math.nan, math.nan),
+                 note=_inertance_note(fb, f0)),
     ]
     fits = {"lag": {"metric": "actuator flow RMSE [mm^3/s] of the lag model (valve flow -> "
                     "actuator)", "train": f["rmse_mm3_s"],
                     "heldout": lag_rmse(he, f["tau_s"], f["dead_s"]),
                     "n_train_runs": len(tr), "n_heldout_runs": len(he)}}
-    twin = with_bulk(rig, bulk)
+    twin = with_bulk(with_inertance(rig, inert), bulk)
     rep = {"metric": "open-loop replay flow fit [%] (logged cam command -> actuator flow)",
            "n_train_runs": len(train_runs), "n_heldout_runs": len(held_runs)}
     for part, runs in (("train", train_runs), ("heldout", held_runs)):

@@ -4,7 +4,9 @@ the injected effects, packed for the compiled kernel (:mod:`.kernel`).
 Physics (units: mm, MPa, s, N):
 
 - Tube (20 m, bore d): laminar resistance R = 128 mu L / (pi d^4),
-  fluid inertance I = rho L / A_t, compliance C = V / B_eff with the
+  fluid inertance I = k_I rho L / A_t (``tube.inertance_factor`` k_I: 1 for
+  the water column, smaller where the line behaves as a lumped, damped
+  one), compliance C = V / B_eff with the
   effective bulk modulus of water in the nylon tube (rig ``tube``),
   split into ``sim.tube_segments`` lumped segments.
 - Actuator: m dv/dt = p_head A - p_load A_load - F_friction, friction
@@ -49,7 +51,7 @@ def tube_constants(rig: RigConfig) -> dict[str, float]:
     mu = fluid["dynamic_viscosity_pa_s"] * 1e-6           # MPa s
     rho = fluid["density_kg_per_m3"] * 1e-12               # N s^2/mm^4
     r = 128.0 * mu * length / (math.pi * d ** 4)
-    inert = rho * length / area
+    inert = rho * length / area * float(tube["inertance_factor"])
     volume = area * length
     return {"R": r, "I": inert, "V": volume, "C": volume / tube["effective_bulk_modulus_mpa"],
             "tau_I_over_R_s": inert / r}
