@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
-import pandas as pd
 import pyarrow as pa
 import pyarrow.parquet as pq
 
@@ -19,6 +18,9 @@ from ..errors import DataError
 from .atomic import atomic_path
 from .contract import TableSpec, canonical_names, contract_columns
 from .validate import one_line
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = ["parse_parquet", "write_table_parquet", "units_from_columns"]
 

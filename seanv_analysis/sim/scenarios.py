@@ -103,7 +103,7 @@ def _flowstep_runs(plant: Plant, *, seed: int, small: bool) -> Iterator[Run]:
                                     load_mpag=step.load_mpag, seed=seed, run_index=i, plant=plant,
                                     approach=step.approach, run_id=rid, started_at=t)
         yield run
-        t += timedelta(seconds=float(run.tables["encoder"]["t_s"].iloc[-1]) + 8.0)
+        t += timedelta(seconds=float(run.tables.columns("encoder")["t_s"][-1]) + 8.0)
 
 
 def _position_runs(plant: Plant, *, seed: int, which: Iterable[str]) -> Iterator[Run]:
