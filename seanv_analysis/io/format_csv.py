@@ -36,29 +36,39 @@ __all__ = ["parse_csv", "write_csv", "round_significant", "CSV_DIGITS"]
 CSV_DIGITS = 9
 
 
+#: 10**k for k = 0..22: exact doubles
+_POW10 = 10.0 ** np.arange(23)
+
+
 def round_significant(x: np.ndarray, digits: int = CSV_DIGITS) -> np.ndarray:
     """``x`` rounded to ``digits`` significant digits, each value the double
     nearest its decimal (so the shortest repr prints at most ``digits``
     digits); NaN, inf and 0 unchanged. Vectorised (no per-value formatting);
     the same values as printf's ``%.9g`` but where the scaled binary value
-    falls on a tie, which may round to the other neighbour."""
+    falls on a tie, which may round to the other neighbour.
+
+    A value needing 0..22 decimals (1e-14 <= |x| < 1e9 at 9 digits: every
+    value of a rig's log) is ``rint(x 10^k) / 10^k``, 10^k exact, all in one
+    pass; the others (|x| >= 1e9, or tiny) are done apart."""
     x = np.asarray(x, dtype=float)
-    out = x.copy()
-    ok = np.isfinite(x) & (x != 0.0)
-    if not ok.any():
+    with np.errstate(divide="ignore", invalid="ignore"):
+        decimals = (digits - 1) - np.floor(np.log10(np.abs(x)))   # NaN, +-inf for 0, inf, NaN
+    up = (decimals >= 0) & (decimals <= 22)  # 10**k exact: rint(x 10^k) / 10^k correctly rounded
+    p = _POW10[np.where(up, decimals, 0).astype(np.intp)]
+    out = np.rint(x * p) / p
+    if up.all():
         return out
-    v = x[ok]
-    decimals = digits - 1 - np.floor(np.log10(np.abs(v))).astype(np.int64)
-    up = (decimals >= 0) & (decimals <= 22)  # 10**k exact: rint(v 10^k) / 10^k correctly rounded
-    down = (decimals < 0) & (decimals >= -22)
-    r = np.empty_like(v)
-    p = 10.0 ** decimals[up]
-    r[up] = np.rint(v[up] * p) / p
-    q = 10.0 ** (-decimals[down])
-    r[down] = np.rint(v[down] / q) * q
-    tiny = ~(up | down)  # |v| < 1e-14 or >= 1e31: rare, formatted one by one
-    r[tiny] = [float(f"{t:.{digits}g}") for t in v[tiny]]
-    out[ok] = r
+    np.copyto(out, x, where=~up)   # NaN, inf, 0 as they are; the rest below
+    rest = np.flatnonzero(~up & np.isfinite(decimals))
+    if rest.size:
+        v, k = x[rest], decimals[rest].astype(np.int64)
+        down = (k < 0) & (k >= -22)
+        r = np.empty_like(v)
+        q = 10.0 ** (-k[down])
+        r[down] = np.rint(v[down] / q) * q
+        tiny = ~down  # |v| >= 1e31 or < 1e-14 at 9 digits: rare, formatted one by one
+        r[tiny] = [float(f"{t:.{digits}g}") for t in v[tiny]]
+        out[rest] = r
     return out
 
 
