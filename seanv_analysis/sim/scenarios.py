@@ -21,6 +21,8 @@ Effects (``--effect``) act on the plant of every run; the truth goes to
 """
 from __future__ import annotations
 
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -147,6 +149,9 @@ def iter_scenario_runs(name: str, *, seed: int = 0, effects: Iterable[str | Effe
     return _position_runs(plant, seed=seed, which=which)
 
 
+#: runs written at once on helper threads by :func:`simulate_scenario`
+_WRITERS = 2
+
 SCENARIOS: dict[str, str] = {
     "paper-flowsteps": "flow steps over the paper's grid, both sides, 5 loads, 3 sweeps (345 runs)",
     "paper-flowsteps-small": "flow steps on a coarser grid (5 deg, 4 loads, 3 sweeps; 144 runs)",
@@ -192,11 +197,29 @@ def simulate_scenario(name: str, out_dir: str | Path, *, seed: int = 0,
     out.mkdir(parents=True, exist_ok=True)
     ids = []
     total = scenario_size(name)
-    for run in iter_scenario_runs(name, seed=seed, plant=plant):
-        write_run(out / run.run_id, run.meta.to_json_dict(), run.tables, fmt=fmt)
-        ids.append(run.run_id)
-        if progress:
-            progress(len(ids), total)
+    # each run is written on a helper thread while the next one is simulated
+    # (the kernel, the rounding and Arrow's CSV writer run without the GIL);
+    # at most _WRITERS runs wait to be written, and write errors are raised
+    # in run order
+    with ThreadPoolExecutor(max_workers=_WRITERS, thread_name_prefix="seanv-write") as pool:
+        pending: deque[Future] = deque()
+        written = 0
+
+        def finish_one() -> None:
+            nonlocal written
+            pending.popleft().result()
+            written += 1
+            if progress:
+                progress(written, total)
+
+        for run in iter_scenario_runs(name, seed=seed, plant=plant):
+            pending.append(pool.submit(write_run, out / run.run_id, run.meta.to_json_dict(),
+                                       run.tables, fmt=fmt))
+            ids.append(run.run_id)
+            while len(pending) > _WRITERS or (pending and pending[0].done()):
+                finish_one()
+        while pending:
+            finish_one()
     if write_truth:
         write_json_atomic(out / "_truth.json", {
             "scenario": name, "seed": seed, "runs": ids, **plant.truth()})
