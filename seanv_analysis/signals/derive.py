@@ -11,6 +11,11 @@ Three stages, each a flat function:
   two flow estimates: the paper's peak method and a steady-motion estimate
   (:func:`estimate_flow`).
 
+:func:`derive_columns` is :func:`derive_samples` on numpy arrays (same
+numbers); :func:`summarize_run` and :func:`estimate_flow` use it when no
+derived table is given, so summarising a run builds no DataFrame (the
+per-run work of every data set: pandas only at the data-set level).
+
 Units: s, mm, mm/s, mm^2, mm^3/s, MPa (gauge), deg.
 """
 from __future__ import annotations
