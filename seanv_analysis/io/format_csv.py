@@ -12,9 +12,9 @@ import csv as _csv_module
 import io
 import re
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
-import pandas as pd
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
@@ -26,6 +26,9 @@ from .contract import TableSpec, canonical_names, contract_columns
 from .scan import HEAD_BYTES
 from .validate import format_value, one_line
 
+if TYPE_CHECKING:
+    import pandas as pd
+
 __all__ = ["parse_csv", "write_csv", "round_significant", "CSV_DIGITS"]
 
 
@@ -33,52 +36,76 @@ __all__ = ["parse_csv", "write_csv", "round_significant", "CSV_DIGITS"]
 CSV_DIGITS = 9
 
 
+#: 10**k for k = 0..22: exact doubles
+_POW10 = 10.0 ** np.arange(23)
+
+
 def round_significant(x: np.ndarray, digits: int = CSV_DIGITS) -> np.ndarray:
     """``x`` rounded to ``digits`` significant digits, each value the double
     nearest its decimal (so the shortest repr prints at most ``digits``
     digits); NaN, inf and 0 unchanged. Vectorised (no per-value formatting);
     the same values as printf's ``%.9g`` but where the scaled binary value
-    falls on a tie, which may round to the other neighbour."""
+    falls on a tie, which may round to the other neighbour.
+
+    A value needing 0..22 decimals (1e-14 <= |x| < 1e9 at 9 digits: every
+    value of a rig's log) is ``rint(x 10^k) / 10^k``, 10^k exact, all in one
+    pass; the others (|x| >= 1e9, or tiny) are done apart."""
     x = np.asarray(x, dtype=float)
-    out = x.copy()
-    ok = np.isfinite(x) & (x != 0.0)
-    if not ok.any():
+    with np.errstate(divide="ignore", invalid="ignore"):
+        decimals = (digits - 1) - np.floor(np.log10(np.abs(x)))   # NaN, +-inf for 0, inf, NaN
+    up = (decimals >= 0) & (decimals <= 22)  # 10**k exact: rint(x 10^k) / 10^k correctly rounded
+    p = _POW10[np.where(up, decimals, 0).astype(np.intp)]
+    out = np.rint(x * p) / p
+    if up.all():
         return out
-    v = x[ok]
-    decimals = digits - 1 - np.floor(np.log10(np.abs(v))).astype(np.int64)
-    up = (decimals >= 0) & (decimals <= 22)  # 10**k exact: rint(v 10^k) / 10^k correctly rounded
-    down = (decimals < 0) & (decimals >= -22)
-    r = np.empty_like(v)
-    p = 10.0 ** decimals[up]
-    r[up] = np.rint(v[up] * p) / p
-    q = 10.0 ** (-decimals[down])
-    r[down] = np.rint(v[down] / q) * q
-    tiny = ~(up | down)  # |v| < 1e-14 or >= 1e31: rare, formatted one by one
-    r[tiny] = [float(f"{t:.{digits}g}") for t in v[tiny]]
-    out[ok] = r
+    np.copyto(out, x, where=~up)   # NaN, inf, 0 as they are; the rest below
+    rest = np.flatnonzero(~up & np.isfinite(decimals))
+    if rest.size:
+        v, k = x[rest], decimals[rest].astype(np.int64)
+        down = (k < 0) & (k >= -22)
+        r = np.empty_like(v)
+        q = 10.0 ** (-k[down])
+        r[down] = np.rint(v[down] / q) * q
+        tiny = ~down  # |v| >= 1e31 or < 1e-14 at 9 digits: rare, formatted one by one
+        r[tiny] = [float(f"{t:.{digits}g}") for t in v[tiny]]
+        out[rest] = r
     return out
 
 
-def write_csv(df: pd.DataFrame, path: Path) -> None:
-    """Write ``df`` as CSV atomically through pyarrow's writer: floats
-    rounded to :data:`CSV_DIGITS` significant digits (deterministic, so a
-    seed reproduces a data set bit for bit), empty cells for NaN, no index."""
+def write_csv(df: pd.DataFrame | Mapping[str, Any], path: Path) -> None:
+    """Write ``df`` (a DataFrame, or {column: numpy array}) as CSV atomically
+    through pyarrow's writer: floats rounded to :data:`CSV_DIGITS`
+    significant digits (deterministic, so a seed reproduces a data set bit
+    for bit), empty cells for NaN, no index. Both forms of the same table
+    give the same bytes."""
     cols = {}
-    for name in df.columns:
-        values = df[name].to_numpy()
+    items = df.items() if isinstance(df, Mapping) else ((c, df[c]) for c in df.columns)
+    names = []
+    for name, column in items:
+        names.append(name)
+        values = np.asarray(column) if isinstance(df, Mapping) else column.to_numpy()
         if values.dtype.kind == "f":
-            values = round_significant(values)
-            cols[str(name)] = pa.array(values, mask=np.isnan(values))
+            cols[str(name)] = _float_array(round_significant(values))
         else:
             cols[str(name)] = pa.array(values, from_pandas=True)
     table = pa.table(cols)
     header = io.StringIO()
-    _csv_module.writer(header, lineterminator="\n").writerow([str(c) for c in df.columns])
+    _csv_module.writer(header, lineterminator="\n").writerow([str(c) for c in names])
     with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write(header.getvalue().encode())
         if table.num_rows:
             pacsv.write_csv(table, fh, pacsv.WriteOptions(include_header=False,
                                                           quoting_style="needed"))
+
+
+def _float_array(values: np.ndarray) -> pa.Array:
+    """float64 Arrow array of ``values`` (a float64 array this module made), NaN
+    as null: ``pa.array(values, mask=np.isnan(values))`` without pyarrow's
+    pandas checks, which import pandas (~0.3 s of a cold ``simulate``)."""
+    values = np.ascontiguousarray(values, dtype=np.float64)
+    nan = np.isnan(values)
+    valid = pa.py_buffer(np.packbits(~nan, bitorder="little")) if nan.any() else None
+    return pa.Array.from_buffers(pa.float64(), values.size, [valid, pa.py_buffer(values)])
 
 
 def parse_csv(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool) -> pa.Table:

@@ -9,16 +9,17 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import TYPE_CHECKING, Any, Iterable, Mapping
 
-import pandas as pd
 import pyarrow as pa
-import pyarrow.parquet as pq
 
 from ..errors import DataError
 from .atomic import atomic_path
 from .contract import TableSpec, canonical_names, contract_columns
 from .validate import one_line
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = ["parse_parquet", "write_table_parquet", "units_from_columns"]
 
@@ -42,6 +43,8 @@ def parse_parquet(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool)
     DataError
         the file is not a readable Parquet table.
     """
+    import pyarrow.parquet as pq  # Parquet files only (CSV readers and writers never load it)
+
     try:
         table = pq.read_table(path)  # (no pool argument: Arrow's default pool)
     except (pa.ArrowException, OSError, ValueError) as exc:
@@ -76,6 +79,8 @@ def write_table_parquet(df: pd.DataFrame, path: str | Path, *,
     if metadata:
         meta[b"seanv.meta"] = json.dumps(metadata, default=str).encode()
     table = table.cast(pa.schema(fields, metadata=meta))
+    import pyarrow.parquet as pq
+
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
     return Path(path)

@@ -22,9 +22,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterable
+from typing import TYPE_CHECKING, Callable, Iterable
 
-import pandas as pd
 import pyarrow as pa
 
 from ..config import schema_dir
@@ -32,6 +31,9 @@ from ..errors import ConfigError
 from .contract import TableSpec, contract
 from .format_csv import parse_csv, write_csv
 from .format_parquet import parse_parquet, write_table_parquet
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = ["TableFormat", "ParseFn", "WriteFn", "FORMATS", "register_format",
            "registered_formats", "table_formats", "table_suffixes", "format_named", "either"]
@@ -48,7 +50,7 @@ ParseFn = Callable[[Path, TableSpec, bytes, pa.MemoryPool], pa.Table]
 
 #: ``write(df, path)``: write one run table atomically
 #: (:func:`~seanv_analysis.io.atomic.atomic_path`).
-WriteFn = Callable[[pd.DataFrame, Path], object]
+WriteFn = Callable[["pd.DataFrame", Path], object]
 
 
 @dataclass(frozen=True)
@@ -64,6 +66,9 @@ class TableFormat:
     write : see :data:`WriteFn`; None when runs are never written in it
     text : a text format: a NUL byte in the file is reported as binary data
         (with its row) before parsing
+    writes_columns : ``write`` also takes the table as {column: numpy array}
+        (what a run read or simulated holds, so it is written without
+        building a DataFrame)
     """
 
     name: str
@@ -72,6 +77,7 @@ class TableFormat:
     parse: ParseFn
     write: WriteFn | None = None
     text: bool = False
+    writes_columns: bool = False
 
 
 #: every registered format by suffix, in registration order
@@ -166,6 +172,7 @@ def either(words: Iterable[str]) -> str:
     return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} or {words[-1]}"
 
 
-register_format(TableFormat("csv", "CSV", (".csv",), parse_csv, write_csv, text=True))
+register_format(TableFormat("csv", "CSV", (".csv",), parse_csv, write_csv, text=True,
+                            writes_columns=True))
 register_format(TableFormat("parquet", "Parquet", (".parquet",), parse_parquet,
                             write_table_parquet))

@@ -19,6 +19,7 @@ from pathlib import Path, PurePath
 from typing import Any
 
 from .. import __version__
+from .run_tables import RunTables
 
 __all__ = ["file_sha256", "remember_sha256", "sha256_bytes", "code_version", "content_sha256"]
 
@@ -146,8 +147,9 @@ def _feed(h, v: Any) -> None:
         h.update(f"{type(v).__name__}:{len(v)};".encode())
         for x in v:
             _feed(h, x)
-    elif isinstance(v, dict):
-        _feed(h, ("dict", list(v.items())))   # insertion order: it orders what is drawn
+    elif isinstance(v, (dict, RunTables)):
+        # insertion order: it orders what is drawn; a run's tables as {name: DataFrame}
+        _feed(h, ("dict", list(v.items())))
     elif isinstance(v, (set, frozenset)):
         _feed(h, ("set", sorted(content_sha256(x) for x in v)))
     elif dataclasses.is_dataclass(v) and not isinstance(v, type):

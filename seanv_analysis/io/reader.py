@@ -26,8 +26,9 @@ from .dataset import DatasetRead, RunError, dataset_plan, find_runs, is_run_dir
 from .formats import TableFormat
 from .hashing import remember_sha256, sha256_bytes
 from .run import Run, RunMeta
+from .run_tables import RunTables
 from .scan import file_size
-from .table_file import locate_table, read_table
+from .table_file import locate_table, read_table_columns
 from .validate import check_rig_overrides, max_pressure_mpag, one_line, read_run_json
 
 __all__ = ["find_runs", "is_run_dir", "read_run", "read_dataset", "iter_dataset",
@@ -128,9 +129,11 @@ def _read_tables(meta: RunMeta, base: RigConfig, *, hash_files: bool) -> Run:
             todo.append((spec, *found))
     per_table = [{} if hash_files else None for _ in todo]
     sizes = [file_size(path) for _, path, _ in todo]
-    jobs = [functools.partial(read_table, path, fmt, spec, rig, h, size)
+    jobs = [functools.partial(read_table_columns, path, fmt, spec, rig, h, size)
             for (spec, path, fmt), h, size in zip(todo, per_table, sizes)]
-    tables = dict(zip((spec.name for spec, _, _ in todo), _run_in_order(jobs, sum(sizes))))
+    # numpy columns; each table's DataFrame is built when first asked for
+    tables = RunTables(dict(zip((spec.name for spec, _, _ in todo),
+                                _run_in_order(jobs, sum(sizes)))))
     for h in per_table:
         hashes.update(h or {})
     return Run(meta=meta, tables=tables, rig=rig, files=files, file_sha256=hashes)

@@ -4,11 +4,13 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
-from typing import Any
-
-import pandas as pd
+from typing import TYPE_CHECKING, Any, Mapping
 
 from ..config import RigConfig
+from .run_tables import RunTables, table_columns
+
+if TYPE_CHECKING:  # pandas loads when a table's DataFrame is first asked for
+    import pandas as pd
 
 __all__ = ["RunMeta", "Run", "SUMMARY_COLUMNS"]
 
@@ -79,16 +81,24 @@ class Run:
     position_control) to DataFrames whose first column is ``t_s``
     (strictly increasing) and whose other columns are the contract's names
     (position_mm, p_*_mpag, cam_cmd_deg, cam_deg, x_ref_mm, q_ref_mm3_s).
+    It is a :class:`~seanv_analysis.io.run_tables.RunTables` (a plain dict
+    given here is wrapped in one): each DataFrame is built on first use,
+    and ``run.tables.columns(name)`` gives a table's numpy columns without
+    building it.
     All streams on one time base: :func:`seanv_analysis.signals.align.align_run`.
     """
 
     meta: RunMeta
-    tables: dict[str, pd.DataFrame]
+    tables: Mapping[str, pd.DataFrame]
     rig: RigConfig
     #: files the run was read from: {'run.json' | table name: path}
     files: dict[str, Path] = field(default_factory=dict)
     #: SHA-256 of each file read {str(path): hex digest} (empty if not hashed)
     file_sha256: dict[str, str] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.tables, RunTables):
+            self.tables = RunTables(self.tables)
 
     @property
     def run_id(self) -> str:
@@ -101,6 +111,5 @@ class Run:
     @property
     def span_s(self) -> tuple[float, float]:
         """Time span [s] covered by every table (the alignment overlap)."""
-        starts = [float(df["t_s"].iloc[0]) for df in self.tables.values() if len(df)]
-        ends = [float(df["t_s"].iloc[-1]) for df in self.tables.values() if len(df)]
-        return max(starts), min(ends)
+        ts = [table_columns(self.tables, name)["t_s"] for name in self.tables]
+        return max(float(t[0]) for t in ts if t.size), min(float(t[-1]) for t in ts if t.size)

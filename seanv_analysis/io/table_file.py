@@ -4,15 +4,16 @@
 suffixes of the registered formats (:mod:`.formats`); :func:`read_table`
 scans the file once (hash, binary data, blankness), parses it with its
 format's parser into Arrow and turns the contract's columns into checked,
-calibrated float64 numpy columns of a DataFrame.
+calibrated float64 numpy columns (:func:`read_table_columns`; the reader keeps
+them so, and a DataFrame is only built when one is asked for).
 """
 from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import pandas as pd
 import pyarrow as pa
 
 from ..config import RigConfig
@@ -34,7 +35,7 @@ from .validate import (
     time_limits_s,
 )
 
-__all__ = ["locate_table", "read_table"]
+__all__ = ["locate_table", "read_table", "read_table_columns"]
 
 
 def locate_table(run_dir: Path, spec: TableSpec, kind: str) -> tuple[Path, TableFormat] | None:
@@ -76,12 +77,22 @@ def locate_table(run_dir: Path, spec: TableSpec, kind: str) -> tuple[Path, Table
 
 
 def read_table(path: Path, fmt: TableFormat, spec: TableSpec, rig: RigConfig,
-               hashes: dict[str, str] | None, size: int) -> pd.DataFrame:
-    """One table file (``size`` bytes, format ``fmt``), validated and calibrated.
+               hashes: dict[str, str] | None, size: int):
+    """:func:`read_table_columns` as a DataFrame (the same arrays, no copy)."""
+    import pandas as pd
+
+    return pd.DataFrame(read_table_columns(path, fmt, spec, rig, hashes, size), copy=False)
+
+
+def read_table_columns(path: Path, fmt: TableFormat, spec: TableSpec, rig: RigConfig,
+                       hashes: dict[str, str] | None, size: int) -> dict[str, Any]:
+    """One table file (``size`` bytes, format ``fmt``), validated and calibrated,
+    as {column: array}.
 
     ``hashes``: where to record the file's SHA-256 ({str(path): hex}), None
     to skip hashing. Columns: the contract's engineering columns in contract
-    order, then the file's extra columns as read (see
+    order (float64 numpy arrays), then the file's extra columns as read
+    (pandas Series, as ``pyarrow``'s ``to_pandas`` gives them; see
     :func:`seanv_analysis.io.read_run`).
     """
     try:
@@ -143,7 +154,7 @@ def read_table(path: Path, fmt: TableFormat, spec: TableSpec, rig: RigConfig,
     for name in table.column_names:  # extra columns, kept as read
         out[name] = table.column(name).to_pandas()
     del table
-    return pd.DataFrame(out, copy=False)
+    return out
 
 
 def _choose_columns(names: list[str], spec: TableSpec, path: Path

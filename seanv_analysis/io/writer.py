@@ -8,13 +8,15 @@ units in the schema (:func:`write_table_parquet`).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Mapping
-
-import pandas as pd
+from typing import TYPE_CHECKING, Any, Mapping
 
 from .atomic import write_json_atomic
 from .format_parquet import units_from_columns, write_table_parquet
 from .formats import format_named
+from .run_tables import RunTables
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = ["write_run", "write_table_parquet", "units_from_columns", "TABLE_NAMES"]
 
@@ -30,6 +32,8 @@ def write_run(run_dir: str | Path, meta: Mapping[str, Any],
     run_dir : folder to create (parents too)
     meta : run.json content (``schema`` defaults to ``seanv-run/1``)
     tables : {"encoder": df, "pressure": df, "servo": df[, "controller": df]}
+        (a run's :class:`~seanv_analysis.io.run_tables.RunTables` is written
+        from its numpy columns when the format can: CSV, without pandas)
     fmt : a table format's name: 'csv' or 'parquet' (any format of
         :mod:`.formats` with a writer)
 
@@ -40,10 +44,12 @@ def write_run(run_dir: str | Path, meta: Mapping[str, Any],
     suffix = table_format.suffixes[0]
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    for name, df in tables.items():
+    by_columns = table_format.writes_columns and isinstance(tables, RunTables)
+    for name in tables:
         if name not in TABLE_NAMES:
             raise ValueError(f"tables: unknown table {name!r}; expected one of {TABLE_NAMES}")
-        table_format.write(df, run_dir / f"{name}{suffix}")
+        table = tables.columns(name) if by_columns else tables[name]
+        table_format.write(table, run_dir / f"{name}{suffix}")
     meta = {"schema": "seanv-run/1", **dict(meta)}
     write_json_atomic(run_dir / "run.json", meta)
     return run_dir

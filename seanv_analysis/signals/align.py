@@ -15,8 +15,10 @@ import pandas as pd
 from ..errors import DataError
 from ..io.contract import contract_columns
 from ..io.run import Run
+from ..io.run_tables import table_columns
 
-__all__ = ["align_streams", "align_run", "interp_sorted", "same_clock", "HOLD_COLUMNS"]
+__all__ = ["align_streams", "align_columns", "align_run", "align_run_columns",
+           "interp_sorted", "same_clock", "HOLD_COLUMNS"]
 
 #: Commands: piecewise constant between samples (the controller holds them),
 #: so they are aligned with previous-value hold, never interpolated.
@@ -76,13 +78,50 @@ def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None
     0  0.001          1.0        -15.0
     1  0.002          2.0        -15.0
     """
+    out, base_slice = _align(streams, t_s=t_s, base=base, hold=hold, time_column=time_column)
+    if base_slice is not None:
+        stream = streams[base]
+        cols = [c for c in _keys(stream) if c != time_column]
+        if isinstance(stream, pd.DataFrame) and all(
+                stream[c].dtype == np.float64 for c in (time_column, *cols)):
+            # copy-on-write views of the base frame: no copy until written
+            view = stream.iloc[base_slice].reset_index(drop=True)
+            out[time_column] = view[time_column]
+            out.update((c, view[c]) for c in cols)
+        else:  # the frame owns its columns (the caller's arrays are not written through it)
+            out[time_column] = np.array(out[time_column], dtype=np.float64)
+            out.update((c, np.array(out[c], dtype=np.float64)) for c in cols)
+    return pd.DataFrame(out, copy=False)
+
+
+def align_columns(streams: Mapping[str, Mapping[str, np.ndarray]], *,
+                  t_s: np.ndarray | None = None, base: str = "encoder",
+                  hold: Collection[str] = HOLD_COLUMNS,
+                  time_column: str = "t_s") -> dict[str, np.ndarray]:
+    """:func:`align_streams` on numpy arrays, without pandas: {column: array},
+    ``t_s`` first, then every value column in stream order.
+
+    Same parameters, arithmetic, errors and numbers as :func:`align_streams`;
+    on the default time base the base stream's columns are views of its
+    arrays (read them, do not write).
+    """
+    return _align(streams, t_s=t_s, base=base, hold=hold, time_column=time_column)[0]
+
+
+def _keys(stream) -> list[str]:
+    return list(stream.columns if isinstance(stream, pd.DataFrame) else stream.keys())
+
+
+def _align(streams, *, t_s, base, hold, time_column) -> tuple[dict[str, np.ndarray], slice | None]:
+    """The columns of :func:`align_streams` (the base stream's as views of
+    its arrays) and the slice of the base stream kept (None for a given ``t_s``)."""
     if not streams:
         raise ValueError("streams: expected at least one stream")
     columns: dict[str, dict[str, np.ndarray]] = {}
     times: dict[str, np.ndarray] = {}
     seen: dict[str, str] = {}
     for name, stream in streams.items():
-        keys = list(stream.columns if isinstance(stream, pd.DataFrame) else stream.keys())
+        keys = _keys(stream)
         if time_column not in keys:
             raise ValueError(f"streams['{name}']: no '{time_column}' column")
         cols = {}
@@ -121,21 +160,13 @@ def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None
         t = t[(t >= lo) & (t <= hi)]  # NaN fails both and is dropped too
 
     t_sorted = base_slice is not None or bool(np.all(t[1:] >= t[:-1]))
-    out: dict[str, object] = {}
+    out: dict[str, np.ndarray] = {}
     hold = set(hold)
     for name, cols in columns.items():
         tk = times[name]
         if base_slice is not None and name == base:
-            stream = streams[name]
-            if isinstance(stream, pd.DataFrame) and all(
-                    stream[c].dtype == np.float64 for c in (time_column, *cols)):
-                # copy-on-write views of the base frame: no copy until written
-                view = stream.iloc[base_slice].reset_index(drop=True)
-                out[time_column] = view[time_column]
-                out.update((c, view[c]) for c in cols)
-            else:
-                out[time_column] = np.array(t, dtype=np.float64)
-                out.update((c, np.array(v[base_slice], dtype=np.float64)) for c, v in cols.items())
+            out[time_column] = t
+            out.update((c, np.asarray(v, dtype=np.float64)[base_slice]) for c, v in cols.items())
             continue
         counts = idx = None
         for c, v in cols.items():
@@ -159,7 +190,7 @@ def align_streams(streams: Mapping[str, pd.DataFrame], *, t_s: np.ndarray | None
     if time_column not in out:
         out[time_column] = np.array(t, dtype=np.float64)
     out = {time_column: out.pop(time_column), **out}
-    return pd.DataFrame(out, copy=False)
+    return out, base_slice
 
 
 def align_run(run: Run, *, t_s: np.ndarray | None = None) -> pd.DataFrame:
@@ -192,6 +223,23 @@ def align_run(run: Run, *, t_s: np.ndarray | None = None) -> pd.DataFrame:
         streams[name] = df if list(df.columns) == cols else df[cols]  # CoW: no copy
     base = "encoder" if "encoder" in streams else next(iter(streams))
     return align_streams(streams, t_s=t_s, base=base)
+
+
+def align_run_columns(run: Run, *, t_s: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """:func:`align_run` as {column: numpy array}, without pandas (the run's
+    tables' DataFrames are not built): the same columns and numbers. On the
+    encoder's time base its columns are views of the run's arrays (read
+    them, do not write)."""
+    streams = {}
+    for name in run.tables:
+        try:
+            wanted = contract_columns(name)
+        except KeyError:
+            continue
+        cols = table_columns(run.tables, name)
+        streams[name] = {c: cols[c] for c in wanted if c in cols}
+    base = "encoder" if "encoder" in streams else next(iter(streams))
+    return align_columns(streams, t_s=t_s, base=base)
 
 
 def same_clock(t: np.ndarray, tk: np.ndarray) -> slice | None:

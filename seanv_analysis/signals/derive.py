@@ -11,6 +11,11 @@ Three stages, each a flat function:
   two flow estimates: the paper's peak method and a steady-motion estimate
   (:func:`estimate_flow`).
 
+:func:`derive_columns` is :func:`derive_samples` on numpy arrays (same
+numbers); :func:`summarize_run` and :func:`estimate_flow` use it when no
+derived table is given, so summarising a run builds no DataFrame (the
+per-run work of every data set: pandas only at the data-set level).
+
 Units: s, mm, mm/s, mm^2, mm^3/s, MPa (gauge), deg.
 """
 from __future__ import annotations
@@ -19,20 +24,21 @@ import functools
 import math
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import pandas as pd
 
 from ..errors import ConfigError, DataError
 from ..io.run import Run
+from ..io.run_tables import table_columns
 from ..models import flow_from_velocity, side_pressures
-from .align import align_run, interp_sorted
+from .align import align_run, align_run_columns, interp_sorted
 from .savgol import moving_average, savgol_derivative
 
 __all__ = [
     "FLOW_METHODS", "DEFAULT_MAX_JITTER", "DEFAULT_SETTLE_BAND",
-    "DerivativeInfo", "velocity_mm_s", "derive_samples",
+    "DerivativeInfo", "velocity_mm_s", "derive_samples", "derive_columns",
     "StepWindow", "step_window", "FlowEstimate", "estimate_flow", "summarize_run",
 ]
 
@@ -243,9 +249,19 @@ def velocity_mm_s(t_s, position_mm, *, window_s: float, polyorder: int,
 # derived samples
 # ---------------------------------------------------------------------------
 
-def _tank_pressure(df: pd.DataFrame, rig) -> np.ndarray | float:
+def _n_rows(cols: Mapping[str, np.ndarray]) -> int:
+    """Rows of a {column: array} table (0 without columns)."""
+    return len(next(iter(cols.values()))) if cols else 0
+
+
+def _col(table, name: str) -> np.ndarray:
+    """Column ``name`` of a DataFrame or a {column: array} table as float64 numpy."""
+    return np.asarray(table[name], dtype=np.float64)
+
+
+def _tank_pressure(df, rig) -> np.ndarray | float:
     if "p_tank_mpag" in df:
-        return df["p_tank_mpag"].to_numpy(np.float64)
+        return _col(df, "p_tank_mpag")
     return float(rig["supply"]["tank_pressure_mpag"])
 
 
@@ -259,6 +275,54 @@ def _add_column(df: pd.DataFrame, name: str, values: np.ndarray) -> None:
     """``df[name] = values`` for an array this module made, without the copy
     ``df[name] = ndarray`` takes (29 MB per column on an hour of 1 kHz)."""
     df[name] = pd.Series(values, index=df.index, copy=False)
+
+
+def _derive(run: Run, align, *, window_s: float | None, polyorder: int | None, overlap: bool):
+    """(aligned table, {velocity_mm_s, q_mm3_s, dp_supply_mpa, dp_drain_mpa},
+    DerivativeInfo) of :func:`derive_samples`; ``align(run)`` gives the
+    aligned table (a DataFrame or {column: array}); ``overlap``: a long
+    record's derivative may run on a helper thread beside it."""
+    analysis = run.rig.analysis
+    window_s = float(analysis["derivative_window_s"]) if window_s is None else window_s
+    polyorder = int(analysis["derivative_polyorder"]) if polyorder is None else polyorder
+    enc = table_columns(run.tables, "encoder") if "encoder" in run.tables else None
+    if enc is not None and not _n_rows(enc):
+        enc = None
+    derivative = helper = pending = None
+    if enc is not None:
+        derivative = functools.partial(velocity_mm_s, enc["t_s"], enc["position_mm"],
+                                       window_s=window_s, polyorder=polyorder)
+        if overlap and enc["t_s"].size >= _OVERLAP_MIN_SAMPLES:
+            # a long record: the derivative (np.correlate) and the alignment
+            # (np.interp) both release the GIL, so they run side by side
+            helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-derive")
+            pending = helper.submit(derivative)
+    try:
+        df = align(run)
+        for col in ("t_s", "p_supply_mpag", "p_head_mpag"):
+            if col not in df:
+                raise DataError(f"aligned table has no '{col}' column; expected the contract's "
+                                "columns", path=run.meta.path, column=col)
+    finally:
+        if helper is not None:
+            helper.shutdown(wait=True)   # the derivative is done (or its error kept)
+    if enc is not None:
+        v_enc, info = pending.result() if pending is not None else derivative()
+        v = interp_sorted(_col(df, "t_s"), np.asarray(enc["t_s"], dtype=np.float64), v_enc,
+                          copy=False)  # v_enc is ours: on the encoder's clock, a view of it
+    else:
+        if "position_mm" not in df:
+            raise DataError("no encoder table and no 'position_mm' column; expected one",
+                            path=run.meta.path, column="position_mm")
+        v, info = velocity_mm_s(np.asarray(df["t_s"]), np.asarray(df["position_mm"]),
+                                window_s=window_s, polyorder=polyorder)
+    ps = _col(df, "p_supply_mpag")
+    ph = _col(df, "p_head_mpag")
+    pt = _tank_pressure(df, run.rig)
+    return df, {"velocity_mm_s": v,
+                "q_mm3_s": flow_from_velocity(v, run.rig.piston_area_mm2),
+                "dp_supply_mpa": side_pressures("supply", ps, ph, pt)[1],
+                "dp_drain_mpa": side_pressures("drain", ps, ph, pt)[1]}, info
 
 
 def derive_samples(run: Run, *, aligned: pd.DataFrame | None = None,
@@ -294,54 +358,37 @@ def derive_samples(run: Run, *, aligned: pd.DataFrame | None = None,
     its own timestamps) and linearly interpolated onto ``aligned['t_s']``
     (exact when the aligned base is the encoder's), so the derivative's edge
     samples sit at the encoder record's ends, not at the overlap's.
+    :func:`derive_columns` gives the same numbers as numpy arrays, without pandas.
     """
-    analysis = run.rig.analysis
-    window_s = float(analysis["derivative_window_s"]) if window_s is None else window_s
-    polyorder = int(analysis["derivative_polyorder"]) if polyorder is None else polyorder
-    enc = run.tables.get("encoder")
-    if enc is not None and not len(enc):
-        enc = None
-    derivative = helper = pending = None
-    if enc is not None:
-        derivative = functools.partial(velocity_mm_s, enc["t_s"].to_numpy(),
-                                       enc["position_mm"].to_numpy(), window_s=window_s,
-                                       polyorder=polyorder)
-        if aligned is None and len(enc) >= _OVERLAP_MIN_SAMPLES:
-            # a long record: the derivative (np.correlate) and the alignment
-            # (np.interp) both release the GIL, so they run side by side
-            helper = ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-derive")
-            pending = helper.submit(derivative)
-    try:
-        # align_run(run) is a fresh frame we own; a caller's frame gets a shallow
-        # copy (new columns do not touch it). A deep copy here consolidated the
-        # blocks and cost more than the derivative itself on an hour of 1 kHz logs.
-        df = align_run(run) if aligned is None else aligned.copy(deep=False)
-        for col in ("t_s", "p_supply_mpag", "p_head_mpag"):
-            if col not in df:
-                raise DataError(f"aligned table has no '{col}' column; expected the contract's "
-                                "columns", path=run.meta.path, column=col)
-    finally:
-        if helper is not None:
-            helper.shutdown(wait=True)   # the derivative is done (or its error kept)
-    if enc is not None:
-        v_enc, info = pending.result() if pending is not None else derivative()
-        v = interp_sorted(df["t_s"].to_numpy(np.float64), enc["t_s"].to_numpy(np.float64), v_enc,
-                          copy=False)  # v_enc is ours: on the encoder's clock, a view of it
-    else:
-        if "position_mm" not in df:
-            raise DataError("no encoder table and no 'position_mm' column; expected one",
-                            path=run.meta.path, column="position_mm")
-        v, info = velocity_mm_s(df["t_s"].to_numpy(), df["position_mm"].to_numpy(),
-                                window_s=window_s, polyorder=polyorder)
-    ps = df["p_supply_mpag"].to_numpy(np.float64)
-    ph = df["p_head_mpag"].to_numpy(np.float64)
-    pt = _tank_pressure(df, run.rig)
-    _add_column(df, "velocity_mm_s", v)
-    _add_column(df, "q_mm3_s", flow_from_velocity(v, run.rig.piston_area_mm2))
-    _add_column(df, "dp_supply_mpa", side_pressures("supply", ps, ph, pt)[1])
-    _add_column(df, "dp_drain_mpa", side_pressures("drain", ps, ph, pt)[1])
+    # align_run(run) is a fresh frame we own; a caller's frame gets a shallow
+    # copy (new columns do not touch it). A deep copy here consolidated the
+    # blocks and cost more than the derivative itself on an hour of 1 kHz logs.
+    df, derived, info = _derive(
+        run, align_run if aligned is None else (lambda _run: aligned.copy(deep=False)),
+        window_s=window_s, polyorder=polyorder, overlap=aligned is None)
+    for name, values in derived.items():
+        _add_column(df, name, values)
     df.attrs["velocity"] = info.to_dict()
     return df
+
+
+def derive_columns(run: Run, *, aligned: Mapping[str, np.ndarray] | None = None,
+                   window_s: float | None = None, polyorder: int | None = None
+                   ) -> tuple[dict[str, np.ndarray], DerivativeInfo]:
+    """:func:`derive_samples` on numpy arrays, without pandas: ({column:
+    array}, the derivative used).
+
+    Same parameters (``aligned``: {column: array}, default
+    :func:`~seanv_analysis.signals.align.align_run_columns`), columns, units,
+    errors and numbers as :func:`derive_samples`; the
+    :class:`DerivativeInfo` is what that puts in ``attrs['velocity']``.
+    Aligned columns may be views of the run's arrays: read them, do not write.
+    """
+    cols, derived, info = _derive(
+        run, align_run_columns if aligned is None else (lambda _run: dict(aligned)),
+        window_s=window_s, polyorder=polyorder, overlap=aligned is None)
+    cols.update(derived)
+    return cols, info
 
 
 # ---------------------------------------------------------------------------
@@ -413,16 +460,15 @@ def step_window(run: Run) -> StepWindow:
     if meta.cam_deg is None:
         raise DataError("flow_step run has no cam_deg; expected the commanded cam angle",
                         path=run.files.get("run.json", meta.path))
-    servo = run.tables.get("servo")
-    if servo is None or not len(servo):
+    servo = table_columns(run.tables, "servo") if "servo" in run.tables else None
+    if servo is None or not _n_rows(servo):
         raise DataError("no servo table; expected t_s, cam_cmd_deg, cam_deg", path=path)
     cam = float(meta.cam_deg)
     srv = run.rig["servo"]
     res = float(srv["resolution_deg"])
-    t = servo["t_s"].to_numpy(np.float64)
-    cmd = servo["cam_cmd_deg"].to_numpy(np.float64)
-    fb = (servo["cam_deg"].to_numpy(np.float64) if "cam_deg" in servo
-          else np.full(t.size, np.nan))
+    t = _col(servo, "t_s")
+    cmd = _col(servo, "cam_cmd_deg")
+    fb = _col(servo, "cam_deg") if "cam_deg" in servo else np.full(t.size, np.nan)
     at_step = np.abs(cmd - cam) <= res
     span = _longest_true_run(at_step)
     if span is None:
@@ -431,7 +477,8 @@ def step_window(run: Run) -> StepWindow:
                         column="cam_cmd_deg")
     i0, i1 = span
     t_start = float(t[i0])
-    last_t = max(float(df["t_s"].iloc[-1]) for df in run.tables.values() if len(df))
+    last_t = max(float(ts[-1]) for ts in (table_columns(run.tables, name)["t_s"]
+                                          for name in run.tables) if ts.size)
     t_end = float(t[i1 + 1]) if i1 + 1 < t.size else last_t
 
     before = cmd[:i0][~at_step[:i0] & np.isfinite(cmd[:i0])]
@@ -516,15 +563,14 @@ def _failed(method: str, message: str) -> FlowEstimate:
     return FlowEstimate(method, nan, nan, nan, nan, nan, nan, 0, False, False, False, message)
 
 
-def _side_arrays(derived: pd.DataFrame, side: str, rig) -> tuple[np.ndarray, np.ndarray]:
-    """(p1, dp) of a side [MPa]: views of :func:`derive_samples`' columns when
-    there (the same arithmetic), else computed."""
+def _side_arrays(derived, side: str, rig) -> tuple[np.ndarray, np.ndarray]:
+    """(p1, dp) of a side [MPa]: views of :func:`derive_samples`' columns
+    (a DataFrame or {column: array}) when there (the same arithmetic), else
+    computed."""
     p1_col = "p_supply_mpag" if side == "supply" else "p_head_mpag"
     if f"dp_{side}_mpa" in derived and p1_col in derived:
-        return (derived[p1_col].to_numpy(np.float64),
-                derived[f"dp_{side}_mpa"].to_numpy(np.float64))
-    p1, dp = side_pressures(side, derived["p_supply_mpag"].to_numpy(np.float64),
-                            derived["p_head_mpag"].to_numpy(np.float64),
+        return _col(derived, p1_col), _col(derived, f"dp_{side}_mpa")
+    p1, dp = side_pressures(side, _col(derived, "p_supply_mpag"), _col(derived, "p_head_mpag"),
                             _tank_pressure(derived, rig))
     return np.asarray(p1, dtype=np.float64), np.asarray(dp, dtype=np.float64)
 
@@ -663,17 +709,34 @@ def estimate_flow(run: Run, *, method: str = "steady", derived: pd.DataFrame | N
     """
     if method not in FLOW_METHODS:
         raise ConfigError(f"method: expected one of {', '.join(FLOW_METHODS)}, got {method!r}")
+    _check_flow_step(run)
+    if derived is None:
+        table, info = derive_columns(run)
+        return _estimate(run, method, table, vars(info), step, settle_band, smoothing_s)
+    return _estimate(run, method, derived, derived.attrs.get("velocity"), step, settle_band,
+                     smoothing_s)
+
+
+def _check_flow_step(run: Run) -> None:
     meta = run.meta
     if meta.kind != "flow_step" or meta.side not in ("supply", "drain"):
         raise DataError(f"kind {meta.kind!r}, side {meta.side!r}; expected a flow_step run "
                         "with side 'supply' or 'drain'", path=meta.path)
-    derived = derive_samples(run) if derived is None else derived
+
+
+def _estimate(run: Run, method: str, derived, info: Mapping[str, Any] | None,
+              step: StepWindow | None, settle_band: float,
+              smoothing_s: float | None) -> FlowEstimate:
+    """:func:`estimate_flow` on derived samples (a DataFrame or {column:
+    array}) and their derivative's info (:class:`DerivativeInfo` fields, None
+    when unknown)."""
+    _check_flow_step(run)
+    meta = run.meta
     step = step_window(run) if step is None else step
-    info = derived.attrs.get("velocity")
     analysis = run.rig.analysis
     window_s = float(info["window_s"]) if info else float(analysis["derivative_window_s"])
-    t = derived["t_s"].to_numpy(np.float64)
-    v = derived["velocity_mm_s"].to_numpy(np.float64)
+    t = _col(derived, "t_s")
+    v = _col(derived, "velocity_mm_s")
     dt = float(info["dt_s"]) if info else float(np.median(np.diff(t)))
     edge_lo = float(info["valid_start_s"]) if info else t[0] + window_s / 2
     edge_hi = float(info["valid_end_s"]) if info else t[-1] - window_s / 2
@@ -741,20 +804,26 @@ def summarize_run(run: Run, *, method: str = "steady",
     if meta.kind != "flow_step":
         if meta.load_mpag is not None:
             row["load_mpag"] = float(meta.load_mpag)
-        elif "pressure" in run.tables and "p_load_mpag" in run.tables["pressure"]:
-            row["load_mpag"] = float(np.nanmedian(run.tables["pressure"]["p_load_mpag"]))
+        elif "pressure" in run.tables:
+            pressure = table_columns(run.tables, "pressure")
+            if "p_load_mpag" in pressure:
+                row["load_mpag"] = float(np.nanmedian(pressure["p_load_mpag"]))
         return row
-    derived = derive_samples(run) if derived is None else derived
+    if derived is None:  # numpy arrays throughout: no DataFrame is built
+        table, derivative = derive_columns(run)
+        info: Mapping[str, Any] | None = vars(derivative)
+    else:
+        table, info = derived, derived.attrs.get("velocity")
     step = step_window(run)
-    peak = estimate_flow(run, method="peak", derived=derived, step=step)
-    steady = estimate_flow(run, method="steady", derived=derived, step=step)
+    peak = _estimate(run, "peak", table, info, step, DEFAULT_SETTLE_BAND, None)
+    steady = _estimate(run, "steady", table, info, step, DEFAULT_SETTLE_BAND, None)
     chosen = steady if method == "steady" else peak
     if meta.load_mpag is not None:
         load = float(meta.load_mpag)
     else:
-        t = derived["t_s"].to_numpy(np.float64)
+        t = _col(table, "t_s")
         inside = (t >= step.t_start_s) & (t <= step.t_end_s)
-        p_load = derived["p_load_mpag"].to_numpy(np.float64)
+        p_load = _col(table, "p_load_mpag")
         load = float(np.nanmedian(p_load[inside] if inside.any() else p_load))
     row.update(load_mpag=load, cam_measured_deg=step.cam_measured_deg,
                cam_approach=step.cam_approach, q_mm3_s=chosen.q_mm3_s,

@@ -14,7 +14,6 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
-import pandas as pd
 
 from ..config import RigConfig, load_rig
 from ..errors import ConfigError
@@ -22,6 +21,7 @@ from ..io.run import Run, RunMeta
 from ..models import ValveModel
 from ..models.effects import Effect
 from ._config_errors import config_errors
+from ._signals import Signals, contract_tables
 from .control import CamController, FlowModelController
 from .kernel import MODE_SCHEDULE, OUT_FAST, OUT_SLOW, simulate_kernel
 from .plant import Plant
@@ -71,19 +71,11 @@ def _run(plant: Plant, *, ctrl_kind: int, cp, ctrl_tables, ref, load, cmd, durat
         pp, *valve, ctrl_kind, cp, *ctrl_tables,
         ref[0], ref[1], load[0], load[1], cmd[0], cmd[1], noise, n_fast, float(x0_mm),
         float(cam0_deg), float(p0_mpag), float(hold0_deg))
-    return (pd.DataFrame(fast, columns=OUT_FAST), pd.DataFrame(slow, columns=OUT_SLOW),
-            float(t_release))
+    return Signals(fast, OUT_FAST), Signals(slow, OUT_SLOW), float(t_release)
 
 
-def _tables(fast: pd.DataFrame, slow: pd.DataFrame, *, controller: bool) -> dict[str, pd.DataFrame]:
-    tables = {
-        "encoder": fast[["t_s", "position_mm"]].reset_index(drop=True),
-        "pressure": fast[["t_s", "p_supply_mpag", "p_head_mpag", "p_load_mpag"]].reset_index(drop=True),
-        "servo": slow[["t_s", "cam_cmd_deg", "cam_deg"]].reset_index(drop=True),
-    }
-    if controller:
-        tables["controller"] = slow[["t_s", "x_ref_mm", "q_ref_mm3_s"]].reset_index(drop=True)
-    return tables
+def _tables(fast: Signals, slow: Signals, *, controller: bool):
+    return contract_tables(fast, slow, controller=controller)  # numpy; DataFrames on demand
 
 
 def _meta(run_id: str, kind: str, started_at, **fields: Any) -> RunMeta:
@@ -152,8 +144,8 @@ def simulate_flow_step(rig: RigConfig | None = None, *, side: str, cam_deg: floa
     rid = run_id or f"{side}-load{load_mpag:g}-cam{cam_deg:g}-i{run_index}"
     meta = _meta(rid, "flow_step", started_at, load_mpag=float(load_mpag), side=side,
                  cam_deg=float(cam_deg))
-    trace = SimTrace(x_true_mm=fast["x_true_mm"].to_numpy(), q_true_mm3_s=fast["q_true_mm3_s"].to_numpy(),
-                     cam_needle_deg=slow["cam_needle_deg"].to_numpy(), t_release_s=t_rel)
+    trace = SimTrace(x_true_mm=fast["x_true_mm"], q_true_mm3_s=fast["q_true_mm3_s"],
+                     cam_needle_deg=slow["cam_needle_deg"], t_release_s=t_rel)
     return Run(meta=meta, tables=_tables(fast, slow, controller=False), rig=rig), trace
 
 
@@ -209,8 +201,8 @@ def simulate_position_control(rig: RigConfig | None = None, *,
     load_meta = float(ld[1][0]) if ld[1].size == 1 else None
     meta = _meta(run_id, "position_control", started_at, load_mpag=load_meta,
                  controller=controller.run_json())
-    trace = SimTrace(x_true_mm=fast["x_true_mm"].to_numpy(), q_true_mm3_s=fast["q_true_mm3_s"].to_numpy(),
-                     cam_needle_deg=slow["cam_needle_deg"].to_numpy(), t_release_s=math.nan)
+    trace = SimTrace(x_true_mm=fast["x_true_mm"], q_true_mm3_s=fast["q_true_mm3_s"],
+                     cam_needle_deg=slow["cam_needle_deg"], t_release_s=math.nan)
     return Run(meta=meta, tables=_tables(fast, slow, controller=True), rig=rig), trace
 
 
@@ -254,7 +246,7 @@ def simulate_cam_replay(rig: RigConfig | None = None, *, cam_cmd, load, duration
     load_meta = float(ld[1][0]) if ld[1].size == 1 else None
     meta = _meta(run_id, "position_control", started_at, load_mpag=load_meta,
                  controller={"replay": True})
-    trace = SimTrace(x_true_mm=fast["x_true_mm"].to_numpy(),
-                     q_true_mm3_s=fast["q_true_mm3_s"].to_numpy(),
-                     cam_needle_deg=slow["cam_needle_deg"].to_numpy(), t_release_s=math.nan)
+    trace = SimTrace(x_true_mm=fast["x_true_mm"],
+                     q_true_mm3_s=fast["q_true_mm3_s"],
+                     cam_needle_deg=slow["cam_needle_deg"], t_release_s=math.nan)
     return Run(meta=meta, tables=_tables(fast, slow, controller=False), rig=rig), trace

@@ -21,6 +21,8 @@ Effects (``--effect``) act on the plant of every run; the truth goes to
 """
 from __future__ import annotations
 
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -103,7 +105,7 @@ def _flowstep_runs(plant: Plant, *, seed: int, small: bool) -> Iterator[Run]:
                                     load_mpag=step.load_mpag, seed=seed, run_index=i, plant=plant,
                                     approach=step.approach, run_id=rid, started_at=t)
         yield run
-        t += timedelta(seconds=float(run.tables["encoder"]["t_s"].iloc[-1]) + 8.0)
+        t += timedelta(seconds=float(run.tables.columns("encoder")["t_s"][-1]) + 8.0)
 
 
 def _position_runs(plant: Plant, *, seed: int, which: Iterable[str]) -> Iterator[Run]:
@@ -146,6 +148,9 @@ def iter_scenario_runs(name: str, *, seed: int = 0, effects: Iterable[str | Effe
     which = ("model",) if name == "paper-position-model" else ("model", "cam")
     return _position_runs(plant, seed=seed, which=which)
 
+
+#: runs written at once on helper threads by :func:`simulate_scenario`
+_WRITERS = 2
 
 SCENARIOS: dict[str, str] = {
     "paper-flowsteps": "flow steps over the paper's grid, both sides, 5 loads, 3 sweeps (345 runs)",
@@ -192,11 +197,29 @@ def simulate_scenario(name: str, out_dir: str | Path, *, seed: int = 0,
     out.mkdir(parents=True, exist_ok=True)
     ids = []
     total = scenario_size(name)
-    for run in iter_scenario_runs(name, seed=seed, plant=plant):
-        write_run(out / run.run_id, run.meta.to_json_dict(), run.tables, fmt=fmt)
-        ids.append(run.run_id)
-        if progress:
-            progress(len(ids), total)
+    # each run is written on a helper thread while the next one is simulated
+    # (the kernel, the rounding and Arrow's CSV writer run without the GIL);
+    # at most _WRITERS runs wait to be written, and write errors are raised
+    # in run order
+    with ThreadPoolExecutor(max_workers=_WRITERS, thread_name_prefix="seanv-write") as pool:
+        pending: deque[Future] = deque()
+        written = 0
+
+        def finish_one() -> None:
+            nonlocal written
+            pending.popleft().result()
+            written += 1
+            if progress:
+                progress(written, total)
+
+        for run in iter_scenario_runs(name, seed=seed, plant=plant):
+            pending.append(pool.submit(write_run, out / run.run_id, run.meta.to_json_dict(),
+                                       run.tables, fmt=fmt))
+            ids.append(run.run_id)
+            while len(pending) > _WRITERS or (pending and pending[0].done()):
+                finish_one()
+        while pending:
+            finish_one()
     if write_truth:
         write_json_atomic(out / "_truth.json", {
             "scenario": name, "seed": seed, "runs": ids, **plant.truth()})

@@ -159,9 +159,9 @@ def summarize_derived(run, *, method: str) -> dict[str, Any]:
     """:func:`summarize` of a run whose samples are derived first, position-control
     runs too (their summary does not need it), so a run whose streams cannot
     be aligned is a failed run here rather than later."""
-    from ..signals.derive import derive_samples
+    from ..signals.derive import derive_columns
 
-    derive_samples(run)
+    derive_columns(run)
     return summarize(run, method=method)
 
 

@@ -1,0 +1,112 @@
+"""A run's tables as numpy columns (io.run_tables.RunTables) and the per-run
+path on numpy arrays: the same numbers, bit for bit, as the DataFrame API."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from seanv_analysis.io import Run, read_run, write_run
+from seanv_analysis.io.format_csv import write_csv
+from seanv_analysis.io.run_tables import RunTables, table_columns
+from seanv_analysis.signals.align import align_run, align_run_columns
+from seanv_analysis.signals.derive import (
+    derive_columns,
+    derive_samples,
+    estimate_flow,
+    summarize_run,
+)
+
+
+def _columns():
+    return {"t_s": np.array([0.0, 0.001, 0.002]), "position_mm": np.array([5.0, 5.25, 5.5])}
+
+
+def test_frame_built_on_first_use_from_the_same_arrays():
+    cols = _columns()
+    tables = RunTables({"encoder": cols})
+    assert tables.columns("encoder")["position_mm"] is cols["position_mm"]   # no frame, no copy
+    assert tables.n_rows("encoder") == 3 and list(tables) == ["encoder"] and "encoder" in tables
+    frame = tables["encoder"]
+    assert list(frame.columns) == ["t_s", "position_mm"]
+    assert frame["position_mm"].tolist() == [5.0, 5.25, 5.5]
+    assert tables["encoder"] is frame   # built once
+
+
+def test_a_frame_changed_in_place_is_what_columns_gives():
+    tables = RunTables({"encoder": _columns()})
+    tables["encoder"].loc[1, "position_mm"] = -1.0
+    assert tables.columns("encoder")["position_mm"].tolist() == [5.0, -1.0, 5.5]
+    tables["encoder"] = pd.DataFrame({"t_s": [0.0], "position_mm": [7.0]})
+    assert tables.columns("encoder")["position_mm"].tolist() == [7.0]
+    del tables["encoder"]
+    with pytest.raises(KeyError):
+        tables.columns("encoder")
+    assert len(tables) == 0
+
+
+def test_run_wraps_a_plain_dict(make_run, tmp_path):
+    run = read_run(make_run(tmp_path, duration_s=0.3))
+    frames = {name: run.tables[name] for name in run.tables}
+    again = Run(meta=run.meta, tables=frames, rig=run.rig)
+    assert isinstance(again.tables, RunTables) and again.tables["encoder"] is frames["encoder"]
+    for name in frames:
+        for col, values in table_columns(frames, name).items():
+            np.testing.assert_array_equal(again.tables.columns(name)[col], values)
+
+
+def test_numpy_path_equals_dataframe_path_bit_for_bit(make_run, tmp_path):
+    for side, cam in (("supply", -8.0), ("drain", 12.0)):
+        path = make_run(tmp_path / side, side=side, cam_deg=cam, duration_s=1.0)
+        lazy, framed = read_run(path), read_run(path)
+        for name in framed.tables:   # every frame built: the DataFrame route throughout
+            framed.tables[name]
+        frame = derive_samples(framed)
+        cols, info = derive_columns(lazy)
+        assert list(cols) == list(frame.columns)
+        for col in frame.columns:
+            assert np.array_equal(cols[col], frame[col].to_numpy(), equal_nan=True), col
+        assert info.to_dict() == frame.attrs["velocity"]
+        aligned = align_run_columns(lazy)
+        pd.testing.assert_frame_equal(pd.DataFrame(aligned), align_run(framed), check_exact=True)
+        assert summarize_run(lazy) == summarize_run(framed, derived=frame)
+        assert summarize_run(lazy, method="peak") == summarize_run(framed, method="peak",
+                                                                    derived=frame)
+        assert estimate_flow(lazy) == estimate_flow(framed, derived=frame)
+
+
+def test_csv_from_columns_equals_csv_from_frame(tmp_path):
+    rng = np.random.default_rng(3)
+    cols = {"t_s": np.arange(0, 2.0, 0.001), "p_head_mpag": rng.normal(0.4, 0.01, 2000)}
+    cols["p_head_mpag"][[0, 7, 1999]] = np.nan
+    write_csv(cols, tmp_path / "a.csv")
+    write_csv(pd.DataFrame(cols), tmp_path / "b.csv")
+    assert (tmp_path / "a.csv").read_bytes() == (tmp_path / "b.csv").read_bytes()
+    text = (tmp_path / "a.csv").read_text().splitlines()
+    assert text[:2] == ["t_s,p_head_mpag", "0,"] and text[-1] == "1.999,"   # NaN: empty cell
+    assert float(text[2].split(",")[1]) == float(f"{cols['p_head_mpag'][1]:.9g}")
+
+
+def test_written_run_reads_back_the_same_columns(make_run, tmp_path):
+    run = read_run(make_run(tmp_path / "in", duration_s=0.3))
+    out = write_run(tmp_path / "out", run.meta.to_json_dict(), run.tables)
+    back = read_run(out)
+    for name in run.tables:
+        for col, values in run.tables.columns(name).items():
+            np.testing.assert_array_equal(back.tables.columns(name)[col], values)
+
+
+def test_simulate_loads_no_pandas(tmp_path):
+    """``simulate`` writes its CSV files from numpy arrays: pandas (~0.3 s) is
+    never imported (benchmarks/bench_commands.py times the command)."""
+    code = ("import sys\nfrom seanv_analysis.cli import cli\n"
+            f"cli.main(args=['simulate', 'paper-position-model', '--out', {str(tmp_path)!r}, '-q'],"
+            " standalone_mode=False)\n"
+            "print(sorted(m for m in ('pandas', 'matplotlib') if m in sys.modules))")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert res.stdout.strip().splitlines()[-1] == "[]"
+    assert (tmp_path / "position-with-flow-model" / "encoder.csv").read_text().startswith(
+        "t_s,position_mm\n0,")
