@@ -31,8 +31,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
-from .closedloop import (ReplayTarget, flow_sse, replay_on_twin, replay_targets, validate_on_twin,
-                         with_bulk)
+from .closedloop import ReplayTarget, flow_sse, replay_on_twin, replay_targets, validate_on_twin, with_bulk
 from .result import Constant
 
 __all__ = ["FlowPathData", "flow_path_data", "fit_lag", "fit_bulk_modulus", "fit_line",
