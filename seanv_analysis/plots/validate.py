@@ -48,12 +48,22 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
         ax_x.plot(t, ov["position_mm"], color=ACTUAL_COLOUR, label="measured")
         ax_x.plot(t, ov["position_sim_mm"], color=SIM_COLOUR, label="simulated")
         ax_x.set_ylabel("Position [mm]")
+        seg = "position_seg_mm" in ov and bool(np.isfinite(ov["position_seg_mm"]).any())
+        if seg:
+            ax_x.plot(t, ov["position_seg_mm"], color=SIM_COLOUR, ls=":", lw=1.0,
+                      label="per segment")
         ax_x.set_title(f"{run_validation.run_id} ({row['controller']}): position fit "
                        f"{row['fit_position_pct']:.1f} %, flow fit {row['fit_flow_pct']:.1f} %, "
                        f"cam fit {row['fit_cam_pct']:.1f} %"
-                       + ("  [FLAGGED]" if row.get("flagged") else ""))
+                       + (f"\nre-run per segment from the logged state: position fit "
+                          f"{row['fit_position_segments_pct']:.1f} %, flow fit "
+                          f"{row['fit_flow_segments_pct']:.1f} %" if seg else "")
+                       + ("  [FLAGGED]" if row.get("flagged") else ""), fontsize=8)
         ax_q.plot(t, ov["q_mm3_s"] * 1e-3, color=ACTUAL_COLOUR, lw=0.8, label="measured")
         ax_q.plot(t, ov["q_sim_mm3_s"] * 1e-3, color=SIM_COLOUR, lw=0.8, label="simulated")
+        if seg:
+            ax_q.plot(t, ov["q_seg_mm3_s"] * 1e-3, color=SIM_COLOUR, ls=":", lw=0.9,
+                      label="per segment")
         ax_q.set_ylabel("Flow rate [$10^3$ mm$^3$/s]")
         ax_c.plot(t, ov["cam_deg"], color=ACTUAL_COLOUR, lw=0.8, label="measured")
         ax_c.plot(t, ov["cam_sim_deg"], color=SIM_COLOUR, lw=0.8, label="simulated")
@@ -82,19 +92,24 @@ def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True,
             fig = new_figure(figsize=(max(4.5, 1.6 * len(tab) + 2.0), 3.2))
             ax = fig.subplots()
             x = np.arange(len(tab))
-            for k, (col, label, colour) in enumerate(
-                    (("fit_position_pct", "position", "tab:blue"),
-                     ("fit_flow_pct", "flow", "tab:green"),
-                     ("fit_cam_pct", "cam angle", "tab:purple"))):
-                ax.bar(x + (k - 1) * 0.27, np.clip(tab[col].to_numpy(float), -50, 100), 0.27,
-                       color=colour, label=label)
+            bars = [("fit_position_pct", "position", "tab:blue", None),
+                    ("fit_flow_pct", "flow", "tab:green", None),
+                    ("fit_cam_pct", "cam angle", "tab:purple", None)]
+            if "fit_flow_segments_pct" in tab and np.isfinite(
+                    tab["fit_flow_segments_pct"].to_numpy(float)).any():
+                bars += [("fit_position_segments_pct", "position, per segment", "tab:blue", "//"),
+                         ("fit_flow_segments_pct", "flow, per segment", "tab:green", "//")]
+            w = 0.8 / len(bars)
+            for k, (col, label, colour, hatch) in enumerate(bars):
+                ax.bar(x + (k - (len(bars) - 1) / 2) * w, np.clip(tab[col].to_numpy(float), -50, 100),
+                       w, color=colour, label=label, hatch=hatch,
+                       alpha=0.55 if hatch else 1.0, edgecolor="white" if hatch else None)
             ax.axhline(validation.threshold_pct, color="tab:red", ls="--", lw=0.9,
                        label=f"flag threshold {validation.threshold_pct:g} %")
             ax.set_xticks(x, [f"{a}\n({c})" for a, c in zip(tab.run_id, tab.controller)],
                           fontsize=7)
             ax.set_ylabel("Fit [%]")
-            ax.set_ylim(min(0.0, float(np.nanmin(np.clip(tab[["fit_position_pct", "fit_flow_pct",
-                                                                   "fit_cam_pct"]].to_numpy(float),
+            ax.set_ylim(min(0.0, float(np.nanmin(np.clip(tab[[b[0] for b in bars]].to_numpy(float),
                                                            -50, 100), initial=0.0)) - 5), 105)
             ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), ncol=1)
             ax.set_title("Measured vs simulated: fit % = 100 (1 - ||y - y_sim|| / ||y - mean y||)")
