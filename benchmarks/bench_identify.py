@@ -11,11 +11,15 @@ servo fit against the obvious alternative.
    tested pressures (0.15 deg), servo dead time + time constant (15 %),
    Coulomb and breakaway friction (20 %), share of seeds whose truth lies in
    the 95 % interval; the line's time constant C (R + b/A^2) against the
-   foreign line's (15 %); the held-out run's flow fit replayed from its
-   logged cam command and re-run in closed loop.
+   foreign line's (15 %) and its structure (inertance factor: the foreign
+   line is lumped, no water column); the held-out run's flow fit replayed
+   from its logged cam command, re-run in closed loop as a whole and per
+   segment from the logged state (the acceptance: position >= 90 %, flow
+   >= 75 %).
    Dynamic effects (4 seeds): a needle delay of 0.08 s and a cam backlash of
    2 deg injected in the position-control runs, and clean runs: share named
-   right, value error, truth in the interval, held-out RMSE drop.
+   right, value error, truth in the interval, held-out RMSE drop (the
+   headline: closed loop per segment; replayed and whole-run beside it).
 3. Servo fit, ours (the simulator's compiled exact servo step, 5 ms grid
    start + ``least_squares``) vs ``scipy.optimize.least_squares`` over
    ``scipy.integrate.solve_ivp`` of the same equation (rate-limited lag
@@ -128,6 +132,7 @@ def _one(args) -> dict:
             "line_lag_rel_err": line.value / lag_true - 1,
             "line_lag_in_ci": bool(line.ci95[0] <= lag_true <= line.ci95[1]),
             "load_tau_rel_err": c["load.regulator_time_constant_s"].value / 0.1 - 1,
+            "inertance_factor": c["tube.inertance_factor"].value,
             "replay_heldout": {k: rep.get(k) for k in ("heldout_default", "heldout")},
             "closed_loop_heldout": {k: cl.get(k) for k in ("heldout_default", "heldout",
                                                            "heldout_default_flow", "heldout_flow")},
@@ -282,6 +287,7 @@ def main() -> dict:
         "line_lag_truth_in_ci95_rate": sum(r["line_lag_in_ci"] for r in rows) / n,
         "line_lag_rel_err": [round(r["line_lag_rel_err"], 3) for r in rows],
         "load_regulator_tau_rel_err": [round(r["load_tau_rel_err"], 3) for r in rows],
+        "line_inertance_factor": [r["inertance_factor"] for r in rows],
         "replay_heldout_flow_fit_pct": [r["replay_heldout"] for r in rows],
         "closed_loop_heldout": [r["closed_loop_heldout"] for r in rows],
         # each segment re-run from the logged state (the validation headline)
