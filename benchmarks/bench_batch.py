@@ -24,7 +24,9 @@ files written, exit) into a fresh output folder, ``--workers 1`` and
 ``--workers 2`` in interleaved pairs (the order alternates: 1 2, 2 1, ...),
 the median of the per-pair ratios, the 1-minute load average around each
 pair, and where the time goes: each stage's time from ``result.json`` and
-the rest of the process (start-up, imports, exit) = wall - pipeline total.
+the rest of the process (start-up, imports, exit) = wall - pipeline total;
+``bound_if_ingest_halved``: the ratio were the per-run stage (the only one
+on the workers) exactly twice as fast and the rest unchanged (Amdahl).
 
 Results: ``benchmarks/results/batch.json``. Usage: ``python -m benchmarks
 batch``; only the whole-process pairs: ``python -m benchmarks.bench_batch
@@ -109,6 +111,10 @@ def whole_process(tmp: Path, data: Path | None = None, pairs: int = WHOLE_PAIRS)
         out["serial_part"] = med(w, lambda r: r["wall_s"] - r["stages_s"]["ingest"])
         return out
 
+    # Amdahl: only the ingest stage runs on the workers; were it exactly twice
+    # as fast on 2 workers and all else unchanged, the whole process would gain
+    w1_wall = statistics.median(r["wall_s"] for r in runs[1])
+    w1_ingest = statistics.median(r["stages_s"]["ingest"] for r in runs[1])
     return {
         "command": "seanv-analyze run flowfit DATA --force -q --workers 1|2 (cold process)",
         "runs": sum(1 for _ in Path(data).rglob("run.json")),
@@ -119,6 +125,8 @@ def whole_process(tmp: Path, data: Path | None = None, pairs: int = WHOLE_PAIRS)
         "ratios": [round(r, 3) for r in ratios],
         "ingest_stage_ratio_median": round(statistics.median(ingest_ratios), 3),
         "median_s_by_part": {"workers1": breakdown(1), "workers2": breakdown(2)},
+        "serial_share_workers1": round(1 - w1_ingest / w1_wall, 3),
+        "bound_if_ingest_halved": round(w1_wall / (w1_wall - w1_ingest / 2), 3),
         "load_1min_before_after_each_pair": loads,
         "target": TARGET,
         "meets_target": bool(statistics.median(ratios) >= TARGET),
