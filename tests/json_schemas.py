@@ -6,12 +6,14 @@ import json
 from functools import lru_cache
 from pathlib import Path
 
+from seanv_analysis import jsonable
+
 SCHEMAS = Path(__file__).resolve().parents[1] / "seanv_analysis" / "_data_schema" / "json"
 URN = "urn:seanv-analysis:schema:"
 
-#: unit suffixes of keys (data_schema/json/common.schema.json says what they mean)
-UNIT_SUFFIXES = ("_mm", "_s", "_deg", "_mm3_s", "_mpa", "_mpag", "_MPa", "_N", "_pct", "_frac",
-                 "_mm3_s_per_mm", "_deg_per_mm", "_mm3_s_deg2_sqrtMPa", "_kg", "_m", "_hz")
+#: unit suffixes of keys (the package's table; data_schema/json/common.schema.json
+#: says what they mean)
+UNIT_SUFFIXES = tuple(jsonable.UNIT_SUFFIXES)
 #: dimensionless numbers: counts, p values, ratios, seeds
 DIMENSIONLESS = ("n_", "runs", "rows", "p_value", "steps", "seed")
 DIMENSIONLESS_END = ("_p", "_ratio", "_runs", "_changes", "_samples")

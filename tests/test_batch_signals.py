@@ -49,10 +49,37 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def _start_and_wait_for_workers(data: Path, out: Path):
+#: `seanv-analyze` with the exit race of concurrent.futures made certain:
+#: its exit hook (``_python_exit``, run by ``threading._shutdown``) checks
+#: that a pool's wake-up pipe is open, then writes to it without the pool's
+#: lock, while the pool's manager thread may be closing that pipe. A thread
+#: switch between the two now and then under load (1 CI run in 7) gave a
+#: traceback ending "Bad file descriptor" after the one-line message; the
+#: 0.3 s sleep here between check and write makes it happen every time
+#: unless the command has stopped the pool (manager thread ended, pipe
+#: closed) before it exits. CPython 3.11's code, with the sleep added.
+_RACY_EXIT = """
+import sys, time
+import concurrent.futures.process as cfp
+
+def wakeup(self):
+    if not self._closed:
+        if cfp._global_shutdown:
+            time.sleep(0.3)
+        self._writer.send_bytes(b"")
+
+cfp._ThreadWakeup.wakeup = wakeup
+from seanv_analysis.cli import main
+main(sys.argv[1:])
+"""
+
+
+def _start_and_wait_for_workers(data: Path, out: Path, *, racy_exit: bool = False):
     """Start `run` with 2 workers; return (process, worker pids) once both
-    workers run and a few results are cached (mid-run)."""
-    cmd = [str(EXE), "run", "flowfit", str(data), "--out", str(out), "--workers", "2", "-q"]
+    workers run and a few results are cached (mid-run). ``racy_exit``: the
+    command runs under :data:`_RACY_EXIT`."""
+    exe = [sys.executable, "-c", _RACY_EXIT] if racy_exit else [str(EXE)]
+    cmd = exe + ["run", "flowfit", str(data), "--out", str(out), "--workers", "2", "-q"]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     entries = out / ".cache" / "runs"
     deadline = time.monotonic() + 90
@@ -71,7 +98,7 @@ def _start_and_wait_for_workers(data: Path, out: Path):
                                       (signal.SIGINT, 130)])
 def test_no_worker_outlives_the_command(big, tmp_path, sig, code):
     out = tmp_path / "out"
-    proc, kids = _start_and_wait_for_workers(big, out)
+    proc, kids = _start_and_wait_for_workers(big, out, racy_exit=sig != signal.SIGKILL)
     t0 = time.monotonic()
     proc.send_signal(sig)
     rc = proc.wait(timeout=20)

@@ -139,9 +139,10 @@ class Executor:
         they had finished is in the cache, written atomically; a later run
         computes the rest)."""
         if self._pool is not None:
-            if not wait:
-                _kill_workers(self._pool)   # interrupted: queued runs are not waited for
-            self._pool.shutdown(wait=wait, cancel_futures=True)
+            if wait:
+                self._pool.shutdown(wait=True, cancel_futures=True)
+            else:
+                _stop_pool(self._pool)   # interrupted: queued runs are not waited for
             self._pool = None
         if self.client is not None and self._own_client:
             self.client.close()  # the connection only; the cluster keeps running
@@ -261,6 +262,33 @@ def _kill_workers(pool: ProcessPoolExecutor) -> None:
             proc.kill()
         except (OSError, AttributeError, ValueError):
             pass
+
+
+#: longest wait for the pool's manager thread once its workers are killed [s]
+#: (it ends in milliseconds: killed workers make the pool "broken" at once)
+MANAGER_JOIN_S = 5.0
+
+
+def _stop_pool(pool: ProcessPoolExecutor) -> None:
+    """Stop a pool at once (Ctrl-C, SIGTERM, an error): kill its workers,
+    cancel the queued tasks and wait for its manager thread to end.
+
+    The wait matters at interpreter exit: ``shutdown(wait=False)`` leaves
+    the manager thread running, and concurrent.futures' exit hook
+    (``_python_exit``, run by ``threading._shutdown``) writes to the
+    thread's wake-up pipe without the pool's lock, after checking that it
+    is open, while the manager thread, which found the killed workers,
+    closes that pipe. Under load the close falls between the check and the
+    write: a traceback "OSError: [Errno 9] Bad file descriptor" (or "handle
+    is closed") after the command's one-line message (CPython gh-125451:
+    newer releases guard ``_ThreadWakeup`` with a lock; 3.11 does not).
+    Once the manager thread has ended the pipe is closed and the exit hook
+    skips it."""
+    manager = getattr(pool, "_executor_manager_thread", None)
+    _kill_workers(pool)
+    pool.shutdown(wait=False, cancel_futures=True)
+    if manager is not None and manager is not threading.current_thread():
+        manager.join(MANAGER_JOIN_S)
 
 
 #: how often a worker checks that its parent is alive [s]

