@@ -123,23 +123,7 @@ def main(argv: list[str] | None = None) -> None:
     atexit.register(gc.freeze)   # registered first: runs after the other exit handlers
     return_large_blocks_to_os()
     signal.signal(signal.SIGTERM, _on_sigterm)
-    try:
-        cli.main(args=argv, prog_name="seanv-analyze")
-    finally:
-        _before_exit()
-
-
-def _before_exit() -> None:
-    """The process ends next: move every object to the garbage collector's
-    permanent generation, so the interpreter's final collections do not walk
-    them all again (0.15-0.2 s after numba, pandas or scipy were loaded, a
-    fifth of a short command). Every file is written and closed by now;
-    objects are still freed by reference counting and atexit handlers run
-    as usual; only reference cycles left at exit are not searched (their
-    memory goes back with the process)."""
-    import gc
-
-    gc.freeze()
+    cli.main(args=argv, prog_name="seanv-analyze")
 
 
 if __name__ == "__main__":  # pragma: no cover
