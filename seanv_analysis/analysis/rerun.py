@@ -146,7 +146,7 @@ def rerun_segments(measured: pd.DataFrame, *, simulate: Callable, rig, controlle
         one (the twin's controller ticks from the segment's start, so its
         steps fall where the rig's did, not up to a period later)
     """
-    from ..signals.derive import derive_samples
+    from ..signals.derive import derive_columns
 
     t = measured["t_s"].to_numpy(float)
     x = measured["position_mm"].to_numpy(float)
@@ -178,10 +178,10 @@ def rerun_segments(measured: pd.DataFrame, *, simulate: Callable, rig, controlle
                        cam0_deg=cam0, p0_mpag=p0, hold_deg=float(cmd[i]) if hold else None,
                        run_id=f"{run_id}-seg{k}")
         sim = sim[0] if isinstance(sim, tuple) else sim
-        ds = derive_samples(sim)
-        ts = ds["t_s"].to_numpy(float) + a
+        ds, _ = derive_columns(sim)         # numpy: the same numbers as derive_samples
+        ts = np.asarray(ds["t_s"], float) + a
         m = (t >= a) & (t < b) if k + 1 < starts.size else (t >= a) & (t <= b)
         m &= t <= ts[-1]
-        x_sim[m] = np.interp(t[m], ts, ds["position_mm"].to_numpy(float))
-        q_sim[m] = np.interp(t[m], ts, ds["q_mm3_s"].to_numpy(float))
+        x_sim[m] = np.interp(t[m], ts, np.asarray(ds["position_mm"], float))
+        q_sim[m] = np.interp(t[m], ts, np.asarray(ds["q_mm3_s"], float))
     return SegmentRerun(x_sim, q_sim, starts)

@@ -190,7 +190,7 @@ def fit_bulk_modulus(runs, valve, rig, *, around: float | None = None,
     """The line's effective bulk modulus [MPa] that makes the twin move like
     the measured runs when it is driven by their logged cam commands (open
     loop, :func:`~.closedloop.replay_on_twin`): the flow error minimised over
-    log B (a grid over 0.1-10x the rig file's value, or over 1/3-3x
+    log B (a grid over 0.1-10x the rig file's value, or 1/2, 1, 2 x
     ``around`` [MPa] when given, then Brent's method between the best point's
     neighbours); 95 % profile interval (the values whose error stays within
     the chi-square(1) quantile of the residual variance, with the residuals'
@@ -209,14 +209,15 @@ def fit_bulk_modulus(runs, valve, rig, *, around: float | None = None,
 
     lo_edge, hi_edge = math.log(b0 / 10.0), math.log(b0 * 10.0)
     grid = np.linspace(lo_edge, hi_edge, 13) if around is None else \
-        np.linspace(math.log(around / 3.0), math.log(around * 3.0), 5)
+        np.linspace(math.log(around / 2.0), math.log(around * 2.0), 3)
     costs = [cost(g) for g in grid]
     k = int(np.argmin(costs))
     if not math.isfinite(costs[k]) or costs[k] <= 0:
         return {"bulk_mpa": b0, "ci95": (math.nan, math.nan), "sse": math.nan, "n_eff": 0.0,
                 "evaluations": len(cache), "at_edge": True}
     a, b = grid[max(k - 1, 0)], grid[min(k + 1, grid.size - 1)]
-    r = minimize_scalar(cost, bounds=(a, b), method="bounded", options={"xatol": 0.005})
+    r = minimize_scalar(cost, bounds=(a, b), method="bounded",
+                        options={"xatol": 0.005 if interval else 0.02})
     best = float(r.x) if r.fun < costs[k] else float(grid[k])
     cost(best)                              # in the cache from here on
     sse_min, n_eff = cache[round(best, 9)]
