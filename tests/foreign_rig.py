@@ -126,6 +126,7 @@ SERVO_STEP_DEG = 0.087890625        # 360/4096
 FLOW_PATHS = ("first_order", "tube")
 LEAK_MM3_S_PER_MPA = 1.5            # seat leakage of each needle, open or sealed
 STICK_V_MM_S = 0.05                 # first-order path: sticks again below this speed
+SUPPLY_DROOP_MPA_S_PER_MM3 = 2.0e-5  # the supply falls 0.1 MPa at 5000 mm^3/s drawn
 CAM_NEUTRAL_DEG = -15.0             # controller without flow model: the paper's neutral ...
 CAM_KP_DEG_PER_MM = 8.0             # ... and a gain this rig's loop is stable with
 JST = timezone(timedelta(hours=9))
@@ -561,7 +562,7 @@ def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_
         plant = _Plant(tr, needles, x=x, load_mpag=step.load_mpag,
                        tau_s=tr.tau_flow_s)
         for i in range(n):
-            ps = tr.supply_mpag - 2.0e-5 * max(plant.qv, 0.0) \
+            ps = tr.supply_mpag - SUPPLY_DROOP_MPA_S_PER_MM3 * max(plant.qv, 0.0) \
                 + 0.02 * math.sin(2 * math.pi * 33.0 * t_l[i] + ripple_phase)
             plant.step(cam[i], ps, p_tank, step.load_mpag, h, cs, cd)
             X[i], Q[i], PS[i], PH[i] = plant.x, plant.q, ps, plant.p
@@ -569,7 +570,7 @@ def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_
     v = 0.0
     for i in range(n):
         v = q / ACTUATOR_AREA_MM2
-        ps = tr.supply_mpag - 2.0e-5 * max(q, 0.0) \
+        ps = tr.supply_mpag - SUPPLY_DROOP_MPA_S_PER_MM3 * max(q, 0.0) \
             + 0.02 * math.sin(2 * math.pi * 33.0 * t_l[i] + ripple_phase)
         if at_stop:
             target = ps if step.side == "supply" else p_tank
@@ -750,7 +751,8 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
         load_sp = loads[np.searchsorted(t_load, ti, side="right") - 1]
         load_reg += (load_sp - load_reg) * h / 0.1
         v = q / ACTUATOR_AREA_MM2
-        ps = tr.supply_mpag - 2.0e-5 * max(q, 0.0) + 0.02 * math.sin(2 * math.pi * 33.0 * ti)
+        ps = (tr.supply_mpag - SUPPLY_DROOP_MPA_S_PER_MM3 * max(q, 0.0)
+              + 0.02 * math.sin(2 * math.pi * 33.0 * ti))
         ph = _head_pressure(load_reg, v, tr)
         if i % ctrl_every == 0:
             x_ref = refs[np.searchsorted(t_ref, ti, side="right") - 1]
@@ -799,7 +801,8 @@ def _simulate_position_plant(tr: ForeignTruth, needles, model, *, refs, t_ref, l
     for i in range(n):
         ti = t_l[i]
         load_reg += (loads[i_load[i]] - load_reg) * h / 0.1
-        ps = tr.supply_mpag - 2.0e-5 * max(plant.qv, 0.0) + 0.02 * math.sin(two_pi_33 * ti)
+        ps = (tr.supply_mpag - SUPPLY_DROOP_MPA_S_PER_MM3 * max(plant.qv, 0.0)
+              + 0.02 * math.sin(two_pi_33 * ti))
         if i % ctrl_every == 0:
             x_ref = refs[i_ref[i]]
             x_meas = round(plant.x / 0.01) * 0.01

@@ -92,10 +92,10 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         notes.extend(n)
         return current.with_overrides(nest_constants(c), where="identify")
 
-    c = _supply_pressure(summary, position_runs, rig)
-    if c is not None:
-        constants.append(c)
-        current = current.with_overrides(nest_constants([c]), where="identify")
+    supply = _supply_pressure(summary, position_runs, rig)
+    if supply:
+        constants.extend(supply)
+        current = current.with_overrides(nest_constants(supply), where="identify")
     has_steps = bool((summary["kind"] == "flow_step").any())
     base_fit = None
     if "geometry" in parts and has_steps:
@@ -198,12 +198,41 @@ def _mass(runs, rig, current) -> Constant:
                     "acceleration transients", note=note)
 
 
-def _supply_pressure(summary, runs, rig) -> Constant | None:
-    """The supply pressure the runs were made at [MPaG]: the median of the
-    logged p_supply over the position-control runs and the supply flow steps
-    (95 % interval: bootstrap over runs). The simulated twin runs at it."""
-    import numpy as np
+def _supply_pressure(summary, runs, rig) -> list[Constant]:
+    """The supply the runs were made at: its pressure at no flow [MPaG] and
+    its droop with the flow drawn [MPa s/mm^3] (the twin runs with both).
 
+    With supply-side flow steps over a range of flows, a straight line
+    p1 = p_0 - k Q through their steady (Q, p1) (least squares, 95 %
+    intervals from the slope's and intercept's standard errors); the droop k
+    is taken when the slope is negative beyond 3.3 standard errors (p <
+    0.001), else the rig file's stays and p_0 is the median below. Without
+    them, p_0 is the median of the logged p_supply over the position-control
+    runs and the supply flow steps (95 % interval: bootstrap over runs)."""
+    import numpy as np
+    from scipy import stats
+
+    default = float(rig["supply"]["pressure_mpag"])
+    droop0 = float(rig["supply"]["droop_mpa_s_per_mm3"])
+    if {"p1_mpa", "q_mm3_s"} <= set(summary.columns):
+        sup = summary[(summary["kind"] == "flow_step") & (summary["side"] == "supply")]
+        q, p1 = sup["q_mm3_s"].to_numpy(float), sup["p1_mpa"].to_numpy(float)
+        ok = np.isfinite(q) & np.isfinite(p1) & (q > 0)
+        if ok.sum() >= 5 and np.ptp(q[ok]) > 500.0:
+            fit = stats.linregress(q[ok], p1[ok])
+            if fit.slope < 0 and -fit.slope > 3.3 * fit.stderr:
+                z = 1.96
+                by = f"steady supply pressure vs flow of {int(ok.sum())} supply flow steps"
+                return [
+                    Constant("supply.pressure_mpag", "supply pressure (no flow)",
+                             float(fit.intercept), default, "MPaG", True, by,
+                             (float(fit.intercept - z * fit.intercept_stderr),
+                              float(fit.intercept + z * fit.intercept_stderr))),
+                    Constant("supply.droop_mpa_s_per_mm3", "supply droop with flow",
+                             float(-fit.slope), droop0, "MPa s/mm^3", True, by,
+                             (float(-fit.slope - z * fit.stderr),
+                              float(-fit.slope + z * fit.stderr)),
+                             note=f"{-fit.slope * 5000.0:.3f} MPa less at 5000 mm^3/s")]
     per_run = []
     for r in runs:
         p = r.tables.get("pressure")
@@ -216,11 +245,10 @@ def _supply_pressure(summary, runs, rig) -> Constant | None:
         sup = summary[(summary["kind"] == "flow_step") & (summary["side"] == "supply")]
         per_run += [float(v) for v in sup["p1_mpa"].to_numpy(float) if np.isfinite(v)]
     if len(per_run) < 2:
-        return None
+        return []
     x = np.asarray(per_run)
     rng = np.random.default_rng(0)
     boot = [float(np.median(rng.choice(x, x.size))) for _ in range(400)]
-    default = float(rig["supply"]["pressure_mpag"])
-    return Constant("supply.pressure_mpag", "supply pressure", float(np.median(x)), default,
-                    "MPaG", True, f"logged p_supply of {x.size} runs",
-                    (float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))))
+    return [Constant("supply.pressure_mpag", "supply pressure", float(np.median(x)), default,
+                     "MPaG", True, f"logged p_supply of {x.size} runs",
+                     (float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))))]

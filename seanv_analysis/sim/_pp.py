@@ -52,9 +52,10 @@ class PP:
     NEUTRAL = 36          # cam angle after a flow step's release [deg]
     X_STOP_LO = 37        # flow step: release when x <= this (drain) [mm]
     X_STOP_HI = 38        # flow step: release when x >= this (supply) [mm]
+    SUPPLY_DROOP = 39     # supply pressure drop per unit of extending flow [MPa s/mm^3]
 
 
-PP_SIZE = 39
+PP_SIZE = 40
 
 
 # module-level bindings of the indices, imported by the compiled modules
@@ -98,3 +99,4 @@ _P_CAV = PP.P_CAV
 _NEUTRAL = PP.NEUTRAL
 _X_STOP_LO = PP.X_STOP_LO
 _X_STOP_HI = PP.X_STOP_HI
+_SUPPLY_DROOP = PP.SUPPLY_DROOP

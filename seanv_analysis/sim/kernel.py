@@ -65,6 +65,7 @@ from ._pp import (
     _SERVO_RES,
     _STROKE,
     _SUBSTEPS,
+    _SUPPLY_DROOP,
     _X_STOP_HI,
     _X_STOP_LO,
     PP,
@@ -195,7 +196,9 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
         if step % 1000 == 0:
             sn, cn = math.sin(om * step * dt), math.cos(om * step * dt)
         # ---- sensors at 1 kHz (before the controller uses them)
-        ps_true = psup + amp * sn
+        # the supply droops with the flow it delivers (the piston extending)
+        droop = pp[_SUPPLY_DROOP] * max(y[iv] * area, 0.0)
+        ps_true = psup - droop + amp * sn
         x = y[ix]
         x_meas = pp[_GAIN_X] * x
         x_meas = round(x_meas / pp[_ENC_RES]) * pp[_ENC_RES]
@@ -242,8 +245,9 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
                 sn, cn = math.sin(om * step * dt), math.cos(om * step * dt)
             sn1 = sn * ch + cn * sh
             cn1 = cn * ch - sn * sh
-            ps0 = psup + amp * sn
-            ps1 = psup + amp * sn1
+            droop = pp[_SUPPLY_DROOP] * max(y[iv] * area, 0.0)
+            ps0 = psup - droop + amp * sn
+            ps1 = psup - droop + amp * sn1
             # servo (the rate-limited lag solved exactly over the step),
             # quantised position, backlash play, extra transport delay ->
             # needle at the step's end

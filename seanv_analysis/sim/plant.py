@@ -12,6 +12,8 @@ Physics (units: mm, MPa, s, N):
 - Actuator: m dv/dt = p_head A - p_load A_load - F_friction, friction
   Coulomb + Stribeck + viscous with stiction (Karnopp), end stops at 0 and
   the stroke.
+- Supply: ``supply.pressure_mpag`` at no flow, less ``supply.droop_mpa_s_per_mm3``
+  x the flow the extending piston draws, plus the pump ripple.
 - Load: regulated pneumatic pressure, first order towards its set point.
 - Valve: eq. (3)-(5) of :mod:`seanv_analysis.models` per side, the sqrt(dp)
   law linear below ``valve.plant.dp_smoothing_mpa``, plus a small leakage
@@ -137,6 +139,7 @@ class Plant:
         pp[PP.SUBSTEPS] = substeps
         pp[PP.CTRL_EVERY] = ctrl_every
         pp[PP.P_SUPPLY] = sup["pressure_mpag"]
+        pp[PP.SUPPLY_DROOP] = sup["droop_mpa_s_per_mm3"]
         pp[PP.RIPPLE_AMP] = sup["ripple_amplitude_mpa"]
         pp[PP.RIPPLE_HZ] = sup["ripple_frequency_hz"]
         pp[PP.P_TANK] = sup["tank_pressure_mpag"]
