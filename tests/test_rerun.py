@@ -23,7 +23,7 @@ def test_segments_start_at_rest_before_each_change():
     t = np.arange(0.0, 20.0, 0.001)
     q = _rest_then_move(t, [(5.0, 6.0), (10.0, 11.0)])
     cam = np.full(t.size, -15.0)
-    s = segment_starts(t, q, cam, [5.0, 10.0, 15.0], lead_s=0.1)
+    s = segment_starts(t, q, cam, [5.0, 10.0, 15.0], lead_s=0.1, rest_mm3_s=50.0)
     np.testing.assert_allclose(s, [0.0, 4.9, 9.9, 14.9])
 
 
@@ -34,11 +34,11 @@ def test_a_moving_rig_starts_no_segment_until_it_rests():
     t = np.arange(0.0, 20.0, 0.001)
     q = _rest_then_move(t, [(5.0, 9.5)])
     cam = np.full(t.size, -15.0)
-    s = segment_starts(t, q, cam, [8.0, 10.0], lead_s=0.1)
+    s = segment_starts(t, q, cam, [8.0, 10.0], lead_s=0.1, rest_mm3_s=50.0)
     np.testing.assert_allclose(s, [0.0, 9.9])
     # a servo still moving is no rest either: the start moves back to where it was still
     cam[(t > 9.75) & (t < 9.95)] = np.linspace(-15, -10, int(((t > 9.75) & (t < 9.95)).sum()))
-    s = segment_starts(t, q, cam, [10.0], lead_s=0.1)
+    s = segment_starts(t, q, cam, [10.0], lead_s=0.1, rest_mm3_s=50.0)
     assert s[-1] == pytest.approx(9.75, abs=0.051) and s[-1] <= 9.75 + 1e-9
 
 

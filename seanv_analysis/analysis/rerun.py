@@ -16,11 +16,10 @@ state there: position (encoder), line and head pressure (head pressure
 sensor, all tube nodes at it, piston at rest), servo angle (servo
 feedback) and the controller's hold (held at the logged command when the
 logged position had converged on the reference, :func:`_holding`), with
-the segment's own reference and load steps. A change
-without such a rest before it (a hunting loop) continues the segment
-before it. The controller is in the loop, so the
-twin's response to each input change is tested as ``validate`` does, but
-no segment inherits another's end state. This is the simulation from a
+the segment's own reference and load steps. A change without such a rest
+before it (a hunting loop) continues the segment before it. The
+controller is in the loop, so the twin's response to each input change is
+tested as ``validate`` does, but no segment inherits another's end state. This is the simulation from a
 measured initial state per experiment of system identification practice
 (MATLAB ``compare`` with estimated initial conditions per segment;
 multiple shooting).
@@ -40,8 +39,7 @@ __all__ = ["segment_starts", "SegmentRerun", "rerun_segments", "DEFAULT_LEAD_S"]
 DEFAULT_LEAD_S = 0.1
 #: changes closer than this to each other or to the run's ends start no segment [s]
 _MIN_SEGMENT_S = 0.5
-#: at rest: |Q| at most this [mm^3/s] (the leakage runs' limit, Sec. III-B) ...
-REST_FLOW_MM3_S = 50.0
+#: at rest: |Q| at most the rig's leakage limit (``analysis.leakage_flow_mm3_s``) ...
 #: ... over this long [s] ...
 _REST_S = 0.2
 #: ... with the servo angle within this [deg] (it holds the state the logs do not give:
@@ -55,8 +53,7 @@ _P0_WINDOW_S = 0.03
 
 
 def segment_starts(t: np.ndarray, q: np.ndarray, cam: np.ndarray, changes: Sequence[float], *,
-                   lead_s: float = DEFAULT_LEAD_S, rest_mm3_s: float = REST_FLOW_MM3_S
-                   ) -> np.ndarray:
+                   rest_mm3_s: float, lead_s: float = DEFAULT_LEAD_S) -> np.ndarray:
     """Start times [s] of the segments of a run sampled at ``t`` [s], with
     actuator flow ``q`` [mm^3/s] and servo angle ``cam`` [deg], whose inputs
     change at ``changes`` [s]: the first sample, then, for each change, the
@@ -137,7 +134,7 @@ def rerun_segments(measured: pd.DataFrame, *, simulate: Callable, rig, controlle
     measured : the run's derived samples (:func:`~seanv_analysis.signals.derive.derive_samples`):
         t_s [s], position_mm [mm], p_head_mpag [MPaG], cam_deg (or cam_cmd_deg) [deg]
     simulate : :func:`~seanv_analysis.sim.run.simulate_position_control` (it
-        takes the initial state: ``x0_mm``, ``cam0_deg``, ``p0_mpag``)
+        takes the initial state: ``x0_mm``, ``cam0_deg``, ``p0_mpag``, ``hold_deg``)
     rig, controller, valve, effects, seed : the twin, as the free re-run has them
     reference, load : the run's (t [s], x_ref [mm]) and (t [s], load set
         point [MPaG]) step sequences, on the measured clock
@@ -158,7 +155,8 @@ def rerun_segments(measured: pd.DataFrame, *, simulate: Callable, rig, controlle
     ref_t, ref_v = (np.asarray(a, float) for a in reference)
     load_t, load_v = (np.asarray(a, float) for a in load)
     q = measured["q_mm3_s"].to_numpy(float)
-    starts = segment_starts(t, q, cam, np.r_[ref_t[1:], load_t[1:]], lead_s=lead_s)
+    starts = segment_starts(t, q, cam, np.r_[ref_t[1:], load_t[1:]], lead_s=lead_s,
+                            rest_mm3_s=float(rig.analysis["leakage_flow_mm3_s"]))
     if ticks is not None and np.size(ticks):
         tk = np.sort(np.asarray(ticks, float))
         i = np.searchsorted(tk, starts[1:], side="right") - 1
