@@ -435,15 +435,19 @@ def _on_run_clock(run: Run) -> Run:
 
 def _segments(wanted: bool, dm: pd.DataFrame, sim_fn, rig, ctrl, reference, load, model,
               effects, seed: int, run_id: str, ticks):
-    """The per-segment re-run (:mod:`.rerun`), or an all-NaN one when not wanted."""
+    """The per-segment re-run (:mod:`.rerun`), or an all-NaN one when not
+    wanted or when the logs cannot start one (the whole run's numbers stand)."""
     from .rerun import SegmentRerun, rerun_segments
 
+    nan = SegmentRerun(np.full(len(dm), np.nan), np.full(len(dm), np.nan), np.zeros(0))
     if not wanted:
-        nan = np.full(len(dm), np.nan)
-        return SegmentRerun(nan, nan, np.zeros(0))
-    return rerun_segments(dm, simulate=sim_fn, rig=rig, controller=ctrl, reference=reference,
-                          load=load, valve=model, effects=effects, seed=seed, run_id=run_id,
-                          ticks=ticks)
+        return nan
+    try:
+        return rerun_segments(dm, simulate=sim_fn, rig=rig, controller=ctrl, reference=reference,
+                              load=load, valve=model, effects=effects, seed=seed, run_id=run_id,
+                              ticks=ticks)
+    except DataError:
+        return nan
 
 
 def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[str] = (),

@@ -178,10 +178,14 @@ def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed):
             # segment from the logged state (the controller in the loop, no
             # hold's end carried into the next step); the replayed and the
             # whole-run numbers are in the candidates
+            # (the replayed numbers when no held-out run could be re-run)
+            closed = "rmse_flow_mm3_s" in f.heldout_before and "rmse_flow_mm3_s" in f.heldout_after
+            before, after = (f.heldout_before, f.heldout_after) if closed else \
+                (f.replay_before, f.replay_after)
             change.update(verdict="effect_found", trend_variable=None,
-                          rmse_before_mm3_s=f.heldout_before["rmse_flow_mm3_s"],
-                          rmse_after_mm3_s=f.heldout_after["rmse_flow_mm3_s"],
-                          n_heldout_runs=len(held), heldout_source="closed_loop_heldout",
+                          rmse_before_mm3_s=before["rmse_flow_mm3_s"],
+                          rmse_after_mm3_s=after["rmse_flow_mm3_s"], n_heldout_runs=len(held),
+                          heldout_source="closed_loop_heldout" if closed else "replay_heldout",
                           holdout="position-control runs: every other one held out")
     return dataclasses.replace(result, **change)
 
