@@ -256,7 +256,7 @@ def test_dynamic_effect_named_in_position_control(foreign_own, tmp_path, effect,
     near the truth, and the held-out runs' replayed flow error (their logged
     cam command into the twin) drops by >= 20 %, and the headline, their
     closed-loop error re-run segment by segment from the logged state,
-    drops by >= 25 % (30-37 % measured, see the bench). Measured over position
+    drops by >= 25 % (28-41 % measured over 4 seeds, see the bench). Measured over position
     seeds 1-3: delay 0.075, 0.075, 0.068 s (truth inside the interval in
     2 of 3), backlash 2.09, 2.56 deg (seeds 1, 3); clean runs: nothing, 3 of 3."""
     from seanv_analysis.stages import run_stages
