@@ -52,10 +52,17 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     convergence (+-0.5 mm), overshoot and settling time per step. Runs with
     position fit below --threshold are flagged.
 
+    Each run is also re-run segment by segment, from the logged state where
+    the rig rests before each reference step and load change (the *_segments_*
+    columns): with stick-slip, a whole re-run carries where each hold ended
+    into every later step; per segment, the fit measures the twin's response
+    to the inputs.
+
     \b
     The plant is built from the rig config (tube, actuator, friction, load,
-    servo): for logs from another rig pass that rig's file with --rig, or the
-    comparison measures the difference between the rigs, not the valve model.
+    servo): for logs from another rig pass that rig's file with --rig (e.g.
+    the rig-identified.toml of `seanv-analyze identify`), or the comparison
+    measures the difference between the rigs, not the valve model.
 
     \b
     Writes: validate.json, validate.txt, validate_table.parquet,
