@@ -7,15 +7,29 @@
    ``validate``, base vs augmented model); 20 clean seeds: share of ``none``.
    Runs in a process pool (all cores).
 2. Runtime: the ingest and discover stages on a data set holding one hour of 1 kHz
-   logs (flow steps written to disk as Parquet), wall time.
+   logs (flow steps written to disk as Parquet), wall time of the library call.
+3. Whole commands (issue 18), as a user runs them: ``seanv-analyze discover DATA
+   --out X -q`` in a fresh ``python`` process (imports, reading, figures,
+   files), on the hour of logs (target < 10 s) and on the foreign rig's 240
+   flow steps + 2 position-control runs of 60 s (``tests/foreign_rig.py``, as
+   ``bench_identify`` writes them; target < 15 s), and on the latter with
+   ``--identify`` (the dynamic candidates re-simulate the position-control
+   runs; no target). Interleaved: one round runs every case once, a bare
+   ``python -c pass`` beside them; a first round warms the page cache and
+   numba's on-disk cache and is not counted; medians of ``COMMAND_REPEATS``
+   rounds and the 1-minute load average before and after.
 
 ``SEANV_BENCH_QUICK=1`` runs one seed per case (a smoke run).
+``python -m benchmarks.bench_discover commands``: only part 3.
 """
 from __future__ import annotations
 
 import json
 import math
 import os
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
@@ -101,6 +115,57 @@ def _hour_of_logs(root: Path) -> Path:
     return root
 
 
+#: counted rounds of the whole-command timings (after one warm-up round)
+COMMAND_REPEATS = 3
+
+
+def _wall(argv: list[str], cwd: Path) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(argv, cwd=cwd, check=True, stdout=subprocess.DEVNULL,
+                   stderr=subprocess.DEVNULL, env={**os.environ, "CI": "1", "MPLBACKEND": "Agg"})
+    return time.perf_counter() - t0
+
+
+def whole_commands(tmp: Path, hour: Path | None = None, repeats: int = COMMAND_REPEATS) -> dict:
+    """Wall time of the whole ``discover`` command, cold processes, interleaved
+    rounds (see the module's docstring, part 3). ``hour``: the hour of logs
+    when already written (else it is written under ``tmp``)."""
+    from benchmarks.bench_identify import _write
+
+    if hour is None:
+        hour = _hour_of_logs(tmp / "hour")
+    foreign = tmp / "foreign"
+    _write(foreign, 0, False)
+    cli = [sys.executable, "-m", "seanv_analysis", "discover"]
+    cases = {
+        "hour_of_logs": ([*cli, str(hour), "--out", str(tmp / "o-hour"), "-q"], 10.0),
+        "flowsteps240_position2": ([*cli, str(foreign), "--out", str(tmp / "o-foreign"), "-q"], 15.0),
+        "flowsteps240_position2_identify": ([*cli, str(foreign), "--identify", "--out",
+                                             str(tmp / "o-foreign-id"), "-q"], None),
+    }
+    walls: dict[str, list[float]] = {k: [] for k in [*cases, "python_start"]}
+    load0 = os.getloadavg()
+    for i in range(repeats + 1):   # round 0 warms the page cache and numba's cache
+        for name, (argv, _) in cases.items():
+            w = _wall(argv, tmp)
+            if i:
+                walls[name].append(w)
+        w = _wall([sys.executable, "-c", "pass"], tmp)
+        if i:
+            walls["python_start"].append(w)
+    load1 = os.getloadavg()
+    out: dict = {"repeats": repeats, "load_before": [round(x, 2) for x in load0],
+                 "load_after": [round(x, 2) for x in load1],
+                 "runs": {"hour_of_logs": sum(1 for _ in hour.rglob("run.json")),
+                          "flowsteps240_position2": sum(1 for _ in foreign.rglob("run.json"))}}
+    for name, w in walls.items():
+        target = cases[name][1] if name in cases else None
+        out[name] = {"median_s": round(statistics.median(w), 2), "walls_s": [round(x, 2) for x in w]}
+        if target is not None:
+            out[name].update(target_s=target, met=statistics.median(w) < target)
+    return out
+
+
 def main() -> dict:
     quick = os.environ.get("SEANV_BENCH_QUICK") == "1"
     seeds = (0,) if quick else (0, 1, 2)
@@ -132,6 +197,7 @@ def main() -> dict:
         res = run_stages(data, ["ingest", "discover"]).result("discover").discovery
         out["hour_of_logs"] = {"runs": n_runs, "discover_wall_s": round(time.perf_counter() - t0, 2),
                                "target_s": 10.0, "verdict": res.verdict}
+        out["whole_command"] = whole_commands(Path(tmp), data)
     results = Path(__file__).resolve().parent / "results"
     results.mkdir(exist_ok=True)
     (results / "bench_discover.json").write_text(json.dumps(out, indent=2, default=str) + "\n")
@@ -139,4 +205,12 @@ def main() -> dict:
 
 
 if __name__ == "__main__":
-    print(json.dumps(main(), indent=2, default=str))
+    if sys.argv[1:2] == ["commands"]:   # only the whole-command timings
+        with tempfile.TemporaryDirectory() as t:
+            res = whole_commands(Path(t))
+        (Path(__file__).resolve().parent / "results").mkdir(exist_ok=True)
+        (Path(__file__).resolve().parent / "results" / "bench_discover_commands.json").write_text(
+            json.dumps(res, indent=2) + "\n")
+        print(json.dumps(res, indent=2))
+    else:
+        print(json.dumps(main(), indent=2, default=str))
