@@ -137,17 +137,20 @@ def whole_commands(tmp: Path, hour: Path | None = None, repeats: int = COMMAND_R
     foreign = tmp / "foreign"
     _write(foreign, 0, False)
     cli = [sys.executable, "-m", "seanv_analysis", "discover"]
+    # a fresh --out each time: a first run (a folder holding the same figure's
+    # files would reuse them: stages.figures' key)
     cases = {
-        "hour_of_logs": ([*cli, str(hour), "--out", str(tmp / "o-hour"), "-q"], 10.0),
-        "flowsteps240_position2": ([*cli, str(foreign), "--out", str(tmp / "o-foreign"), "-q"], 15.0),
-        "flowsteps240_position2_identify": ([*cli, str(foreign), "--identify", "--out",
-                                             str(tmp / "o-foreign-id"), "-q"], None),
+        "hour_of_logs": (lambda i: [*cli, str(hour), "--out", str(tmp / f"o-hour{i}"), "-q"], 10.0),
+        "flowsteps240_position2": (lambda i: [*cli, str(foreign), "--out", str(tmp / f"o-foreign{i}"),
+                                              "-q"], 15.0),
+        "flowsteps240_position2_identify": (lambda i: [*cli, str(foreign), "--identify", "--out",
+                                                       str(tmp / f"o-foreign-id{i}"), "-q"], None),
     }
     walls: dict[str, list[float]] = {k: [] for k in [*cases, "python_start"]}
     load0 = os.getloadavg()
     for i in range(repeats + 1):   # round 0 warms the page cache and numba's cache
         for name, (argv, _) in cases.items():
-            w = _wall(argv, tmp)
+            w = _wall(argv(i), tmp)
             if i:
                 walls[name].append(w)
         w = _wall([sys.executable, "-c", "pass"], tmp)
