@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
-from scipy.signal import correlate
 
 from ..errors import DataError
 from ..jsonable import JsonResult, json_num
@@ -144,6 +143,11 @@ def _block_sums(x: np.ndarray, y: np.ndarray, n_lag: int, block_n: int) -> np.nd
     target samples i in b with both x_i and y_{i+k} valid: n, Sx, Sy, Sxx,
     Syy, Sxy.
     """
+    # here, not at the module's top: importing scipy.signal takes ~1 s (it
+    # pulls in scipy.stats), and the processes that import the analysis
+    # package only to re-run the controller (validate) never estimate a lag
+    from scipy.signal import correlate
+
     mx = np.isfinite(x)
     my = np.isfinite(y)
     x0 = np.where(mx, x, 0.0)
