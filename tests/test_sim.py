@@ -260,3 +260,33 @@ def test_bad_rig_geometry_is_a_config_error(tmp_path):
                                    "--rig", str(tmp_path / "rig.toml"), "--quiet"])
     assert res.exit_code == 2
     assert res.output.count("\n") == 1 and "not monotonic" in res.output
+
+
+@pytest.mark.parametrize("over, match", [
+    ({"tube": {"inertance_factor": 0.0}}, "tube.inertance_factor: expected > 0"),
+    ({"supply": {"droop_mpa_s_per_mm3": -1e-5}}, "supply.droop_mpa_s_per_mm3: expected >= 0"),
+])
+def test_line_and_supply_keys_out_of_range_are_config_errors(over, match):
+    """A line without inertance (a division by zero in the tube's flow
+    equation) or a supply that rises with flow is refused, naming the key."""
+    rig = load_rig(overrides=over)
+    with pytest.raises(ConfigError, match=match):
+        simulate_flow_step(rig, side="supply", cam_deg=0.0, load_mpag=0.3, hold_max_s=0.1)
+
+
+def test_supply_droops_with_the_flow_drawn():
+    """supply.droop_mpa_s_per_mm3: the logged supply pressure of a supply
+    flow step falls by the droop x the actuator's flow; 0 leaves it at the
+    rig's pressure (up to the ripple and the sensor noise)."""
+    k = 2.0e-5
+    for droop in (0.0, k):
+        rig = load_rig(overrides={"supply": {"droop_mpa_s_per_mm3": droop}})
+        run, trace = simulate_flow_step(rig, side="supply", cam_deg=5.0, load_mpag=0.3,
+                                        hold_max_s=0.8)
+        p = run.tables["pressure"]
+        t, ps = p["t_s"].to_numpy(float), p["p_supply_mpag"].to_numpy(float)
+        q = np.interp(t, np.arange(len(trace["q_true_mm3_s"])) * 1e-3, trace["q_true_mm3_s"])
+        moving = q > 0.5 * q.max()
+        expected = float(rig["supply"]["pressure_mpag"]) - droop * q[moving]
+        assert np.mean(ps[moving] - expected) == pytest.approx(0.0, abs=0.004)
+        assert q.max() > 1000.0

@@ -127,6 +127,12 @@ class Plant:
         nseg = int(s["tube_segments"])
         if nseg < 1:
             raise ConfigError(f"sim.tube_segments: expected >= 1, got {nseg}")
+        if not float(rig["tube"]["inertance_factor"]) > 0:
+            raise ConfigError(f"tube.inertance_factor: expected > 0 (1: the water column), got "
+                              f"{rig['tube']['inertance_factor']}")
+        if not float(rig["supply"]["droop_mpa_s_per_mm3"]) >= 0:
+            raise ConfigError(f"supply.droop_mpa_s_per_mm3: expected >= 0, got "
+                              f"{rig['supply']['droop_mpa_s_per_mm3']}")
         dt = float(s["time_step_s"])
         rate = float(rig["sensors"]["encoder_rate_hz"])
         substeps = round(1.0 / (rate * dt))
