@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 from click.testing import CliRunner
 from conftest import write_synthetic_run
+from fresh_process import cli_call, modules_after
 from json_schemas import check_schema, keys_without_unit
 
 from seanv_analysis.cli import cli
@@ -145,18 +146,12 @@ def test_subprocess_end_to_end(dataset, tmp_path):
 
 def test_figure_options(dataset, tmp_path):
     """--formats picks the files; --no-figures draws none and never loads matplotlib."""
-    import subprocess
-    import sys
-
     res = invoke(dataset, "--out", tmp_path / "png", "--n-boot", 0, "--formats", "png")
     assert res.exit_code == 0, res.output
     assert (tmp_path / "png" / "fig4.png").is_file() and not (tmp_path / "png" / "fig4.svg").exists()
     assert invoke(dataset, "--out", tmp_path / "x", "--formats", "pdf").exit_code == 2
-    code = ("import sys\nfrom seanv_analysis.cli import cli\n"
-            f"cli.main(args=['flowfit', {str(dataset)!r}, '--out', {str(tmp_path / 'none')!r}, "
-            "'--n-boot', '0', '--no-figures', '-q'], standalone_mode=False)\n"
-            "print('matplotlib' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip().splitlines()[-1] == "False"
+    code = cli_call("flowfit", dataset, "--out", tmp_path / "none", "--n-boot", 0,
+                    "--no-figures", "-q")
+    assert modules_after(code, ["matplotlib"]) == []
     assert (tmp_path / "none" / "flowfit.json").is_file()
     assert not list((tmp_path / "none").glob("fig4.*"))

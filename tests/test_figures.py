@@ -4,14 +4,13 @@ without any other module edited)."""
 from __future__ import annotations
 
 import base64
-import subprocess
-import sys
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
 import pytest
+from fresh_process import modules_after
 
 from seanv_analysis.plots import FIGURES, RESULT_NAMES, Figure, describe_figures, register_figure
 from seanv_analysis.report import render_report, write_report
@@ -124,10 +123,8 @@ def test_register_figure(restored_registry):
 
 
 def test_import_does_not_load_matplotlib():
-    code = ("import sys, seanv_analysis.plots, seanv_analysis.report; "
-            "print('matplotlib' in sys.modules)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "False"
+    assert modules_after("import seanv_analysis.plots, seanv_analysis.report",
+                         ["matplotlib"]) == []
 
 
 # --- the toy-figure recipe ----------------------------------------------------------

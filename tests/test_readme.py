@@ -8,6 +8,7 @@ import re
 from pathlib import Path
 
 import pytest
+from fresh_process import cli_call, modules_after
 
 README = Path(__file__).resolve().parents[1] / "README.md"
 
@@ -44,13 +45,8 @@ def test_readme_snippet_runs_and_recovers_the_paper_values(folder, monkeypatch, 
 
 
 def test_import_loads_no_plotting_library():
-    import subprocess
-    import sys
-
-    code = ("import sys, seanv_analysis as sa; sa.load_dataset; "
-            "print(any(m.startswith('matplotlib') for m in sys.modules))")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert res.stdout.strip() == "False"
+    # a matplotlib submodule brings its package: 'matplotlib' stands for any
+    assert modules_after("import seanv_analysis as sa; sa.load_dataset", ["matplotlib"]) == []
 
 
 def test_results_draw_on_the_callers_axes_and_render_as_tables(folder):
@@ -98,13 +94,6 @@ def test_readme_headline_numbers_are_the_recorded_demo_output():
 def test_cli_help_loads_no_heavy_library():
     """`seanv-analyze --help` and a command's --help answer without importing
     pandas, scipy, numba or matplotlib (benchmarks/bench_commands.py times it)."""
-    import subprocess
-    import sys
-
-    code = ("import sys\nfrom seanv_analysis.cli import cli\n"
-            "for args in (['--help'], ['flowfit', '--help'], ['run', '--help']):\n"
-            "    try:\n        cli.main(args=args, standalone_mode=False)\n"
-            "    except SystemExit:\n        pass\n"
-            "print(sorted(m for m in ('pandas', 'scipy', 'numba', 'matplotlib') if m in sys.modules))")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert res.stdout.strip().splitlines()[-1] == "[]"
+    code = "\n".join(cli_call(*args, exits=True)
+                     for args in (["--help"], ["flowfit", "--help"], ["run", "--help"]))
+    assert modules_after(code, ["pandas", "scipy", "numba", "matplotlib"]) == []

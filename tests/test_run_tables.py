@@ -2,12 +2,10 @@
 path on numpy arrays: the same numbers, bit for bit, as the DataFrame API."""
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pandas as pd
 import pytest
+from fresh_process import cli_call, modules_after
 
 from seanv_analysis.io import Run, read_run, write_run
 from seanv_analysis.io.format_csv import write_csv
@@ -102,11 +100,7 @@ def test_written_run_reads_back_the_same_columns(make_run, tmp_path):
 def test_simulate_loads_no_pandas(tmp_path):
     """``simulate`` writes its CSV files from numpy arrays: pandas (~0.3 s) is
     never imported (benchmarks/bench_commands.py times the command)."""
-    code = ("import sys\nfrom seanv_analysis.cli import cli\n"
-            f"cli.main(args=['simulate', 'paper-position-model', '--out', {str(tmp_path)!r}, '-q'],"
-            " standalone_mode=False)\n"
-            "print(sorted(m for m in ('pandas', 'matplotlib') if m in sys.modules))")
-    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert res.stdout.strip().splitlines()[-1] == "[]"
+    code = cli_call("simulate", "paper-position-model", "--out", tmp_path, "-q")
+    assert modules_after(code, ["pandas", "matplotlib"]) == []
     assert (tmp_path / "position-with-flow-model" / "encoder.csv").read_text().startswith(
         "t_s,position_mm\n0,")

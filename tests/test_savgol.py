@@ -3,6 +3,7 @@
 and exact cases."""
 import numpy as np
 import pytest
+from fresh_process import modules_after
 from numpy.testing import assert_allclose
 from scipy.ndimage import uniform_filter1d
 from scipy.signal import savgol_coeffs, savgol_filter
@@ -57,11 +58,5 @@ def test_bad_arguments_are_named():
 
 def test_per_run_path_imports_neither_scipy_signal_nor_ndimage():
     """Reading and summarising a run (the pool workers' job) stays light."""
-    import subprocess
-    import sys
-
-    code = ("import sys, seanv_analysis.signals.derive, seanv_analysis.stages.dataset; "
-            "print(sorted(m for m in ('scipy.signal', 'scipy.ndimage', 'scipy.stats', "
-            "'matplotlib') if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    assert out.stdout.strip() == "[]"
+    assert modules_after("import seanv_analysis.signals.derive, seanv_analysis.stages.dataset",
+                         ["scipy.signal", "scipy.ndimage", "scipy.stats", "matplotlib"]) == []
