@@ -159,14 +159,17 @@ def fit_line(runs, valve, rig, *, alpha: float = 1e-3) -> dict[str, Any]:
 
     f0 = float(rig["tube"]["inertance_factor"])
     targets = replay_targets(runs, rig)
-    fits = {f0: fit_bulk_modulus(targets, valve, with_inertance(rig, f0), interval=False)}
+    caches: dict[float, dict] = {f: {} for f in (f0, *INERTANCE_FACTORS)}   # replays per factor
+    fits = {f0: fit_bulk_modulus(targets, valve, with_inertance(rig, f0), interval=False,
+                                 cache=caches[f0])}
     for f in INERTANCE_FACTORS:        # the bulk modulus near the rig file line's
         if f not in fits and math.isfinite(fits[f0]["sse"]):
             fits[f] = fit_bulk_modulus(targets, valve, with_inertance(rig, f),
-                                       around=fits[f0]["bulk_mpa"], interval=False)
+                                       around=fits[f0]["bulk_mpa"], interval=False,
+                                       cache=caches[f])
     ok = {f: r for f, r in fits.items() if math.isfinite(r["sse"]) and not r["at_edge"]}
     if f0 not in ok or len(ok) < 2:
-        out = fit_bulk_modulus(targets, valve, with_inertance(rig, f0))
+        out = fit_bulk_modulus(targets, valve, with_inertance(rig, f0), cache=caches[f0])
         out.update(inertance_factor=f0, inertance_ci95=(math.nan, math.nan),
                    inertance_sse={f: r["sse"] for f, r in fits.items()}, inertance_p=math.nan)
         return out
@@ -178,15 +181,16 @@ def fit_line(runs, valve, rig, *, alpha: float = 1e-3) -> dict[str, Any]:
     chosen = best if p < alpha else f0
     lim = ok[chosen]["sse"] + stats.chi2.ppf(0.95, 1) * s2
     inside = [f for f, r in ok.items() if r["sse"] <= lim] + [chosen]
-    out = fit_bulk_modulus(targets, valve, with_inertance(rig, chosen),
-                           around=ok[chosen]["bulk_mpa"])          # with its interval
+    out = fit_bulk_modulus(targets, valve, with_inertance(rig, chosen),  # with its interval
+                           around=ok[chosen]["bulk_mpa"], cache=caches[chosen])
     out.update(inertance_factor=chosen, inertance_ci95=(min(inside), max(inside)),
                inertance_sse={f: r["sse"] for f, r in fits.items()}, inertance_p=p)
     return out
 
 
 def fit_bulk_modulus(runs, valve, rig, *, around: float | None = None,
-                     interval: bool = True) -> dict[str, Any]:
+                     interval: bool = True,
+                     cache: dict[float, tuple[float, float]] | None = None) -> dict[str, Any]:
     """The line's effective bulk modulus [MPa] that makes the twin move like
     the measured runs when it is driven by their logged cam commands (open
     loop, :func:`~.closedloop.replay_on_twin`): the flow error minimised over
@@ -194,11 +198,13 @@ def fit_bulk_modulus(runs, valve, rig, *, around: float | None = None,
     ``around`` [MPa] when given, then Brent's method between the best point's
     neighbours); 95 % profile interval (the values whose error stays within
     the chi-square(1) quantile of the residual variance, with the residuals'
-    effective sample size), unless not ``interval`` (NaN then)."""
+    effective sample size), unless not ``interval`` (NaN then). ``cache``
+    {log B: (SSE, effective n)}: the replays of an earlier call on the same
+    runs and rig, reused (and added to)."""
     from scipy.optimize import brentq, minimize_scalar
 
     b0 = float(rig["tube"]["effective_bulk_modulus_mpa"])
-    cache: dict[float, tuple[float, float]] = {}
+    cache = {} if cache is None else cache
     runs = replay_targets(runs, rig) if runs and not isinstance(runs[0], ReplayTarget) else runs
 
     def cost(logb: float) -> float:
