@@ -43,12 +43,14 @@ _MAX_DEAD_S = 0.5
 
 @dataclass(frozen=True)
 class FlowPathData:
-    """One run on a uniform 2 ms grid: valve flow (eq. 5) and measured flow [mm^3/s]."""
+    """One run on a uniform 2 ms grid: valve flow (eq. 5) and measured flow
+    [mm^3/s], piston position [mm]."""
 
     run_id: str
     t: np.ndarray
     q_valve: np.ndarray
     q: np.ndarray
+    x_mm: np.ndarray
 
 
 def flow_path_data(run, model) -> FlowPathData | None:
@@ -80,7 +82,10 @@ def flow_path_data(run, model) -> FlowPathData | None:
     qvg = np.interp(grid, t[ok], np.asarray(qv, float)[ok])
     if np.ptp(q) < 100.0:
         return None
-    return FlowPathData(run.run_id, grid, qvg, q)
+    x = d["position_mm"].to_numpy(float)
+    okx = np.isfinite(x)
+    xg = np.interp(grid, t[okx], x[okx]) if okx.sum() >= 2 else np.full(grid.size, np.nan)
+    return FlowPathData(run.run_id, grid, qvg, q, xg)
 
 
 def _simulate(d: FlowPathData, tau, dead):
@@ -257,26 +262,49 @@ def _inertance_note(fb: dict[str, Any], f0: float) -> str:
             "rig file's tube")
 
 
-def _line_time_constant(rig, bulk: float, ci, ok: bool) -> Constant:
-    """The twin line's time constant C (R + b / A^2) [s]: its compliance
-    V / B times the resistance the piston's flow meets (the line's laminar R
-    and the seal's viscous b; their sum is what the force balance fixed), the
-    lag of the actuator's flow behind a valve acting as a flow source."""
+def _line_time_constant(rig, bulk: float, ci, ok: bool, x_mm=(math.nan,) * 3) -> Constant:
+    """The twin line's time constant C (R + b / A^2) [s], the lag of the
+    actuator's flow behind a valve acting as a flow source: its compliance
+    C = (V_tube + V_dead + A x) / B (the tube and the actuator's head
+    chamber at piston position x) times the resistance the piston's flow
+    meets (the line's laminar R and the seal's viscous b; their sum is what
+    the force balance fixed). ``x_mm`` = (low, typical, high) positions of
+    the runs [mm] (the 5th, 50th and 95th percentiles): the value is at the
+    typical one; the 95 % interval spans the bulk modulus's interval and the
+    positions' range, since the head chamber's share of the compliance
+    changes along the stroke (NaN positions: the tube's compliance alone)."""
     from ..sim.plant import tube_constants
 
     tube = tube_constants(rig)
     area = float(rig.piston_area_mm2)
     r_tot = tube["R"] + float(rig["actuator"]["viscous_friction_n_s_per_mm"]) / area ** 2
+    dead = float(rig["actuator"]["dead_volume_mm3"])
 
-    def tau(b: float) -> float:
-        return tube["V"] / b * r_tot
+    def tau(b: float, x: float) -> float:
+        chamber = dead + area * x if math.isfinite(x) else 0.0
+        return (tube["V"] + chamber) / b * r_tot
 
+    x_lo, x_mid, x_hi = x_mm
     lo, hi = ci
-    return Constant(None, "line time constant C (R + b/A^2)", tau(bulk),
-                    tau(float(rig["tube"]["effective_bulk_modulus_mpa"])), "s", ok,
-                    "the identified bulk modulus and friction slope",
-                    (tau(hi), tau(lo)) if ok and math.isfinite(lo) else (math.nan, math.nan),
+    where = (f" at the runs' median piston position {x_mid:.3g} mm (interval: also over "
+             f"{x_lo:.3g}..{x_hi:.3g} mm, the 5-95 % range)") if math.isfinite(x_mid) else ""
+    return Constant(None, "line time constant C (R + b/A^2)", tau(bulk, x_mid),
+                    tau(float(rig["tube"]["effective_bulk_modulus_mpa"]), x_mid), "s", ok,
+                    "the identified bulk modulus and friction slope; C counts the tube and the "
+                    "head chamber" + where,
+                    (tau(hi, x_lo), tau(lo, x_hi)) if ok and math.isfinite(lo)
+                    else (math.nan, math.nan),
                     note="" if ok else "needs the bulk modulus")
+
+
+def _positions(data: Sequence[FlowPathData]) -> tuple[float, float, float]:
+    """5th, 50th and 95th percentiles of the piston position [mm] over ``data``."""
+    x = np.concatenate([d.x_mm for d in data]) if data else np.empty(0)
+    x = x[np.isfinite(x)]
+    if not x.size:
+        return (math.nan, math.nan, math.nan)
+    lo, mid, hi = np.percentile(x, [5.0, 50.0, 95.0])
+    return float(lo), float(mid), float(hi)
 
 
 def _replay_fits(runs, valve, rig) -> dict[str, Any]:
@@ -335,7 +363,8 @@ def flow_path_constants(train_runs, held_runs, rig, valve
                  f["dead_ci95"] if lag_ok else (math.nan, math.nan),
                  note=why or ("beyond the servo: a transport delay the simulator's line does "
                               "not have" if f["dead_s"] > 0.03 else "")),
-        _line_time_constant(rig, bulk, fb["ci95"] if ok else (math.nan, math.nan), ok),
+        _line_time_constant(rig, bulk, fb["ci95"] if ok else (math.nan, math.nan), ok,
+                            _positions(tr)),
         Constant("tube.effective_bulk_modulus_mpa", "line bulk modulus (effective)", bulk, b0,
                  "MPa", ok, f"actuator flow of {len(train_runs)} training position-control "
                  f"run(s) replayed open loop from their logged cam command "

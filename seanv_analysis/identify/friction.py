@@ -144,6 +144,22 @@ def _breakaway(runs, rig, coulomb: float) -> dict[str, Any] | None:
     return {"static_n": float(np.median(mid)), "ci95": (lo, hi), "n_events": int(win.size)}
 
 
+def _steady_rows(df):
+    """The rows whose piston moved at a steady speed (summary column
+    ``motion_steady``), and how many were left out. Stick-slip and
+    unsettled motion (slow steps on a rig with stiction) carry a mean force
+    between the Coulomb and the breakaway force, which would bias F_c
+    upwards; when fewer than 3 steady rows remain in a direction (or the
+    column is absent) every row is kept."""
+    if "motion_steady" not in df:
+        return df, 0
+    ok = df["motion_steady"].fillna(False).astype(bool).to_numpy()
+    v = df["q_mm3_s"].to_numpy(float)
+    if np.sum(ok & (v > 0)) < 3 or np.sum(ok & (v < 0)) < 3:
+        return df, 0
+    return df[ok], int(np.sum(~ok & (v != 0)))
+
+
 def _force_rmse(v, f, coulomb, viscous) -> float:
     if not np.size(v):
         return math.nan
@@ -163,6 +179,7 @@ def friction_constants(summary, rig, runs=()) -> tuple[list[Constant], dict[str,
     df = summary[(summary["kind"] == "flow_step") & (summary["excluded"].fillna("") == "")]
     df = df[np.isfinite(df["q_mm3_s"]) & np.isfinite(df["p1_mpa"]) & np.isfinite(df["dp_mpa"])
             & np.isfinite(df["load_mpag"].astype(float))].sort_values("run_index")
+    df, unsteady = _steady_rows(df)
     area, load_area = float(rig.piston_area_mm2), float(rig.load_area_mm2)
     sup = (df["side"] == "supply").to_numpy()
     p1, dp = df["p1_mpa"].to_numpy(float), df["dp_mpa"].to_numpy(float)
@@ -184,6 +201,10 @@ def friction_constants(summary, rig, runs=()) -> tuple[list[Constant], dict[str,
     coulomb, viscous = fr["coulomb_n"], fr["viscous_n_s_per_mm"]
     notes = [f"friction: the line's laminar resistance ({line_r:.3g} N s/mm at the piston) is "
              "taken off the measured force before fitting"]
+    if unsteady:
+        notes.append(f"friction: {unsteady} flow step(s) whose piston did not move at a steady "
+                     "speed (stick-slip, or still settling) are left out: their mean force is "
+                     "not F_c + b v")
     ok_c = coulomb > 0 and math.isfinite(fr["coulomb_ci95"][0])
     ok_b = math.isfinite(fr["viscous_ci95"][0]) and np.ptp(np.abs(v)) > 0.5
     if viscous < 0:

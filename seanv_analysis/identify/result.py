@@ -48,7 +48,7 @@ class Constant:
     confounded_with: tuple[str, ...] = ()
 
     def to_json_dict(self) -> dict[str, Any]:
-        return {"key": self.key, "value": json_num(self.value),
+        return {"key": self.key, "name": self.name, "value": json_num(self.value),
                 "ci95": [json_num(v) for v in self.ci95], "default": json_num(self.default),
                 "unit": self.unit, "identified": bool(self.identified),
                 "constrained_by": self.constrained_by, "note": self.note,

@@ -32,6 +32,8 @@ SUMMARY_COLUMNS = {
     "dp_mpa": "float64",            # side's pressure difference over the same window as q_mm3_s
     "p1_mpa": "float64",            # side's upstream pressure over that window
     "flow_method": "str",           # 'steady' | 'peak'
+    "motion_steady": "bool",        # the actuator moved at a steady speed in the steady window
+                                    # (False: stick-slip, not settled, did not move, not a flow step)
     "excluded": "str",              # '' or one of: leakage, friction, cam_range, invalid
     "excluded_detail": "str",       # human-readable reason
 }

@@ -63,7 +63,7 @@ DEFAULT_SETTLE_BAND = 0.01
 # excluded_detail, which the data-set stage and the filters add).
 _SUMMARY_KEYS = ("run_id", "kind", "side", "started_at", "load_mpag", "cam_deg",
                  "cam_measured_deg", "cam_approach", "q_mm3_s", "q_peak_mm3_s",
-                 "q_steady_mm3_s", "dp_mpa", "p1_mpa", "flow_method")
+                 "q_steady_mm3_s", "dp_mpa", "p1_mpa", "flow_method", "motion_steady")
 
 
 # ---------------------------------------------------------------------------
@@ -777,11 +777,13 @@ def summarize_run(run: Run, *, method: str = "steady",
         :func:`seanv_analysis.signals.filters.apply_filters`). Flow-step runs get
         ``q_peak_mm3_s`` and ``q_steady_mm3_s`` (:func:`estimate_flow`),
         ``q_mm3_s`` = the chosen one, ``dp_mpa``/``p1_mpa`` over the chosen
-        method's window, ``cam_measured_deg`` and ``cam_approach``
+        method's window, ``motion_steady`` (the steady method's window passed
+        its constant-velocity test while moving, whichever method is
+        chosen), ``cam_measured_deg`` and ``cam_approach``
         (:func:`step_window`), ``load_mpag`` from run.json or, when null, the
         median ``p_load_mpag`` over the hold. Position-control runs get the
         metadata, ``load_mpag`` (run.json or median over the run), NaN flows,
-        ``cam_approach`` 0 and ``flow_method`` ''.
+        ``cam_approach`` 0, ``flow_method`` '' and ``motion_steady`` False.
 
     Raises
     ------
@@ -800,6 +802,7 @@ def summarize_run(run: Run, *, method: str = "steady",
         "cam_deg": nan if meta.cam_deg is None else float(meta.cam_deg),
         "cam_measured_deg": nan, "cam_approach": 0.0, "q_mm3_s": nan, "q_peak_mm3_s": nan,
         "q_steady_mm3_s": nan, "dp_mpa": nan, "p1_mpa": nan, "flow_method": "",
+        "motion_steady": False,
     }
     if meta.kind != "flow_step":
         if meta.load_mpag is not None:
@@ -828,5 +831,6 @@ def summarize_run(run: Run, *, method: str = "steady",
     row.update(load_mpag=load, cam_measured_deg=step.cam_measured_deg,
                cam_approach=step.cam_approach, q_mm3_s=chosen.q_mm3_s,
                q_peak_mm3_s=peak.q_mm3_s, q_steady_mm3_s=steady.q_mm3_s,
-               dp_mpa=chosen.dp_mpa, p1_mpa=chosen.p1_mpa, flow_method=method)
+               dp_mpa=chosen.dp_mpa, p1_mpa=chosen.p1_mpa, flow_method=method,
+               motion_steady=bool(steady.success and steady.moving and steady.steady))
     return row

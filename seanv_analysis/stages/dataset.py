@@ -102,11 +102,14 @@ class DatasetResult(JsonResult):
         df = self.summary.copy()
         for col, dtype in SUMMARY_COLUMNS.items():
             if col not in df:
-                df[col] = "" if dtype == "str" else (0 if dtype == "int64" else math.nan)
+                df[col] = ("" if dtype == "str" else 0 if dtype == "int64"
+                           else False if dtype == "bool" else math.nan)
         df = df[list(SUMMARY_COLUMNS)]
         for col, dtype in SUMMARY_COLUMNS.items():
             if dtype == "str":
                 df[col] = df[col].fillna("").astype(str)
+            elif dtype == "bool":
+                df[col] = df[col].fillna(False).astype(bool)
             elif dtype.startswith("datetime64"):
                 df[col] = pd.to_datetime(df[col], utc=True).astype(dtype)
             else:
