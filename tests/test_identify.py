@@ -276,9 +276,12 @@ def test_dynamic_effect_named_in_position_control(foreign_own, tmp_path, effect,
     near the truth, and the held-out runs' replayed flow error (their logged
     cam command into the twin) drops by >= 20 %, and the headline, their
     closed-loop error re-run segment by segment from the logged state,
-    drops by >= 25 % (28-41 % measured over 4 seeds, see the bench). Measured over position
-    seeds 1-3: delay 0.075, 0.075, 0.068 s (truth inside the interval in
-    2 of 3), backlash 2.09, 2.56 deg (seeds 1, 3); clean runs: nothing, 3 of 3."""
+    drops by >= 30 % (the issue's acceptance). The value is the one the
+    closed-loop twin needs within the replay's interval (the delay's
+    widened by the command instants' half servo-log sample). Measured over
+    position seeds 1-3: delay 0.091, 0.092, 0.074 s (replay 0.073, 0.075,
+    0.060; truth inside the interval 3 of 3), drop 45-48 %; backlash 2.02,
+    2.03, 2.13 deg, drop 31-44 %; clean runs: nothing, 3 of 3."""
     from seanv_analysis.stages import run_stages
 
     root, _, _ = foreign_own
@@ -293,12 +296,14 @@ def test_dynamic_effect_named_in_position_control(foreign_own, tmp_path, effect,
     found = d.effects[0].params[param]
     assert found == pytest.approx(true_value, rel=0.25)
     assert d.heldout_source == "closed_loop_heldout"
-    assert d.rmse_after_mm3_s <= 0.75 * d.rmse_before_mm3_s
+    assert d.rmse_after_mm3_s <= 0.70 * d.rmse_before_mm3_s
     kept = next(c for c in d.position_control["candidates"] if c["named"])
     rep = kept["replay_heldout_before"], kept["replay_heldout_after"]
     assert rep[1]["rmse_flow_mm3_s"] <= 0.8 * rep[0]["rmse_flow_mm3_s"]
     lo, hi = kept["ci95_" + param.rsplit("_", 1)[-1]]   # the unit in the key
-    assert lo < found < hi and hi - lo < 0.5 * true_value
+    assert lo <= found <= hi and hi - lo < 0.5 * true_value
+    assert lo <= true_value <= hi
+    assert lo <= kept["replay_value_" + param.rsplit("_", 1)[-1]] <= hi
     # the closed-loop held-out numbers are reported beside the headline
     assert kept["heldout_before"]["fit_position_pct"] > 80
 

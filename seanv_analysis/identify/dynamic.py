@@ -33,6 +33,16 @@ above the minimum; right when the residuals are noise), and a bootstrap
 over the training runs' reference-step segments (right when they are the
 twin's misfit, which differs from step to step).
 
+The kept candidate's value is then refined for the closed loop: within its
+interval, the value whose training runs re-run in closed loop segment by
+segment (the controller in the loop, as in the headline) have the least
+flow error (:func:`_closed_loop_value`). The replay is driven by the
+logged command, whose instants a servo log gives to half a sample only; the
+servo's dead time, fitted on the same instants, carries that error, and in
+closed loop (the twin's own clock) the delay takes it up. So a delay's
+interval is widened by that half sample, and the delay is known as a sum
+with the servo's dead time; the replay's value is kept as ``replay_value``.
+
 The headline numbers are the held-out closed-loop errors (flow RMSE, flow
 and position fit) before and after, of each segment re-run from the logged
 state (:mod:`seanv_analysis.analysis.rerun`: the controller in the loop,
@@ -81,6 +91,7 @@ class DynamicFinding:
     bulk_mpa: float = math.nan       # the line's bulk modulus refitted with the effect
     replay_before: dict[str, float] = field(default_factory=dict)   # held-out, open loop
     replay_after: dict[str, float] = field(default_factory=dict)
+    replay_value: float = math.nan   # the value the replay fit gave (``value``: refined in closed loop)
 
     @property
     def spec(self) -> str:
@@ -101,6 +112,7 @@ class DynamicFinding:
         unit = self.param.rsplit("_", 1)[-1]  # 'delay_s' -> s, 'width_deg' -> deg
         return {"name": self.name, "param": self.param, f"value_{unit}": self.value,
                 f"ci95_{unit}": list(self.ci95), "p_value": self.p_value, "named": self.named,
+                f"replay_value_{unit}": self.replay_value,
                 "bulk_modulus_with_effect_mpa": self.bulk_mpa,
                 "heldout_before": self.heldout_before, "heldout_after": self.heldout_after,
                 "replay_heldout_before": self.replay_before,
@@ -144,7 +156,8 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
     finding (``named`` True for the kept one, at most one) and the held-out
     closed-loop numbers of the twin without effects."""
     base_held = _summary(validate_on_twin(held, valve, rig))
-    held_runs, train, held = held, replay_targets(train, rig), replay_targets(held, rig)
+    train_runs, held_runs = train, held
+    train, held = replay_targets(train, rig), replay_targets(held, rig)
     base_train = flow_sse(replay_on_twin(train, valve, rig))
     if base_train[2] == 0:
         return [], base_held
@@ -227,20 +240,70 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         lo, hi = min(prof[0], boot[0]), max(prof[1], boot[1])
         if f.name == "delay":
             # the simulator's delay line holds whole time steps: values within a
-            # step of each other are the same twin, so the interval is widened by one
-            step = float(rig["sim"]["time_step_s"])
+            # step of each other are the same twin, so the interval is widened
+            # by one; and the replay's command instants (the servo log's) are
+            # known to half a servo-log sample only, as is the servo's dead
+            # time fitted on them: the delay is known as their sum
+            step = float(rig["sim"]["time_step_s"]) + _command_timing_u(train_runs)
             lo, hi = max(lo - step, 0.0), hi + step
         f.ci95 = (lo, hi)
+        twin = with_bulk(rig, f.bulk_mpa, where="discover")
+        f.replay_value = f.value
+        f.value = _closed_loop_value(train_runs, valve, twin, f.name, f.param, f.value, (lo, hi))
         if not held:
             break
-        twin = with_bulk(rig, f.bulk_mpa, where="discover")
         f.replay_before = _summary(replay_on_twin(held, valve, base_twin))
-        f.replay_after = _summary(replay_on_twin(held, valve, twin, [f.spec]))
+        f.replay_after = _summary(replay_on_twin(held, valve, twin,
+                                                 [f"{f.name}:{f.param}={f.replay_value:g}"]))
         f.heldout_before = base_held
         f.heldout_after = _summary(validate_on_twin(held_runs, valve, twin, [f.spec]))
         imp = f.replay_improvement
         f.named = math.isfinite(imp) and imp >= min_improvement
     return findings, base_held
+
+
+def _command_timing_u(runs) -> float:
+    """Half-width [s] of the command instants' error in the servo logs of
+    ``runs`` (half a servo-log sample, :func:`.servo.command_schedule`; 0
+    without a servo log)."""
+    from .servo import command_schedule
+
+    halves = [s[3] for s in (command_schedule(r) for r in runs) if s is not None]
+    return float(max(halves)) if halves else 0.0
+
+
+def _closed_loop_value(runs, valve, twin, name: str, param: str, value: float,
+                       interval: tuple[float, float]) -> float:
+    """The effect's value the twin needs in closed loop: the training runs'
+    per-segment closed-loop flow error (:mod:`~seanv_analysis.analysis.rerun`,
+    the controller in the loop, as in the headline) minimised over the
+    replay fit's 95 % interval (bounded Brent). The replay is driven by the
+    logged command, whose instants the servo log gives to half a sample;
+    the closed loop runs on the twin's own clock, where that error sits in
+    the servo's fitted dead time and the delay takes it up. ``value`` is
+    kept when no run has segments, or when the interval is empty."""
+    lo, hi = interval
+    if not (math.isfinite(lo) and math.isfinite(hi)) or hi <= lo:
+        return value
+
+    def err(v: float) -> float:
+        vals = validate_on_twin(runs, valve, twin, [f"{name}:{param}={max(v, 0.0):.4g}"])
+        rows = [r.row for r in vals]
+        if not rows or not all(math.isfinite(r.get("rmse_flow_segments_mm3_s", math.nan))
+                               for r in rows):
+            return math.nan
+        return float(np.sqrt(np.mean([r["rmse_flow_segments_mm3_s"] ** 2 for r in rows])))
+
+    e0 = err(value)
+    if not math.isfinite(e0):
+        return value
+    def cost(v: float) -> float:
+        e = err(v)
+        return e if math.isfinite(e) else 10.0 * e0
+
+    r = optimize.minimize_scalar(cost, bounds=(lo, hi), method="bounded",
+                                 options={"xatol": 0.01 * (hi - lo) + 1e-4, "maxiter": 12})
+    return float(f"{r.x:.4g}") if r.fun < e0 else value
 
 
 #: segment bootstrap: resamples, and the grid around the estimate (value x
