@@ -433,21 +433,12 @@ def _on_run_clock(run: Run) -> Run:
     return dataclasses.replace(run, tables=tables)
 
 
-def _segments(wanted: bool, dm: pd.DataFrame, sim_fn, rig, ctrl, reference, load, model,
-              effects, seed: int, run_id: str, ticks):
-    """The per-segment re-run (:mod:`.rerun`), or an all-NaN one when not
-    wanted or when the logs cannot start one (the whole run's numbers stand)."""
-    from .rerun import SegmentRerun, rerun_segments
+def _no_segments(n: int):
+    """The per-segment re-run's stand-in when none is made (all NaN: the
+    whole run's numbers stand)."""
+    from .rerun import SegmentRerun
 
-    nan = SegmentRerun(np.full(len(dm), np.nan), np.full(len(dm), np.nan), np.zeros(0))
-    if not wanted:
-        return nan
-    try:
-        return rerun_segments(dm, simulate=sim_fn, rig=rig, controller=ctrl, reference=reference,
-                              load=load, valve=model, effects=effects, seed=seed, run_id=run_id,
-                              ticks=ticks)
-    except DataError:
-        return nan
+    return SegmentRerun(np.full(n, np.nan), np.full(n, np.nan), np.zeros(0))
 
 
 def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[str] = (),
@@ -517,8 +508,17 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
         return float(how(v)) if v.size else math.nan
 
     fit_x = fit_percent(ov.position_mm, ov.position_sim_mm)
-    seg = _segments(segments, dm, sim_fn, plant_rig, ctrl, (ref_t, ref_v), (load_t, load_v),
-                    model, effects, seed, run.run_id, run.tables["controller"]["t_s"].to_numpy(float))
+    seg = _no_segments(len(dm))
+    if segments:            # unless the logs cannot start one (then the whole run's stand)
+        from .rerun import rerun_segments
+
+        try:
+            seg = rerun_segments(dm, simulate=sim_fn, rig=plant_rig, controller=ctrl,
+                                 reference=(ref_t, ref_v), load=(load_t, load_v), valve=model,
+                                 effects=effects, seed=seed, run_id=run.run_id,
+                                 ticks=run.tables["controller"]["t_s"].to_numpy(float))
+        except DataError:
+            pass
     ov["position_seg_mm"], ov["q_seg_mm3_s"] = seg.position_mm, seg.q_mm3_s
     kp = float(c["kp"]) if c.get("kp") is not None else math.nan
     row = {"run_id": run.run_id,

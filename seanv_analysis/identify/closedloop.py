@@ -29,7 +29,30 @@ import pandas as pd
 from .noise import integrated_autocorrelation
 
 __all__ = ["validate_on_twin", "replay_on_twin", "replay_targets", "replay_target", "Replay",
-           "ReplayTarget", "flow_sse", "with_bulk"]
+           "ReplayTarget", "flow_sse", "with_bulk", "fit_summary"]
+
+
+def fit_summary(results, suffix: str = "") -> dict[str, Any]:
+    """Pooled numbers of re-runs or replays (each with a ``row`` of
+    ``validate_run``'s metrics): ``rmse_flow_mm3_s`` (RMS over the runs),
+    mean ``fit_flow_pct`` and, where every row has it, ``fit_position_pct``,
+    and ``runs`` {run_id: {those fits}}. ``suffix`` picks a variant of the
+    metrics ('_segments': the per-segment re-runs); {} when there are no
+    results or a row lacks a finite flow metric."""
+    rows = [r.row for r in results]
+    keys = {"fit_flow_pct": f"fit_flow{suffix}_pct", "rmse_flow_mm3_s": f"rmse_flow{suffix}_mm3_s"}
+    if not rows or not all(np.isfinite(r.get(k, np.nan)) for r in rows for k in keys.values()):
+        return {}
+    if all(np.isfinite(r.get(f"fit_position{suffix}_pct", np.nan)) for r in rows):
+        keys["fit_position_pct"] = f"fit_position{suffix}_pct"
+    out: dict[str, Any] = {
+        "rmse_flow_mm3_s": float(np.sqrt(np.mean([r[keys["rmse_flow_mm3_s"]] ** 2
+                                                  for r in rows]))),
+        **{k: float(np.mean([r[v] for r in rows])) for k, v in keys.items()
+           if k.startswith("fit_")}}
+    out["runs"] = {r["run_id"]: {k: r[v] for k, v in keys.items() if k.startswith("fit_")}
+                   for r in rows}
+    return out
 
 
 def with_bulk(rig, bulk_mpa: float, *, where: str = "identify"):

@@ -59,7 +59,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import optimize, stats
 
-from .closedloop import flow_sse, replay_on_twin, replay_targets, validate_on_twin, with_bulk
+from .closedloop import fit_summary, flow_sse, replay_on_twin, replay_targets, validate_on_twin, with_bulk
 
 __all__ = ["DYNAMIC_CANDIDATES", "DynamicFinding", "closed_loop_effects"]
 
@@ -124,27 +124,19 @@ def _drop(before: dict[str, float], after: dict[str, float]) -> float:
     return 1.0 - a / b if b and a is not None and math.isfinite(b) and b > 0 else math.nan
 
 
-def _summary(validations) -> dict[str, float]:
+def _summary(results) -> dict[str, float]:
     """RMS flow error [mm^3/s], mean flow fit [%] (and position fit of
-    closed-loop re-runs). Closed-loop re-runs give the per-segment re-run's
-    numbers (:mod:`~seanv_analysis.analysis.rerun`: the headline) and the
-    whole run's beside them (``free_*``); replays give theirs."""
-    if not validations:
-        return {}
-    rows = [v.row for v in validations]
-
-    def block(sfx: str, prefix: str = "") -> dict[str, float]:
-        out = {f"{prefix}rmse_flow_mm3_s": float(np.sqrt(np.mean(
-                   [r[f"rmse_flow{sfx}_mm3_s"] ** 2 for r in rows]))),
-               f"{prefix}fit_flow_pct": float(np.mean([r[f"fit_flow{sfx}_pct"] for r in rows]))}
-        if all(f"fit_position{sfx}_pct" in r for r in rows):
-            out[f"{prefix}fit_position_pct"] = float(np.mean(
-                [r[f"fit_position{sfx}_pct"] for r in rows]))
-        return out
-
-    if all(math.isfinite(r.get("rmse_flow_segments_mm3_s", math.nan)) for r in rows):
-        return {**block("_segments"), **block("", "free_")}
-    return block("")
+    closed-loop re-runs) (:func:`.closedloop.fit_summary`). Closed-loop
+    re-runs give the per-segment re-run's numbers
+    (:mod:`~seanv_analysis.analysis.rerun`: the headline) and the whole
+    run's beside them (``free_*``); replays give theirs."""
+    seg = fit_summary(results, "_segments")
+    whole = fit_summary(results)
+    seg.pop("runs", None)
+    whole.pop("runs", None)
+    if seg:
+        return {**seg, **{f"free_{k}": v for k, v in whole.items()}}
+    return whole
 
 
 def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *,
@@ -288,11 +280,7 @@ def _closed_loop_value(runs, valve, twin, name: str, param: str, value: float,
 
     def err(v: float) -> float:
         vals = validate_on_twin(runs, valve, twin, [f"{name}:{param}={max(v, 0.0):.4g}"])
-        rows = [r.row for r in vals]
-        if not rows or not all(math.isfinite(r.get("rmse_flow_segments_mm3_s", math.nan))
-                               for r in rows):
-            return math.nan
-        return float(np.sqrt(np.mean([r["rmse_flow_segments_mm3_s"] ** 2 for r in rows])))
+        return fit_summary(vals, "_segments").get("rmse_flow_mm3_s", math.nan)
 
     e0 = err(value)
     if not math.isfinite(e0):

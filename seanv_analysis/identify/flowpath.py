@@ -31,7 +31,15 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
-from .closedloop import ReplayTarget, flow_sse, replay_on_twin, replay_targets, validate_on_twin, with_bulk
+from .closedloop import (
+    ReplayTarget,
+    fit_summary,
+    flow_sse,
+    replay_on_twin,
+    replay_targets,
+    validate_on_twin,
+    with_bulk,
+)
 from .result import Constant
 
 __all__ = ["FlowPathData", "flow_path_data", "fit_lag", "fit_bulk_modulus", "fit_line",
@@ -307,30 +315,6 @@ def _positions(data: Sequence[FlowPathData]) -> tuple[float, float, float]:
     return float(lo), float(mid), float(hi)
 
 
-def _replay_fits(runs, valve, rig) -> dict[str, Any]:
-    reps = replay_on_twin(runs, valve, rig)
-    if not reps:
-        return {}
-    return {"fit_flow_pct": float(np.mean([r.row["fit_flow_pct"] for r in reps])),
-            "runs": {r.run_id: r.row["fit_flow_pct"] for r in reps}}
-
-
-def _fits(validations, *, segments: bool = False) -> dict[str, Any]:
-    """Mean position and flow fit [%] of closed-loop re-runs: of the whole
-    runs, or (``segments``) of the per-segment re-runs from the logged state."""
-    if not validations:
-        return {}
-    sfx = "_segments" if segments else ""
-    rows = [v.row for v in validations]
-    fx, fq = f"fit_position{sfx}_pct", f"fit_flow{sfx}_pct"
-    if not all(np.isfinite(r.get(fx, np.nan)) for r in rows):
-        return {}
-    return {"fit_position_pct": float(np.mean([r[fx] for r in rows])),
-            "fit_flow_pct": float(np.mean([r[fq] for r in rows])),
-            "runs": {r["run_id"]: {"fit_position_pct": r[fx], "fit_flow_pct": r[fq]}
-                     for r in rows}}
-
-
 def flow_path_constants(train_runs, held_runs, rig, valve
                         ) -> tuple[list[Constant], dict[str, Any], list[str]]:
     """The flow path's lag (reported), the line's bulk modulus that makes
@@ -387,7 +371,7 @@ def flow_path_constants(train_runs, held_runs, rig, valve
            "n_train_runs": len(train_runs), "n_heldout_runs": len(held_runs)}
     for part, runs in (("train", train_runs), ("heldout", held_runs)):
         for which, r in (("_default", rig), ("", twin)):
-            g = _replay_fits(runs, valve, r)
+            g = fit_summary(replay_on_twin(runs, valve, r))
             if g:
                 rep[part + which] = g["fit_flow_pct"]
     fits["replay"] = rep
@@ -411,8 +395,8 @@ def closed_loop_fits(train_runs, held_runs, valve, rig_default, rig_identified
                 continue        # the headline is held-out; training: the identified twin only
             vals = validate_on_twin(runs, valve, r)
             for name, seg in (("closed_loop", False), ("closed_loop_segments", True)):
-                f = _fits(vals, segments=seg)
-                if f:
+                f = fit_summary(vals, "_segments" if seg else "")
+                if "fit_position_pct" in f:
                     out = blocks[name]
                     out[part + which] = f["fit_position_pct"]
                     out[part + which + "_flow"] = f["fit_flow_pct"]
