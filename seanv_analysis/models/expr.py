@@ -357,8 +357,8 @@ class _Compiler:
         if isinstance(node, ast.Call):
             f = node.func
             if not isinstance(f, ast.Name):
-                raise self.fail(f, f"{_node_name(f)} is not allowed; only calls of "
-                                   + ", ".join(FUNCTIONS) + " are")
+                raise self.fail(f, f"{_node_name(f)} is not allowed (only "
+                                   + ", ".join(f"{g}()" for g in FUNCTIONS) + " may be called)")
             if f.id not in FUNCTIONS:
                 raise self.fail(node, f"unknown function {f.id!r}; expected one of "
                                       f"{', '.join(FUNCTIONS)}")
@@ -427,7 +427,8 @@ def compile_expr(text: str | Program) -> Program:
         tree = ast.parse(text.strip(), mode="eval")
     except SyntaxError as exc:
         col = f" at column {exc.offset}" if exc.offset else ""
-        raise ValueError(f"expr {shown}: invalid syntax{col} ({exc.msg})") from None
+        why = f" ({exc.msg})" if exc.msg and exc.msg != "invalid syntax" else ""
+        raise ValueError(f"expr {shown}: invalid syntax{col}{why}") from None
     except (RecursionError, MemoryError, ValueError):
         raise ValueError(f"expr {shown}: cannot be parsed (nested too deeply?)") from None
     comp = _Compiler(text.strip())
