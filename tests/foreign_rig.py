@@ -100,6 +100,48 @@ Opt-in: a rig that owns every constant the paper does not publish
   actuator jumps, stops, and waits again. End stops hold the actuator the
   same way (it only leaves them in the free direction).
 
+Opt-in: effects outside discover's vocabulary
+---------------------------------------------
+Four more ``ForeignTruth`` fields, each None (off) by default, put into the
+valve an effect that none of discover's named effects describes (for
+testing a search for the missing term). Each is a dict naming its valve
+side (``"side": "supply" | "drain"``) and acts in this generator's own
+valve code (:class:`_Needle`, not the package's ``term`` effect), in flow
+steps and position control alike. Q5 = C (theta - theta_d)^2 sqrt(dp) is
+this rig's eq. (5) for the side (dp > 0), theta_d its eq. (3)-(4)
+threshold, p_load the true (regulated) load pressure:
+
+- ``dp_choke`` {"side", "dp_c_mpa", "n"}: the flow chokes above dp_c::
+
+      Q = Q5 / (1 + (dp / dp_c)^n)^(1/n)
+
+  (~Q5 for dp << dp_c; ~C (theta - theta_d)^2 sqrt(dp) dp_c / dp, falling
+  with dp, for dp >> dp_c);
+- ``load_c`` {"side", "k_per_mpa", "load_ref_mpag"}: a flow coefficient that
+  depends on the load::
+
+      C_eff = C (1 + k (p_load - load_ref))
+
+- ``pressure_leak`` {"side", "k_mm3_s", "m"}: a leak past the needle that
+  grows with the pressure difference, open or sealed::
+
+      Q = Q5 + s k dp^m     (dp > 0; s = +1 supply, -1 drain; k [mm^3/s/MPa^m])
+
+- ``approach_threshold`` {"side", "shift_deg"}: a sealing threshold that
+  depends on the direction the cam reached its angle::
+
+      theta_d -> theta_d + shift a
+
+  a = +1 when the needle last moved up, -1 down (flow steps: before the log
+  starts the cam came from the closed angle -12 deg; position control: 0
+  until the needle first moves). In this rig's flow steps the supply cam
+  always arrives moving up and the drain cam moving down unless
+  ``approach_overshoot_deg`` > 0: then every odd repeat (``Step.repeat``)
+  commands ``approach_overshoot_deg`` beyond its angle (away from the
+  closed angle) for 0.3 s first, so it reaches the angle from the far side
+  (the servo log shows it: the analysis's ``cam_approach`` is -1 on the
+  supply side, +1 on the drain side for those runs).
+
 Everything is seeded: the same arguments give the same files.
 """
 from __future__ import annotations
@@ -130,6 +172,14 @@ SUPPLY_DROOP_MPA_S_PER_MM3 = 2.0e-5  # the supply falls 0.1 MPa at 5000 mm^3/s d
 CAM_NEUTRAL_DEG = -15.0             # controller without flow model: the paper's neutral ...
 CAM_KP_DEG_PER_MM = 8.0             # ... and a gain this rig's loop is stable with
 JST = timezone(timedelta(hours=9))
+CAM_CLOSED_DEG = -12.0              # flow steps: both needles sealed here on this rig
+OVERSHOOT_S = 0.3                   # flow steps: time at the far-side angle (opt-in)
+#: the out-of-vocabulary valve effects: field, its keys besides "side", the
+#: keys that must be > 0
+_VALVE_EFFECTS = (("dp_choke", ("dp_c_mpa", "n"), ("dp_c_mpa", "n")),
+                  ("load_c", ("k_per_mpa", "load_ref_mpag"), ()),
+                  ("pressure_leak", ("k_mm3_s", "m"), ("m",)),
+                  ("approach_threshold", ("shift_deg",), ()))
 
 
 @dataclass
@@ -175,6 +225,15 @@ class ForeignTruth:
     # in the direction it last moved)
     needle_delay_s: float = 0.0
     cam_backlash_deg: float = 0.0
+    # --- opt-in: effects outside discover's vocabulary (module docstring);
+    # None = off; each names its valve side ("side": "supply" | "drain")
+    dp_choke: dict | None = None            # {"side": "supply", "dp_c_mpa": 1.5, "n": 4.0}
+    load_c: dict | None = None              # {"side": "drain", "k_per_mpa": 1.0,
+    #                                          "load_ref_mpag": 0.3}
+    pressure_leak: dict | None = None       # {"side": "supply", "k_mm3_s": 60.0, "m": 2.0}
+    approach_threshold: dict | None = None  # {"side": "supply", "shift_deg": 0.6}
+    # flow steps: odd repeats overshoot their angle by this much first (0: never)
+    approach_overshoot_deg: float = 0.0
     runs: list = field(default_factory=list)
 
     def __post_init__(self):
@@ -188,6 +247,20 @@ class ForeignTruth:
                 or min(self.delay_s, self.needle_delay_s, self.cam_backlash_deg) < 0:
             raise ValueError("servo/line constants must be > 0 (dead times, delays and play "
                              ">= 0)")
+        for name, keys, positive in _VALVE_EFFECTS:
+            d = getattr(self, name)
+            if d is None:
+                continue
+            if not isinstance(d, dict) or d.get("side") not in ("supply", "drain") \
+                    or set(d) != {"side", *keys}:
+                raise ValueError(f"{name}: expected {{'side': 'supply' | 'drain', "
+                                 f"{', '.join(repr(k) + ': number' for k in keys)}}}, got {d!r}")
+            for k in positive:
+                if not float(d[k]) > 0:
+                    raise ValueError(f"{name}: {k}: expected > 0, got {d[k]!r}")
+        if self.approach_overshoot_deg < 0:
+            raise ValueError(f"approach_overshoot_deg: expected >= 0, got "
+                             f"{self.approach_overshoot_deg!r}")
 
     @property
     def _simple_plant(self) -> bool:
@@ -295,6 +368,19 @@ class _Needle:
         z, th = g.height_table
         self.z_tab, self.th_tab = np.asarray(z), np.asarray(th)
         self.up = g.opens_upward
+        self.choke = self.load_c = self.leak = self.shift = None
+        self.plain = True
+
+    def set_effects(self, tr: "ForeignTruth") -> "_Needle":
+        """Take this side's out-of-vocabulary effects from ``tr`` (module
+        docstring); none: :meth:`flow1` is the plain eq. (5)."""
+        def mine(d):
+            return d if d is not None and d["side"] == self.side else None
+
+        self.choke, self.load_c = mine(tr.dp_choke), mine(tr.load_c)
+        self.leak, self.shift = mine(tr.pressure_leak), mine(tr.approach_threshold)
+        self.plain = all(e is None for e in (self.choke, self.load_c, self.leak, self.shift))
+        return self
 
     def theta_d(self, p1, dp, z0=None):
         """Sealing threshold [deg], eq. (1)+(3) then eq. (4) inverted (table)."""
@@ -309,22 +395,53 @@ class _Needle:
         opening = np.maximum(d if self.up else -d, 0.0)
         return c * opening ** 2 * np.sqrt(np.maximum(np.asarray(dp, float), 0.0))
 
-    def flow1(self, theta: float, p1: float, dp: float, c: float) -> float:
-        """Scalar :meth:`flow` (pure Python, for the time-stepping loops)."""
+    def flow1(self, theta: float, p1: float, dp: float, c: float, load: float = 0.0,
+              approach: float = 0.0) -> float:
+        """Scalar :meth:`flow` (pure Python, for the time-stepping loops);
+        with this side's out-of-vocabulary effects (:meth:`set_effects`),
+        which read the true load pressure ``load`` [MPaG] and the cam's
+        ``approach`` direction (+1 up, -1 down, 0 unknown)."""
+        if not self.plain:
+            return self._flow1_effects(theta, p1, dp, c, load, approach)
         if dp <= 0.0:
             return 0.0
+        th = self._theta_d1(p1, dp)
+        d = theta - th if self.up else th - theta
+        return c * d * d * math.sqrt(dp) if d > 0.0 else 0.0
+
+    def _theta_d1(self, p1: float, dp: float) -> float:
+        """Scalar :meth:`theta_d` [deg]."""
         z = self.z0 - math.pi / 4 * (self.dn2 * p1 - self.do2 * dp) / self.k
         zt, tt = self._zl, self._tl
         j = bisect.bisect_right(zt, z)
         if j <= 0:
-            th = tt[0]
-        elif j >= len(zt):
-            th = tt[-1]
-        else:
-            z0, z1 = zt[j - 1], zt[j]
-            th = tt[j - 1] + (tt[j] - tt[j - 1]) * (z - z0) / (z1 - z0)
+            return tt[0]
+        if j >= len(zt):
+            return tt[-1]
+        z0, z1 = zt[j - 1], zt[j]
+        return tt[j - 1] + (tt[j] - tt[j - 1]) * (z - z0) / (z1 - z0)
+
+    def _flow1_effects(self, theta, p1, dp, c, load, approach) -> float:
+        """:meth:`flow1` with the effects of the module docstring."""
+        q = 0.0
+        if dp <= 0.0:
+            return q
+        if self.leak is not None:   # past the needle, open or sealed
+            q += (1.0 if self.side == "supply" else -1.0) * self.leak["k_mm3_s"] * \
+                dp ** self.leak["m"]
+        th = self._theta_d1(p1, dp)
+        if self.shift is not None:
+            th += self.shift["shift_deg"] * approach
         d = theta - th if self.up else th - theta
-        return c * d * d * math.sqrt(dp) if d > 0.0 else 0.0
+        if d <= 0.0:
+            return q
+        if self.load_c is not None:
+            c = c * (1.0 + self.load_c["k_per_mpa"] * (load - self.load_c["load_ref_mpag"]))
+        q5 = c * d * d * math.sqrt(dp)
+        if self.choke is not None:
+            n = self.choke["n"]
+            q5 /= (1.0 + (dp / self.choke["dp_c_mpa"]) ** n) ** (1.0 / n)
+        return q + q5
 
     @property
     def _zl(self):
@@ -465,7 +582,7 @@ class _Plant:
     included)."""
 
     def __init__(self, tr: ForeignTruth, needles: dict, *, x: float, load_mpag: float,
-                 tau_s: float):
+                 tau_s: float, approach: float = 0.0):
         self.tr, self.tube, self.tau = tr, tr.flow_path == "tube", float(tau_s)
         self.sup, self.drn = needles["supply"], needles["drain"]
         self.fs = tr.static_n if tr.static_n is not None else tr.coulomb_n
@@ -477,9 +594,13 @@ class _Plant:
         self.x, self.q, self.qv, self.s = float(x), 0.0, 0.0, 0
         self.p = load_mpag * LOAD_AREA_MM2 / ACTUATOR_AREA_MM2
         self.stuck = True
+        # direction the needle last moved (the approach_threshold effect)
+        self.cam, self.approach = None, float(approach)
 
-    def _valve(self, cam, ps, p, p_tank, cs, cd):
-        return (self.sup.flow1(cam, ps, ps - p, cs) + self.drn.flow1(cam, p, p - p_tank, cd)
+    def _valve(self, cam, ps, p, p_tank, cs, cd, load=0.0):
+        a = self.approach
+        return (self.sup.flow1(cam, ps, ps - p, cs, load, a)
+                + self.drn.flow1(cam, p, p - p_tank, cd, load, a)
                 + LEAK_MM3_S_PER_MPA * (ps - p) - LEAK_MM3_S_PER_MPA * (p - p_tank))
 
     def _breakaway(self, f_load: float) -> None:
@@ -494,6 +615,9 @@ class _Plant:
              cs: float, cd: float) -> None:
         tr, area = self.tr, ACTUATOR_AREA_MM2
         f_load = load_mpag * LOAD_AREA_MM2
+        if self.cam is not None and cam != self.cam:
+            self.approach = 1.0 if cam > self.cam else -1.0
+        self.cam = cam
         if self.tube:
             if self.stuck:
                 self._breakaway(f_load)
@@ -502,7 +626,7 @@ class _Plant:
                 qa = (self.p - (f_load + self.s * tr.coulomb_n) / area) / self.r_eff
                 if qa * self.s <= 0.0:
                     self.stuck, qa = True, 0.0
-            self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd)
+            self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd, load_mpag)
             self.p += (self.qv - qa) * h / self.cl   # actuator side: p - R_l qa
         else:
             if self.stuck and self.stiction:
@@ -511,11 +635,11 @@ class _Plant:
                     self.q = 0.0
             if self.stuck and self.stiction:
                 qa = 0.0
-                self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd)
+                self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd, load_mpag)
                 self.p += self.qv * h / self.cl
             else:
                 self.p = _head_pressure(load_mpag, self.q / area, tr)
-                self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd)
+                self.qv = self._valve(cam, ps, self.p, p_tank, cs, cd, load_mpag)
                 if self.tau > 0.0:
                     self.q += (self.qv - self.q) * h / self.tau
                 else:
@@ -536,7 +660,7 @@ class _Plant:
 def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_now: dict,
                    rng, *, h: float = 1e-3, p_tank: float = 0.0):
     """Fine-grid (1 kHz) true signals of one flow step."""
-    closed = -12.0  # both needles sealed here on this rig
+    closed = CAM_CLOSED_DEG  # both needles sealed here on this rig
     direct = rng.random() < 0.25           # log starts already at the angle
     pre = 0.0 if direct else rng.uniform(0.3, 0.6)
     hold = rng.uniform(2.2, 2.8)
@@ -544,6 +668,12 @@ def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_
     t = np.arange(0.0, pre + hold + post + 0.05, h)
     cmd = np.where(t < pre, closed, step.cam_deg)
     cmd = np.where(t >= pre + hold, closed, cmd)
+    # the direction the cam comes from (before the log: the closed angle)
+    approach0 = 1.0 if step.cam_deg >= closed else -1.0
+    if tr.approach_overshoot_deg > 0 and step.repeat % 2 == 1 and not direct:
+        # reach the angle from the far side: overshoot first (opt-in)
+        far = step.cam_deg + approach0 * tr.approach_overshoot_deg
+        cmd = np.where((t >= pre) & (t < pre + OVERSHOOT_S), far, cmd)
     cam = _servo_track(t, cmd.astype(float), dead_s=tr.servo_dead_s, tau_s=tr.servo_tau_s,
                        rate_deg_s=tr.servo_rate_deg_s)
     lo, hi = tr.stroke_mm
@@ -560,7 +690,7 @@ def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_
     t_l = t.tolist()
     if not tr._simple_plant:
         plant = _Plant(tr, needles, x=x, load_mpag=step.load_mpag,
-                       tau_s=tr.tau_flow_s)
+                       tau_s=tr.tau_flow_s, approach=approach0)
         for i in range(n):
             ps = tr.supply_mpag - SUPPLY_DROOP_MPA_S_PER_MM3 * max(plant.qv, 0.0) \
                 + 0.02 * math.sin(2 * math.pi * 33.0 * t_l[i] + ripple_phase)
@@ -568,6 +698,9 @@ def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_
             X[i], Q[i], PS[i], PH[i] = plant.x, plant.q, ps, plant.p
         return t, cmd, np.asarray(cam), X, Q, PS, PH
     v = 0.0
+    track = tr.approach_threshold is not None
+    approach, cam_prev = approach0, cam[0]
+    load = step.load_mpag
     for i in range(n):
         v = q / ACTUATOR_AREA_MM2
         ps = tr.supply_mpag - SUPPLY_DROOP_MPA_S_PER_MM3 * max(q, 0.0) \
@@ -579,7 +712,10 @@ def _simulate_step(step: Step, tr: ForeignTruth, needles: dict[str, _Needle], c_
         else:
             ph = _head_pressure(step.load_mpag, v, tr)
         ci = cam[i]
-        qs = sup.flow1(ci, ps, ps - ph, cs) + drn.flow1(ci, ph, ph - p_tank, cd)
+        if track and ci != cam_prev:
+            approach, cam_prev = (1.0 if ci > cam_prev else -1.0), ci
+        qs = sup.flow1(ci, ps, ps - ph, cs, load, approach) + \
+            drn.flow1(ci, ph, ph - p_tank, cd, load, approach)
         # seat leakage of both needles (open or sealed): a few mm^3/s, not in eq. (5)
         qs += 1.5 * (ps - ph) - 1.5 * (ph - p_tank)
         if not at_stop:
@@ -627,8 +763,10 @@ def _start(out, truth, seed_key):
     tr = truth or ForeignTruth()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c, tr.geometry("supply")),
-               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c, tr.geometry("drain"))}
+    needles = {"supply": _Needle("supply", tr.supply_z0_mm, tr.supply_c,
+                                 tr.geometry("supply")).set_effects(tr),
+               "drain": _Needle("drain", tr.drain_z0_mm, tr.drain_c,
+                                tr.geometry("drain")).set_effects(tr)}
     return tr, out, np.random.default_rng(seed_key), needles
 
 
@@ -746,6 +884,7 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
     lo, hi = tr.stroke_mm
     servo = _Servo(tr, h, -12.0) if tr.servo_in_position else None
     to_needle = _Transmission(tr, h, -12.0)
+    approach, needle_prev = 0.0, -12.0
     for i in range(n):
         ti = t[i]
         load_sp = loads[np.searchsorted(t_load, ti, side="right") - 1]
@@ -768,7 +907,10 @@ def _simulate_position(tr: ForeignTruth, needles, rng, *, refs, t_ref, loads, t_
             cam_valve = servo.step(cam_valve)
         # pure delay: the valve sees the command of delay_s ago, flow is instantaneous
         needle = to_needle.step(cam_valve)
-        q = sup.flow1(needle, ps, ps - ph, sup.c) + drn.flow1(needle, ph, ph - p_tank, drn.c)
+        if needle != needle_prev:
+            approach, needle_prev = (1.0 if needle > needle_prev else -1.0), needle
+        q = sup.flow1(needle, ps, ps - ph, sup.c, load_reg, approach) + \
+            drn.flow1(needle, ph, ph - p_tank, drn.c, load_reg, approach)
         x = min(max(x + q / ACTUATOR_AREA_MM2 * h, lo), hi)
         X[i], Q[i], PS[i], PH[i], PL[i], CAM[i] = x, q, ps, ph, load_reg, cam_valve
     return t, X, Q, PS, PH, PL, cam_hist, CAM, (np.array(ctrl_t), np.array(ctrl_x),

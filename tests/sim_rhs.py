@@ -130,7 +130,7 @@ def servo_rate(theta, target, pp):
 
 
 @njit(cache=True, nogil=True)
-def derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+def derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, term, aux):
     """f(t, y) into ``dydt``: the simulator's compiled plant physics
     (:func:`~seanv_analysis.sim.rosenbrock.plant_f`, friction tanh-regularised) with the
     sealing thresholds at the current pressures, and the servo lag (target
@@ -149,31 +149,31 @@ def derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     th_s = J.threshold_deg(sup, sup_z, sup_th, ps, ps - p0)
     th_d = J.threshold_deg(dr, dr_z, dr_th, p0, p0 - pp[_P_TANK])
     RB.plant_f(ps, y, needle, th_s, th_d, aux[_A_PLOAD], RB.FR_SMOOTH, aux[_A_EPS], pp, sup, dr,
-               dydt, False, dydt, dydt, dydt)
+               term, dydt, False, dydt, dydt, dydt)
 
 
 @njit(cache=True, nogil=True)
-def rhs(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+def rhs(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, term, aux):
     """f(t, y) as a new array (the form ``scipy.integrate.solve_ivp`` calls)."""
     dydt = np.empty(y.size)
-    derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
+    derivs(t, y, dydt, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, term, aux)
     return dydt
 
 
 @njit(cache=True, nogil=True)
-def jacobian(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+def jacobian(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, term, aux):
     """df/dy by forward differences, compiled (what a user without an
     analytic Jacobian would hand ``odeint``): one f call per state."""
     n = y.size
     f0 = np.empty(n)
-    derivs(t, y, f0, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
+    derivs(t, y, f0, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, term, aux)
     jac = np.empty((n, n))
     f1 = np.empty(n)
     yy = y.copy()
     for j in range(n):
         h = 1e-7 * max(1.0, abs(y[j]))
         yy[j] = y[j] + h
-        derivs(t, yy, f1, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux)
+        derivs(t, yy, f1, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, term, aux)
         for i in range(n):
             jac[i, j] = (f1[i] - f0[i]) / h
         yy[j] = y[j]
@@ -181,7 +181,7 @@ def jacobian(t, y, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
 
 
 @njit(cache=True, nogil=True)
-def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
+def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, term, aux):
     """The simulator's integrator over the same physics as :func:`derivs`:
     ROS2 steps of ``pp[DT]`` (:func:`~seanv_analysis.sim.rosenbrock.servo_step`,
     the servo lag solved exactly, then
@@ -201,7 +201,7 @@ def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
     y = y0.copy()
     out = np.empty((n_out, n))
     w = (np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n),
-         np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n))
+         np.zeros(n), np.zeros(n), np.zeros(n), np.zeros(n), term)
     thr = np.zeros(7)
     quant = aux[_A_QUANT] > 0.5
     res = pp[_SERVO_RES]
@@ -247,7 +247,8 @@ def fixed_step(y0, n_out, every, pp, sup, sup_z, sup_th, dr, dr_z, dr_th, aux):
 
 class OpenLoopStep:
     """An open-loop flow step ready for :func:`fixed_step` and
-    :func:`solve_ivp_grid`: ``pp``, ``valves`` (packed plant valve), ``aux``,
+    :func:`solve_ivp_grid`: ``pp``, ``valves`` (packed plant valve), ``term``
+    (its closed-form terms, packed: ``Plant.term_at``), ``aux``,
     ``y0``, ``t_on`` [s], ``duration`` [s], ``lay`` (:func:`layout`),
     ``t_grid`` (1 kHz output grid)."""
 
@@ -257,13 +258,20 @@ class OpenLoopStep:
     @property
     def args(self) -> tuple:
         """Trailing arguments of :func:`derivs` / :func:`rhs` / :func:`fixed_step`."""
-        return (self.pp, *self.valves, self.aux)
+        return (self.pp, *self.valves, self.term, self.aux)
 
     def run_fixed_step(self) -> np.ndarray:
         """States on ``t_grid`` from :func:`fixed_step` (the kernel's ROS2 step
         ``pp[DT]``, 1 kHz out)."""
         every = int(self.pp[PP.SUBSTEPS])
         return fixed_step(self.y0, self.t_grid.size, every, *self.args)
+
+
+def _term(plant, run_index: int) -> np.ndarray:
+    """The plant's closed-form terms as the compiled plant physics takes them
+    (``Plant.term_at``; approach stays 0 here: the twin does not track the
+    needle's direction)."""
+    return plant.term_at(run_index)
 
 
 def open_loop_step(plant, *, cam_deg: float, load_mpag: float, x0_mm: float = 5.0,
@@ -289,7 +297,8 @@ def open_loop_step(plant, *, cam_deg: float, load_mpag: float, x0_mm: float = 5.
                    eps_v_mm_s=eps_v_mm_s, quantise=quantise)
     rate = float(rig["sensors"]["encoder_rate_hz"])
     n = int(round(duration_s * rate)) + 1
-    return OpenLoopStep(pp=pp, valves=plant.valve_at(run_index), aux=aux,
+    return OpenLoopStep(pp=pp, valves=plant.valve_at(run_index), term=_term(plant, run_index),
+                        aux=aux,
                         y0=initial_state(pp, aux, x0_mm), t_on=t_on, duration=(n - 1) / rate,
                         lay=layout(pp), t_grid=np.arange(n) / rate)
 

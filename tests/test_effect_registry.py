@@ -170,21 +170,39 @@ def test_defining_an_effect_registers_it(monkeypatch):
 
 # The registry, discover and the simulator agree ------------------------------------
 
-def test_every_static_effect_is_a_discover_candidate():
+def test_every_named_static_effect_is_a_discover_candidate():
     data = FlowData.from_summary(flow_step_summary(0))
     specs = candidate_specs(data, None)
     got = {(s.name, s.side) for s in specs}
     want = set()
-    for cls in fx.static_effects():
+    for cls in fx.vocabulary_effects():
         want |= {(cls.name, side) for side in (("supply", "drain") if cls.sided() else ("both",))}
     assert got == want
     # and nothing else: the candidates are the registry's, in its order
     order = list(fx.EFFECTS)
     sided = [s for s in specs if s.side != "both"]
     assert [s.name for s in sided if s.side == "supply"] == [
-        c.name for c in fx.static_effects() if c.sided()]
+        c.name for c in fx.vocabulary_effects() if c.sided()]
     both = [s.name for s in specs if s.side == "both"]
     assert both == sorted(both, key=order.index)
+
+
+#: discover's candidates on a two-sided data set before the generic ``term``
+#: effect was registered
+CANDIDATES = ["drift[supply]", "threshold_shift[supply]", "pressure_law[supply]",
+              "saturation[supply]", "drift[drain]", "threshold_shift[drain]",
+              "pressure_law[drain]", "saturation[drain]", "backlash[both]", "sensor_gain[both]"]
+
+
+def test_the_generic_term_is_not_a_discover_candidate():
+    """``term`` has a static form (a given formula can be predicted) but is
+    no named effect: discover never tries it, and its candidate list is the
+    one it had before ``term`` existed."""
+    term = fx.EFFECTS["term"]
+    assert term in fx.static_effects() and term in fx.dynamic_effects()
+    assert term not in fx.vocabulary_effects() and not term.VOCABULARY
+    data = FlowData.from_summary(flow_step_summary(0))
+    assert [s.label for s in candidate_specs(data, None)] == CANDIDATES
 
 
 def test_every_effect_has_a_form_a_sentence_and_a_spec():
@@ -227,11 +245,13 @@ def test_simulator_puts_in_every_dynamic_effect():
         changed = not np.array_equal(plant.packed_params(neutral_deg=-15.0, x_stop_mm=(0.0, 40.0)),
                                      neutral)
         changed |= not all(_same_valve(plant.valve_at(i), base.valve_at(i)) for i in range(12))
+        changed |= not np.array_equal(plant.term_at(3), base.term_at(3))
         assert changed, f"{cls.name}: the plant ignores it"
     for cls in fx.EFFECTS.values():
         if not cls.has_dynamic_form():
             plant = Plant.from_rig(RIG, effects=[cls.name])
             assert _same_valve(plant.valve_at(5), base.valve_at(5))
+            assert np.array_equal(plant.term_at(5), base.term_at(5))
 
 
 def test_plant_terms_fold_effects_in_order():
@@ -264,6 +284,14 @@ def test_plant_terms_fold_effects_in_order():
     ("delay:bogus=1", "unknown parameter 'bogus'"),
     ("sensor_gain:sensor=thermo", "sensor_gain: sensor: expected one of"),
     ("saturation:q_max_mm3_s=-1", "saturation: q_max_mm3_s: expected a positive flow"),
+    ("term:side=left", "term: side: expected 'supply' or 'drain'"),
+    ("term:mode=pow", "term: mode: expected one of mul, add, threshold"),
+    ("term:expr=__import__('os')", "term: expr .*unknown function '__import__'"),
+    ("term:expr=dp**p1", "term: expr .*exponent of \\*\\* must be a constant"),
+    ("term:expr=", "term: expected param=value, got 'expr='"),
+    ("term:expr='dp", "term: expr: the quote ' is not closed"),
+    ("term:expr='dp' x", "term: expr: expected ',' after the quoted value"),
+    ("term:side=drain,bogus=1,expr=dp", "term: unknown parameter 'bogus'"),
 ])
 def test_bad_spec_is_a_value_error_in_models_and_a_config_error_in_sim(spec, match):
     from seanv_analysis.sim.plant import Plant
@@ -272,6 +300,60 @@ def test_bad_spec_is_a_value_error_in_models_and_a_config_error_in_sim(spec, mat
         fx.parse_effect(spec)
     with pytest.raises(ConfigError, match=match):
         Plant.from_rig(RIG, effects=[spec])
+
+
+def test_term_spec_takes_commas_in_its_expression():
+    """``expr`` runs to the end of the spec (commas included), or is quoted;
+    it is kept in canonical form, and the spec round-trips."""
+    e = fx.parse_effect("term:side=drain,mode=add,expr=-20*clip(dp, 0, max(p1, 1))")
+    assert (e.side, e.mode, e.expr) == ("drain", "add", "-20*clip(dp, 0, max(p1, 1))")
+    assert fx.parse_effect(e.spec()) == e
+    assert e.spec() == "term:side=drain,mode=add,expr=-20*clip(dp, 0, max(p1, 1))"
+    q = fx.parse_effect("term:expr=\"min(dp , 1)\" , mode=threshold,side=drain")
+    assert (q.side, q.mode, q.expr) == ("drain", "threshold", "min(dp, 1)")
+    assert fx.parse_effect({"name": "term", "expr": "0.1 * q"}).expr == "0.1*q"
+    assert fx.parse_effect("term:side=supply,expr=0.02 * dp ** 1.5") == \
+        fx.Term(side="supply", expr="0.02*dp**(3/2)")
+    assert e.program.variables == ("dp", "p1")
+    assert "Q -> Q + -20*clip(dp, 0, max(p1, 1)) [mm^3/s]" in e.sentence("drain", e.params())
+    assert "theta_d -> theta_d + min(dp, 1) [deg]" in q.sentence("drain", q.params())
+    with pytest.raises(ValueError, match="term given twice for drain"):
+        fx.parse_effects([e, "term:side=drain,mode=mul,expr=0.1"])
+
+
+def _term(side: str, mode: str, expr: str) -> dict:
+    spec = EffectSpec.from_form("term", side, fx.Term.STATIC)
+    spec = dataclasses.replace(spec, fixed={"mode": mode, "expr": expr})
+    return {spec.label: (spec, np.array([]))}
+
+
+def test_term_static_form_predicts_the_formula():
+    """The static form (discover's predict_static) applies the three modes
+    to eq. (5) on the term's side only."""
+    data = FlowData.from_summary(flow_step_summary(0))
+    base = predict_static(MODEL, data)
+    sup = data.side == "supply"
+    p1, dp = side_pressures("supply", data.p_supply_mpag, data.p_head_mpag, data.p_tank_mpag)
+    q = predict_static(MODEL, data, _term("supply", "mul", "-0.2*tanh(dp/0.5)"))
+    np.testing.assert_allclose(q[sup], base[sup] * (1 - 0.2 * np.tanh(dp[sup] / 0.5)), rtol=1e-12)
+    np.testing.assert_array_equal(q[~sup], base[~sup])
+    q = predict_static(MODEL, data, _term("supply", "add", "30*dp**1.5 + 0*q"))
+    np.testing.assert_allclose(q[sup], base[sup] + 30 * dp[sup] ** 1.5, rtol=1e-12)
+    # threshold + s approach on the drain side: the opening theta_d - theta
+    # grows by s approach, the same as the cam angle moved by -s approach
+    dr = ~sup
+    q = predict_static(MODEL, data, _term("drain", "threshold", "0.4*approach"))
+    moved = FlowData(**{**{f: getattr(data, f) for f in data.__dataclass_fields__},
+                        "theta_deg": data.theta_deg - 0.4 * data.approach})
+    np.testing.assert_allclose(q[dr], predict_static(MODEL, moved)[dr], rtol=1e-12)
+    np.testing.assert_array_equal(q[sup], base[sup])
+    # dtheta is the opening past the threshold in use; load and run reach it
+    q = predict_static(MODEL, data, _term("drain", "mul", "0.01*run + 0.5*(load - 0.4)"))
+    np.testing.assert_allclose(q[dr], base[dr] * (1 + 0.01 * data.run_index[dr]
+                                                  + 0.5 * (data.load_mpag[dr] - 0.4)), rtol=1e-12)
+    opening = data.theta_deg[sup] - MODEL.supply.threshold_deg(p1[sup], dp[sup])
+    q = predict_static(MODEL, data, _term("supply", "mul", "0.01*dtheta"))
+    np.testing.assert_allclose(q[sup], base[sup] * (1 + 0.01 * opening), rtol=1e-12)
 
 
 def test_one_effect_of_a_name_per_side_or_sensor():

@@ -21,8 +21,18 @@ __all__ = ["simulate_cmd"]
               help="Noise seed; the same seed writes the same files bit for bit.")
 @click.option("--effect", "effects", multiple=True, metavar="NAME[:param=value,...]",
               help="Inject an effect into the plant (repeatable): drift, threshold_shift, "
-                   "backlash, pressure_law, saturation, delay, sensor_gain. "
-                   "Example: --effect drift:side=drain,step=0.05,every=3")
+                   "backlash, pressure_law, saturation, delay, sensor_gain, or term (a "
+                   "closed-form correction of one valve side). "
+                   "Example: --effect drift:side=drain,step=0.05,every=3. "
+                   "A term's expr comes last and runs to the end of the spec, commas "
+                   "included (or quote it): --effect "
+                   "\"term:side=supply,mode=mul,expr=-0.2*clip(dp, 0, 1.5)\" "
+                   "(mode mul: Q (1 + expr); add: Q + expr [mm^3/s]; threshold: theta_d + "
+                   "expr [deg]). expr may use numbers, + - * / ** (constant exponent), "
+                   "tanh exp log sqrt abs sign min max clip, and dp, p1 [MPa], dtheta "
+                   "(opening past theta_d), theta [deg], q (the side's eq. 5 flow) "
+                   "[mm^3/s], load [MPaG], run, approach (+1/-1) [-]. "
+                   "See --list-effects.")
 @click.option("--write-truth", is_flag=True,
               help="Also write <out>/_truth.json with every plant parameter and effect.")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),

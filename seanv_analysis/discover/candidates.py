@@ -1,7 +1,8 @@
 """Candidate effects for the static (flow-step) model and their fitting.
 
-The candidates are the registered effects with a static form
-(:func:`seanv_analysis.models.effects.static_effects`): each is a small
+The candidates are the named effects with a static form
+(:func:`seanv_analysis.models.effects.vocabulary_effects`; the generic
+``term`` effect, which only carries a given formula, is not one): each is a small
 extension of eq. (5) with one or a few continuous parameters (drift also has
 a grid-searched period and phase). Their functional forms, start values and
 bounds live in :mod:`seanv_analysis.models.effects`, shared with the
@@ -33,7 +34,9 @@ def candidate_specs(data: FlowData, base: StaticFit) -> list[EffectSpec]:
         An effect's static form reads a variable flow-step data does not carry.
     """
     sides = [s for s in ("supply", "drain") if np.any(data.side == s)]
-    static = fx.static_effects()
+    # the vocabulary only: the generic ``term`` (VOCABULARY False) has a
+    # static form too, but it is a given formula, not an effect to name
+    static = fx.vocabulary_effects()
     for cls in static:
         missing = [v for v in cls.STATIC.needs if not hasattr(data, v)]
         if missing:

@@ -155,11 +155,22 @@ def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[E
         vs = model.side(s)
         p1, dp = side_pressures(s, data.p_supply_mpag[m], terms.p_head_mpag[m], data.p_tank_mpag[m])
         theta_d = vs.threshold_deg(p1, dp, z0_mm=vs.z0_mm + terms.z0_offset_mm[m])
-        d = terms.theta_deg[m] - theta_d
-        opening = np.maximum(d if vs.opens_upward else -d, 0.0)
-        qs = (vs.c_flow * terms.c_multiplier[m] * opening ** 2 * np.sign(dp)
-              * np.abs(dp) ** terms.dp_exponent[m])
-        q[m] = fx.saturate_flow(qs, terms.q_max_mm3_s[m])
+
+        def flow_at(theta_d, m=m, vs=vs, dp=dp):
+            d = terms.theta_deg[m] - theta_d
+            opening = np.maximum(d if vs.opens_upward else -d, 0.0)
+            qs = (vs.c_flow * terms.c_multiplier[m] * opening ** 2 * np.sign(dp)
+                  * np.abs(dp) ** terms.dp_exponent[m])
+            return fx.saturate_flow(qs, terms.q_max_mm3_s[m])
+
+        if terms.corrections:       # closed-form terms (the ``term`` effect)
+            q[m] = fx.apply_corrections(
+                terms.corrections, m, flow_at=flow_at, theta_deg=terms.theta_deg[m],
+                theta_d_deg=theta_d, p1_mpa=p1, dp_mpa=dp, opens_upward=vs.opens_upward,
+                load_mpag=data.load_mpag[m], run_index=data.run_index[m],
+                approach=data.approach[m])
+        else:
+            q[m] = flow_at(theta_d)
     return q
 
 

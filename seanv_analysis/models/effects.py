@@ -36,6 +36,9 @@ effect                    functional form
 ``saturation``            Q_sat = Q / (1 + (|Q|/q_max)^s)^(1/s)
 ``delay``                 theta_needle(t) = theta_servo(t - delay_s)
 ``sensor_gain``           measured = gain * true  (encoder or a pressure sensor)
+``term``                  Q (1 + f), Q + f or theta_d + f of one side, f a
+                          closed-form expression (:mod:`.expr`); not a named
+                          effect: discover never tries it as a candidate
 ========================  =====================================================
 
 This module uses numpy and the standard library only; bad parameters raise
@@ -52,19 +55,26 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, fields, replace
-from typing import Any, ClassVar, Iterable, Mapping
+from functools import cached_property
+from typing import Any, Callable, ClassVar, Iterable, Mapping
 
 import numpy as np
 
+from .expr import Program, compile_expr, evaluate
+
 __all__ = [
     "Effect", "Drift", "ThresholdShift", "Backlash", "PressureLaw", "Saturation", "Delay",
-    "SensorGain", "EFFECTS", "SENSORS", "StaticForm", "FlowTerms", "ValveTerms", "PlantTerms",
-    "static_effects", "dynamic_effects", "parse_effect", "parse_effects",
+    "SensorGain", "Term", "EFFECTS", "SENSORS", "TERM_MODES", "StaticForm", "FlowTerms",
+    "TermCorrection", "ValveTerms", "PlantTerms",
+    "static_effects", "vocabulary_effects", "dynamic_effects", "parse_effect", "parse_effects",
     "drift_multiplier", "threshold_shift_mm", "backlash_cam_deg", "backlash_play_deg",
     "saturate_flow", "saturate_flow_core", "measured_from_true", "true_from_measured",
+    "term_variables", "apply_corrections",
 ]
 
 _SIDES = ("supply", "drain")
+#: how a ``term`` acts on its side: Q (1 + f), Q + f [mm^3/s], theta_d + f [deg]
+TERM_MODES = ("mul", "add", "threshold")
 #: sensors a ``sensor_gain`` can act on; 'pressure' is the A/B-port (head) sensor
 SENSORS = ("encoder", "pressure", "p_head", "p_supply", "p_load")
 #: the simulator's sensor channels and their gain without a ``sensor_gain`` [-]
@@ -185,6 +195,9 @@ class FlowTerms:
     c_multiplier : multiplies the side's C [-]
     dp_exponent : exponent of dp [-] (0.5: orifice law)
     q_max_mm3_s : flow cap [mm^3/s] (inf: none)
+    corrections : closed-form terms applied after all that, in order
+        (:class:`TermCorrection`, appended by the ``term`` effect's static
+        form; :func:`apply_corrections` evaluates them)
     """
 
     theta_deg: np.ndarray
@@ -193,6 +206,19 @@ class FlowTerms:
     c_multiplier: np.ndarray
     dp_exponent: np.ndarray
     q_max_mm3_s: np.ndarray
+    corrections: list = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class TermCorrection:
+    """One closed-form correction of the static flow model: ``program``
+    (:class:`~seanv_analysis.models.expr.Program`) acting in ``mode``
+    (:data:`TERM_MODES`) on the flow steps where ``rows`` (a boolean mask
+    over all of them) is True."""
+
+    rows: np.ndarray
+    program: Program
+    mode: str
 
 
 @dataclass(frozen=True)
@@ -204,6 +230,9 @@ class ValveTerms:
     z0_offset_mm : added to z0 [mm]
     dp_exponent : exponent of dp [-]; None keeps the valve's own
     q_max_mm3_s : smooth flow cap [mm^3/s] (inf: none); sharpness: its knee [-]
+    term_mode, term_program : a closed-form term of the side (``term``
+        effect): its mode (:data:`TERM_MODES`) and compiled expression
+        (None: no term)
     """
 
     c_multiplier: float = 1.0
@@ -211,6 +240,8 @@ class ValveTerms:
     dp_exponent: float | None = None
     q_max_mm3_s: float = math.inf
     sharpness: float = 8.0
+    term_mode: str | None = None
+    term_program: Program | None = None
 
 
 @dataclass(frozen=True)
@@ -258,6 +289,12 @@ class Effect:
     SENTENCE: ClassVar[str] = ""
     #: the static form for discover's flow-step fit; None: the effect has none
     STATIC: ClassVar[StaticForm | None] = None
+    #: a named effect of discover's vocabulary (it is tried as a candidate);
+    #: False for the generic ``term``, which only holds a given expression
+    VOCABULARY: ClassVar[bool] = True
+    #: a parameter whose value runs to the end of a string spec, commas
+    #: included (it must come last); None: every value ends at a comma
+    TAIL_PARAM: ClassVar[str | None] = None
 
     def __init_subclass__(cls, register: bool = True, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -667,12 +704,172 @@ class SensorGain(Effect):
         return replace(terms, gains=gains)
 
 
+@dataclass(frozen=True)
+class Term(Effect):
+    """Closed-form correction f of one side: Q (1 + f), Q + f or theta_d + f.
+
+    The modes 'mul', 'add' and 'threshold'; f an expression of dp, p1,
+    dtheta, theta, q, load, run and approach.
+
+    Not a named effect: it carries a formula (one found by a search, or one a
+    test injects), so discover never tries it as a candidate
+    (``VOCABULARY`` False). The expression grammar, its variables and their
+    units are those of :mod:`seanv_analysis.models.expr`; ``expr`` is kept in
+    its canonical form. In a string spec ``expr`` runs to the end of the
+    spec, commas included (``term:side=supply,mode=mul,expr=clip(dp, 0, 1)``),
+    or it is quoted. One term per side.
+
+    Forms: 'mul' Q -> Q (1 + f) [f in -]; 'add' Q -> Q + f [f in mm^3/s, in
+    eq. (5)'s signs: the drain side's flow is negative]; 'threshold'
+    theta_d -> theta_d + f [f in deg] (eq. 3-4's threshold, so the opening
+    and Q follow). q is the side's flow before the term (for 'threshold',
+    at the unshifted threshold); dtheta the opening past the threshold in use.
+    """
+
+    name: ClassVar[str] = "term"
+    PARAMS: ClassVar[dict[str, str]] = {
+        "side": "'supply' | 'drain'",
+        "mode": "'mul': Q -> Q (1 + expr) | 'add': Q -> Q + expr [mm^3/s] | "
+                "'threshold': theta_d -> theta_d + expr [deg]",
+        "expr": "the correction: an expression of dp, p1 [MPa], dtheta, theta [deg], "
+                "q [mm^3/s], load [MPaG], run, approach [-] (see seanv_analysis.models.expr); "
+                "last in a spec, where it may contain commas",
+    }
+    SENTENCE: ClassVar[str] = "the {side} side needs a closed-form correction: {form}"
+    _FORMS: ClassVar[dict[str, str]] = {"mul": "Q -> Q (1 + {expr})",
+                                        "add": "Q -> Q + {expr} [mm^3/s]",
+                                        "threshold": "theta_d -> theta_d + {expr} [deg]"}
+    #: nothing to fit: the expression and mode are fixed (a spec sets them)
+    STATIC: ClassVar[StaticForm] = StaticForm((), (), (), (), {"mode": "mul", "expr": "0"},
+                                              ("run_index", "approach", "load_mpag"))
+    VOCABULARY: ClassVar[bool] = False
+    TAIL_PARAM: ClassVar[str] = "expr"
+
+    side: str = "supply"
+    mode: str = "mul"
+    expr: str = "0"
+
+    def __post_init__(self):
+        self._check_side()
+        if self.mode not in TERM_MODES:
+            raise ValueError(f"{self.name}: mode: expected one of {', '.join(TERM_MODES)}, "
+                             f"got {self.mode!r}")
+        try:
+            program = compile_expr(self.expr)
+        except ValueError as exc:
+            raise ValueError(f"{self.name}: {exc}") from None
+        object.__setattr__(self, "expr", program.text)
+        self.__dict__["program"] = program
+
+    @cached_property
+    def program(self) -> Program:
+        """The compiled expression (:class:`~seanv_analysis.models.expr.Program`)."""
+        return compile_expr(self.expr)
+
+    @classmethod
+    def sentence(cls, side, params):
+        mode = str(params.get("mode", "mul"))
+        form = cls._FORMS.get(mode, mode + ": {expr}").format(expr=params.get("expr", "?"))
+        return cls.SENTENCE.format(side=side, form=form)
+
+    @classmethod
+    def apply_static(cls, terms, data, rows, p):
+        mode = p.get("mode", "mul")
+        if mode not in TERM_MODES:
+            raise ValueError(f"{cls.name}: mode: expected one of {', '.join(TERM_MODES)}, "
+                             f"got {mode!r}")
+        try:
+            program = compile_expr(p.get("expr", "0"))
+        except ValueError as exc:
+            raise ValueError(f"{cls.name}: {exc}") from None
+        mask = np.zeros(len(terms.theta_deg), bool)
+        mask[rows] = True
+        terms.corrections.append(TermCorrection(mask, program, mode))
+
+    def valve_terms(self, terms, side, run_index):
+        if side != self.side:
+            return terms
+        return replace(terms, term_mode=self.mode, term_program=self.program)
+
+
+# Closed-form terms in the static model ------------------------------------------
+
+def term_variables(*, dp_mpa, p1_mpa, dtheta_deg, theta_deg, q_mm3_s, load_mpag, run_index,
+                   approach) -> dict[str, np.ndarray]:
+    """The variables of :mod:`.expr` by name, from the flow model's
+    quantities (units as the names; module doc of :mod:`.expr`)."""
+    return {"dp": dp_mpa, "p1": p1_mpa, "dtheta": dtheta_deg, "theta": theta_deg,
+            "q": q_mm3_s, "load": load_mpag, "run": run_index, "approach": approach}
+
+
+def apply_corrections(corrections: Iterable[TermCorrection], rows: np.ndarray, *,
+                      flow_at: Callable[[np.ndarray], np.ndarray], theta_deg, theta_d_deg,
+                      p1_mpa, dp_mpa, opens_upward: bool, load_mpag, run_index,
+                      approach) -> np.ndarray:
+    """Flow of one valve side with the closed-form terms of ``corrections``
+    [mm^3/s] (eq. 5 and the ``term`` effect's three forms).
+
+    Parameters
+    ----------
+    corrections : the terms (:class:`TermCorrection`, their ``rows`` masks
+        over all flow steps); 'threshold' ones first, then 'mul' and 'add' in
+        the order given
+    rows : boolean mask of this side's flow steps (the other arrays hold
+        these rows only)
+    flow_at : theta_d [deg] -> the side's flow of eq. (5) [mm^3/s] at that
+        threshold (all other effects applied)
+    theta_deg, theta_d_deg : cam angle at the needle and sealing threshold [deg]
+    p1_mpa, dp_mpa : the side's upstream pressure and pressure difference [MPa]
+    opens_upward : True for the supply side (opening = theta - theta_d)
+    load_mpag, run_index, approach : load [MPaG], run order [-], cam
+        approach direction [-]
+
+    Returns
+    -------
+    The flow with the terms [mm^3/s].
+    """
+    corrections = [c for c in corrections if np.any(c.rows[rows])]
+    theta_d = np.asarray(theta_d_deg, dtype=float)
+    q = flow_at(theta_d)
+
+    def variables(sub, th_d, q_now):
+        d = theta_deg[sub] - th_d[sub]
+        return term_variables(dp_mpa=dp_mpa[sub], p1_mpa=p1_mpa[sub],
+                              dtheta_deg=d if opens_upward else -d, theta_deg=theta_deg[sub],
+                              q_mm3_s=q_now[sub], load_mpag=load_mpag[sub],
+                              run_index=run_index[sub], approach=approach[sub])
+
+    shifted = [c for c in corrections if c.mode == "threshold"]
+    if shifted:
+        th = theta_d.copy()
+        for c in shifted:
+            sub = c.rows[rows]
+            th[sub] = th[sub] + evaluate(c.program, variables(sub, theta_d, q))
+        theta_d = th
+        q = flow_at(theta_d)
+    q = np.array(q, dtype=float)
+    for c in corrections:
+        if c.mode == "threshold":
+            continue
+        sub = c.rows[rows]
+        f = evaluate(c.program, variables(sub, theta_d, q))
+        q[sub] = q[sub] * (1.0 + f) if c.mode == "mul" else q[sub] + f
+    return q
+
+
 # Registry readers ---------------------------------------------------------------
 
 def static_effects() -> list[type[Effect]]:
-    """Registered effects with a static form (discover's candidates), in
-    registry order."""
+    """Registered effects with a static form, in registry order (the
+    generic ``term`` included; discover's candidates are
+    :func:`vocabulary_effects`)."""
     return [cls for cls in EFFECTS.values() if cls.STATIC is not None]
+
+
+def vocabulary_effects() -> list[type[Effect]]:
+    """Discover's candidates: the named effects (``VOCABULARY``) with a
+    static form, in registry order; the generic ``term`` is not one."""
+    return [cls for cls in static_effects() if cls.VOCABULARY]
 
 
 def dynamic_effects() -> list[type[Effect]]:
@@ -733,15 +930,55 @@ def parse_effect(spec: str | Effect | dict) -> Effect:
                          f"expected one of {', '.join(EFFECTS)}")
     cls = EFFECTS[name]
     kwargs: dict[str, Any] = {}
-    for item in filter(None, (s.strip() for s in rest.split(","))):
-        key, eq, value = item.partition("=")
-        key = key.strip()
-        if not eq or not value.strip():
-            raise ValueError(f"{name}: expected param=value, got {item!r}")
+    for key, value in _spec_items(cls, rest):
         if key not in cls.PARAMS:
             raise ValueError(f"{name}: unknown parameter {key!r}; expected {', '.join(cls.PARAMS)}")
-        kwargs[key] = _convert(cls, key, value.strip())
+        kwargs[key] = _convert(cls, key, value)
     return cls(**kwargs)
+
+
+def _spec_items(cls: type[Effect], rest: str) -> list[tuple[str, str]]:
+    """(key, value) pairs of the ``param=value,...`` part of a spec. A value
+    ends at the next comma, unless it is quoted ('...' or "...") or belongs
+    to the class's ``TAIL_PARAM`` (then it runs to the end of the spec)."""
+    name = cls.name
+    out = []
+    i, n = 0, len(rest)
+    while i < n:
+        if rest[i] in ", \t":
+            i += 1
+            continue
+        comma = rest.find(",", i)
+        end = n if comma < 0 else comma
+        eq = rest.find("=", i, end)
+        if eq < 0:
+            raise ValueError(f"{name}: expected param=value, got {rest[i:end].strip()!r}")
+        key = rest[i:eq].strip()
+        k = eq + 1
+        while k < n and rest[k] in " \t":
+            k += 1
+        if k < n and rest[k] in "'\"":
+            close = rest.find(rest[k], k + 1)
+            if close < 0:
+                raise ValueError(f"{name}: {key}: the quote {rest[k]} is not closed in "
+                                 f"{rest[k:]!r}")
+            value = rest[k + 1:close]
+            i = close + 1
+            while i < n and rest[i] in " \t":
+                i += 1
+            if i < n and rest[i] != ",":
+                raise ValueError(f"{name}: {key}: expected ',' after the quoted value, got "
+                                 f"{rest[i:]!r}")
+        elif key == cls.TAIL_PARAM:
+            value = rest[k:].strip()
+            i = n
+        else:
+            value = rest[k:end].strip()
+            i = end
+        if not value.strip():
+            raise ValueError(f"{name}: expected param=value, got {key + '='!r}")
+        out.append((key, value))
+    return out
 
 
 def parse_effects(specs: Iterable[str | Effect | dict] | None) -> tuple[Effect, ...]:

@@ -10,6 +10,12 @@ the whole valve) chain the cores exactly as :class:`ValveSide` and
 
 A valve side is packed for compiled code as ``(params, z_table, theta_table)``
 with ``params`` indexed by the ``SP_*`` constants (see :func:`pack_side`).
+
+The closed-form terms of both sides (the ``term`` effect) are packed in one
+float64 array (:func:`pack_terms`): the programs of
+:mod:`seanv_analysis.models.expr` behind a header, their variables and a
+stack; :func:`run_program` is that module's stack machine compiled, so one
+compiled kernel runs any expression.
 """
 from __future__ import annotations
 
@@ -19,6 +25,7 @@ import numpy as np
 from numba import njit
 
 from ..models import effects as _effects
+from ..models import expr as _expr
 from ..models import sealing as _sealing
 from ..models import valve as _valve
 from .numba_cache import configure_numba_cache
@@ -32,7 +39,11 @@ __all__ = ["SP_Z0", "SP_C", "SP_EXPONENT", "SP_DN", "SP_DO", "SP_K", "SP_UP", "S
            "fluid_force", "threshold_displacement", "table_segment", "angle_for_height",
            "signed_power",
            "opening", "flow", "cam_for_flow", "saturate", "threshold_deg", "side_flow", "side_flow_at",
-           "model_cam_for_flow", "backlash_play"]
+           "model_cam_for_flow", "backlash_play",
+           "TERM_NONE", "TERM_MUL", "TERM_ADD", "TERM_THRESHOLD",
+           "TV_DP", "TV_P1", "TV_DTHETA", "TV_THETA", "TV_Q", "TV_LOAD", "TV_RUN", "TV_APPROACH",
+           "TV_SIZE", "TW_SUPPLY", "TW_DRAIN", "TW_VARS", "TW_STACK", "TW_HEADER", "TW_MODE",
+           "TW_CODE", "TW_N", "TW_CONST", "pack_terms", "run_program"]
 
 # packed side parameters
 SP_Z0, SP_C, SP_EXPONENT, SP_DN, SP_DO, SP_K, SP_UP, SP_QMAX, SP_SHARP = range(9)
@@ -80,6 +91,58 @@ flow = njit(**_opts)(_valve.flow_core)
 cam_for_flow = njit(**_opts)(_valve.cam_for_flow_core)
 saturate = njit(**_opts)(_effects.saturate_flow_core)
 backlash_play = njit(**_opts)(_effects.backlash_play_deg)
+run_program = njit(**_opts)(_expr.run_program_core)
+
+# closed-form terms: modes, the index of each variable of models.expr, and
+# the layout of the packed terms' memory (pack_terms)
+TERM_NONE, TERM_MUL, TERM_ADD, TERM_THRESHOLD = 0, 1, 2, 3
+_TERM_MODE_IDS = {"mul": TERM_MUL, "add": TERM_ADD, "threshold": TERM_THRESHOLD}
+(TV_DP, TV_P1, TV_DTHETA, TV_THETA, TV_Q, TV_LOAD, TV_RUN,
+ TV_APPROACH) = (_expr.VARIABLES.index(v) for v in ("dp", "p1", "dtheta", "theta", "q", "load",
+                                                    "run", "approach"))
+TV_SIZE = len(_expr.VARIABLES)
+#: header of the packed terms: per side (supply at TW_SUPPLY, drain at
+#: TW_DRAIN) mode, code offset, number of instructions, constants offset;
+#: then the offsets of the variables and of the stack
+TW_SUPPLY, TW_DRAIN, TW_VARS, TW_STACK, TW_HEADER = 0, 4, 8, 9, 10
+TW_MODE, TW_CODE, TW_N, TW_CONST = 0, 1, 2, 3
+
+
+def pack_terms(supply=None, drain=None, *, run_index: float = 0.0) -> np.ndarray:
+    """The two valve sides' closed-form terms for compiled code, in one
+    float64 array (one argument, so passing it costs the step loop nothing):
+    a header (``TW_*``: per side its mode ``TERM_*``, code offset, number of
+    instructions, constants offset; the offsets of the variables and of the
+    stack), then each side's program (:func:`models.expr.program_memory`
+    layout: opcode/argument pairs as floats, constants), the variables
+    (``TV_*``; ``run`` = ``run_index``) and a stack for the deeper program.
+
+    ``supply``, ``drain``: (mode, :class:`~seanv_analysis.models.expr.Program`)
+    or None (no term: mode ``TERM_NONE``). A fresh array per run: the
+    compiled code writes the variables and the stack into it.
+    """
+    head = np.zeros(TW_HEADER)
+    parts = [head]
+    at = TW_HEADER
+    depth = 1
+    for base, term in ((TW_SUPPLY, supply), (TW_DRAIN, drain)):
+        mode, program = term if term is not None else (None, None)
+        if mode is None or program is None or len(program) == 0:
+            continue
+        n = len(program)
+        head[base + TW_MODE] = _TERM_MODE_IDS[mode]
+        head[base + TW_CODE] = at
+        head[base + TW_N] = n
+        head[base + TW_CONST] = at + 2 * n
+        parts += [program.code.astype(np.float64), np.asarray(program.constants, np.float64)]
+        at += 2 * n + program.constants.size
+        depth = max(depth, program.stack_size)
+    head[TW_VARS] = at
+    head[TW_STACK] = at + TV_SIZE
+    variables = np.zeros(TV_SIZE)
+    variables[TV_RUN] = run_index
+    parts += [variables, np.zeros(depth)]
+    return np.ascontiguousarray(np.concatenate(parts))
 
 
 def pack_side(side, *, c_multiplier: float = 1.0, z0_offset_mm: float = 0.0,

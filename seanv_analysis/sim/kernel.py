@@ -14,7 +14,11 @@ physics and the packed parameter layout):
   quantisation), then the injected cam-side effects (backlash play, extra
   transport delay),
 - sensors sampled at 1 kHz (encoder quantisation, pressure noise, sensor
-  gain errors) and the controller/servo log at 100 Hz.
+  gain errors) and the controller/servo log at 100 Hz;
+- the valve sides' closed-form terms (``term`` effect), if any, evaluated
+  at every plant step by the compiled stack machine of
+  :mod:`seanv_analysis.models.expr` (``approach``: the direction the
+  needle last moved, 0 until it moves).
 
 Integration: the 2nd-order linearly implicit Rosenbrock-W scheme ROS2
 (:mod:`.rosenbrock`, the same compiled step the plant's ODE twin in the
@@ -96,7 +100,7 @@ def _step_value(t_breaks, values, t):
 
 
 @njit(cache=True, nogil=True)
-def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
+def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th, tw,
                     ctrl_kind, cp, csup, csup_z, csup_th, cdr, cdr_z, cdr_th,
                     ref_t, ref_v, load_t, load_v, cmd_t, cmd_v,
                     noise, n_fast, x0_mm, cam0_deg, p0_mpag, hold0_deg):
@@ -106,6 +110,9 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     ----------
     pp : packed plant parameters (:class:`PP`)
     sup..dr_th : plant valve, packed (``sim.jit.pack_side``)
+    tw : the valve sides' closed-form terms, packed (``sim.jit.pack_terms``,
+        with the run's index; modes ``TERM_NONE``: none); the kernel writes
+        the terms' variables and stack into it
     ctrl_kind : MODE_SCHEDULE (cam from ``cmd_t/cmd_v`` with end-of-stroke
         release), or the controller kinds of :mod:`seanv_analysis.sim.control`
     cp, csup..cdr_th : controller parameters and its valve model, packed
@@ -164,8 +171,12 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
     y[ipl] = p_load
     w = (np.zeros(y.size), np.zeros(y.size), np.zeros(y.size), np.zeros(y.size),
          np.zeros(y.size), np.zeros(y.size), np.zeros(y.size), np.zeros(y.size),
-         np.zeros(y.size), np.zeros(y.size))
+         np.zeros(y.size), np.zeros(y.size), tw)
     thr = np.zeros(7)
+    # closed-form terms: approach tracked here from the needle's motion (the
+    # plant sets the other variables; run is packed)
+    has_term = tw[J.TW_SUPPLY + J.TW_MODE] != 0.0 or tw[J.TW_DRAIN + J.TW_MODE] != 0.0
+    i_approach = int(tw[J.TW_VARS]) + J.TV_APPROACH
     # servo: dead-time ring of commands (in ticks), backlash, delay ring
     ndead = int(pp[_SERVO_DEAD_TICKS])
     cmd_ring = np.full(ndead + 1, cam0_deg)
@@ -272,6 +283,11 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th,
             else:
                 mode = RB.FR_SLIDE
                 sgn = math.copysign(1.0, v)
+            if has_term:
+                if needle1 > theta_n:
+                    tw[i_approach] = 1.0
+                elif needle1 < theta_n:
+                    tw[i_approach] = -1.0
             RB.plant_step(y, dt, ps0, ps1, theta_n, needle1, thr, p_load_set, mode, sgn, pp,
                           sup, dr, w)
             y[ith] = theta_s

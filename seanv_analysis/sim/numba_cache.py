@@ -31,7 +31,8 @@ _NUMBA_LOCATORS = ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCa
                    "IPythonCacheLocator", "ZipCacheLocator")
 
 #: the package sources compiled code is built from (relative to the package)
-_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "sim/jit.py",
+_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "models/expr.py",
+            "sim/jit.py",
             "sim/control.py", "sim/_pp.py", "sim/kernel.py", "sim/rosenbrock.py")
 _DONE = False
 

@@ -21,7 +21,7 @@ Physics (units: mm, MPa, s, N):
 - Servo: dead time, first-order lag, rate limit, quantisation (rig ``servo``).
 - Effects: each injected effect adds its dynamic form
   (:meth:`~seanv_analysis.models.effects.Effect.valve_terms`: C multiplier,
-  z0 offset, dp exponent, flow cap of a valve side at run i;
+  z0 offset, dp exponent, flow cap, closed-form term of a valve side at run i;
   :meth:`~seanv_analysis.models.effects.Effect.plant_terms`: backlash, extra
   delay, sensor gains); the plant only folds them in, in the order given.
 """
@@ -118,6 +118,19 @@ class Plant:
                                        z0_offset_mm=t.z0_offset_mm, dp_exponent=t.dp_exponent,
                                        q_max_mm3_s=t.q_max_mm3_s, sharpness=t.sharpness))
         return tuple(packed)
+
+    def term_at(self, run_index: int) -> np.ndarray:
+        """The plant valve's closed-form terms at run ``run_index``, packed
+        for the kernel (``sim.jit.pack_terms``: both sides' programs, the
+        run index, room for the variables and the stack; a fresh array)."""
+        terms = [self.valve_terms(name, run_index) for name in ("supply", "drain")]
+        return J.pack_terms(*((t.term_mode, t.term_program) if t.term_program is not None
+                              else None for t in terms), run_index=float(run_index))
+
+    @property
+    def has_terms(self) -> bool:
+        """True when a closed-form term (``term`` effect) acts on a side."""
+        return any(e.name == "term" for e in self.effects)
 
     def packed_params(self, *, neutral_deg: float, x_stop_mm: tuple[float, float]) -> np.ndarray:
         """Packed plant parameter vector for the kernel (:class:`.kernel.PP`)."""

@@ -40,6 +40,16 @@ Friction modes (``fr_mode``):
   the piston after the step if v reversed);
 - ``FR_STUCK``: the piston is held (v = 0, dv/dt = 0; Karnopp stuck phase).
 
+Closed-form terms (the ``term`` effect): ``tw``, both sides' programs,
+their variables and stack in one float64 array
+(:func:`seanv_analysis.sim.jit.pack_terms`; the caller sets run and
+approach). A side with a term gets its flow (or threshold) corrected at
+every evaluation of f, with the stage's pressures; its valve conductance in
+A is then a forward difference in dp of the corrected flow, kept of the
+side's sign (so W's pivots stay >= 1). Without terms the arithmetic is
+exactly that of the plant without them, and ``tw`` rides in the scratch
+tuple ``w`` of :func:`plant_step` (no extra argument in the step loop).
+
 Units: mm, MPa, s, N (as :mod:`.plant`). State layout (``n = 2 nseg + 5``):
 p_0..p_nseg [MPaG], q_0..q_{nseg-1} [mm^3/s], x [mm], v [mm/s], servo theta
 [deg] (not touched by :func:`plant_step`), load pressure [MPaG].
@@ -74,7 +84,7 @@ from ._pp import (
 )
 
 __all__ = ["GAMMA", "FR_SMOOTH", "FR_SLIDE", "FR_STUCK", "plant_f", "plant_step", "servo_step",
-           "thresholds"]
+           "thresholds", "term_flow", "TERM_DP_STEP"]
 
 #: ROS2 parameter (L-stable choice)
 GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
@@ -93,13 +103,71 @@ FR_STUCK = 2
 # borrowed, nothing is counted. error_model='numpy': no zero-division checks
 # (every divisor here is a parameter validated > 0 or a pivot >= 1), ~4 %.
 
+#: dp step of the forward difference behind a term's valve conductance [MPa]
+TERM_DP_STEP = 1e-6
+
+
+@njit(cache=True, nogil=True)
+def _term_value(tw, side, params, th, needle, dp, smooth, q):
+    """One side's flow with its closed-form term (``side``: ``J.TW_SUPPLY``
+    or ``J.TW_DRAIN``, its header in ``tw``) at threshold ``th`` [deg],
+    needle ``needle`` [deg], ``dp`` [MPa], given its flow ``q`` of eq. (5)
+    there [mm^3/s]; the other variables are in ``tw``. Returns the corrected
+    flow [mm^3/s]."""
+    v = int(tw[J.TW_VARS])
+    d = needle - th
+    tw[v + J.TV_DTHETA] = d if params[J.SP_UP] > 0.5 else -d
+    tw[v + J.TV_Q] = q
+    e = J.run_program(tw, int(tw[side + J.TW_CODE]), int(tw[side + J.TW_N]),
+                      int(tw[side + J.TW_CONST]), v, int(tw[J.TW_STACK]))
+    mode = tw[side + J.TW_MODE]
+    if mode == J.TERM_MUL:
+        return q * (1.0 + e)
+    if mode == J.TERM_ADD:
+        return q + e
+    q2, _g = J.side_flow_at(params, th + e, needle, dp, smooth)   # TERM_THRESHOLD
+    return q2
+
+
+@njit(cache=True, nogil=True, _nrt=False, error_model='numpy')
+def term_flow(tw, side, params, th, needle, p1, dp, smooth, load, q, g, want_slope):
+    """Flow of one side with its closed-form term (``tw`` from
+    ``J.pack_terms``, ``side`` ``J.TW_SUPPLY`` / ``J.TW_DRAIN`` with a mode)
+    [mm^3/s], and, with ``want_slope``, its slope d/d(dp) by a forward
+    difference of ``TERM_DP_STEP`` [mm^3/(s MPa)] (0 beyond the side's
+    sign: >= 0 supply, <= 0 drain); ``q``, ``g``: the side's flow and slope
+    without the term (``J.side_flow_at``); ``p1`` [MPa], ``load`` [MPaG]."""
+    v = int(tw[J.TW_VARS])
+    tw[v + J.TV_DP] = dp
+    tw[v + J.TV_P1] = p1
+    tw[v + J.TV_THETA] = needle
+    tw[v + J.TV_LOAD] = load
+    q1 = _term_value(tw, side, params, th, needle, dp, smooth, q)
+    if not want_slope:
+        return q1, g
+    h = TERM_DP_STEP
+    qh, _g = J.side_flow_at(params, th, needle, dp + h, smooth)
+    tw[v + J.TV_DP] = dp + h
+    q2 = _term_value(tw, side, params, th, needle, dp + h, smooth, qh)
+    tw[v + J.TV_DP] = dp
+    slope = (q2 - q1) / h
+    if params[J.SP_C] >= 0.0:
+        slope = max(slope, 0.0)
+    else:
+        slope = min(slope, 0.0)
+    if slope != slope:
+        slope = 0.0
+    return q1, slope
+
+
 @njit(cache=True, nogil=True, inline='always')
-def plant_f(ps, y, needle, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, dydt,
+def plant_f(ps, y, needle, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, tw, dydt,
             want_jac, jl, jd, ju):
     """f of the plant states at supply pressure ``ps`` [MPaG], needle angle
     ``needle`` [deg], sealing thresholds ``th_s``, ``th_d`` [deg], load set
     point ``p_load_set`` [MPaG], friction mode ``fr_mode`` / ``fr_arg``
-    (module doc), into ``dydt`` (the servo entry is left alone).
+    (module doc), the sides' closed-form terms ``tw`` (module doc), into
+    ``dydt`` (the servo entry is left alone).
 
     With ``want_jac``: the tridiagonal Jacobian of the chain
     [p_0, q_0, ..., p_nseg, v] into ``jl`` (sub), ``jd`` (diagonal), ``ju``
@@ -128,6 +196,12 @@ def plant_f(ps, y, needle, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr,
     dpd = p0 - ptank
     qs, gs = J.side_flow_at(sup, th_s, needle, dps, smooth)
     qd, gd = J.side_flow_at(dr, th_d, needle, dpd, smooth)
+    if tw[J.TW_SUPPLY + J.TW_MODE] != 0.0:
+        qs, gs = term_flow(tw, J.TW_SUPPLY, sup, th_s, needle, ps, dps, smooth, y[ipl], qs, gs,
+                           want_jac)
+    if tw[J.TW_DRAIN + J.TW_MODE] != 0.0:
+        qd, gd = term_flow(tw, J.TW_DRAIN, dr, th_d, needle, p0, dpd, smooth, y[ipl], qd, gd,
+                           want_jac)
     qv = qs + qd + gl * (dps - dpd)
     g = gs - gd + 2.0 * gl
     # node pressures (C = V / B; half segments at the ends, chamber at the last)
@@ -333,16 +407,17 @@ def plant_step(y, h, ps0, ps1, needle0, needle1, thr, p_load_set, fr_mode, fr_ar
     the sealing thresholds at t_n with their slopes (:func:`thresholds`),
     moved linearly to stage 2's pressures (exact within a segment of the
     valve's height table); load set point [MPaG] and friction mode held
-    over the step. ``w``: scratch space, a tuple of ten float arrays of the
-    state's length (allocated once per run by the caller)."""
+    over the step. ``w``: scratch space, a tuple of eleven float arrays
+    allocated once per run by the caller: ten of the state's length, then
+    the sides' closed-form terms ``tw`` (module doc)."""
     nseg = int(pp[_N_SEG])
     n = y.size
     nc = 2 * nseg + 2
     ith = 2 * nseg + 3
-    f1, f2, k1, y2, jl, jd, ju, cp, den, tmp = w
+    f1, f2, k1, y2, jl, jd, ju, cp, den, tmp, tw = w
     th_s = thr[0]
     th_d = thr[1]
-    plant_f(ps0, y, needle0, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, f1,
+    plant_f(ps0, y, needle0, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, tw, f1,
             True, jl, jd, ju)
     # W = I - gamma h A on the chain (into jl, jd, ju), factorised
     gh = GAMMA * h
@@ -359,7 +434,7 @@ def plant_step(y, h, ps0, ps1, needle0, needle1, thr, p_load_set, fr_mode, fr_ar
     dp0 = y2[0] - y[0]
     th_s += thr[2] * (ps1 - ps0) + thr[3] * dp0
     th_d += thr[4] * dp0
-    plant_f(ps1, y2, needle1, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, f2,
+    plant_f(ps1, y2, needle1, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr, tw, f2,
             False, jl, jd, ju)
     for k in range(n):
         f2[k] -= 2.0 * k1[k]

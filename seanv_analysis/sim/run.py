@@ -63,14 +63,20 @@ def _run(plant: Plant, *, ctrl_kind: int, cp, ctrl_tables, ref, load, cmd, durat
     with config_errors():  # the rig's valve geometry and the effects meet here
         pp = plant.packed_params(neutral_deg=neutral_deg, x_stop_mm=x_stop_mm)
         valve = plant.valve_at(run_index)
+        tw = plant.term_at(run_index)
     rate = float(rig["sensors"]["encoder_rate_hz"])
     n_fast = int(round(duration_s * rate)) + 1
     sigma = float(rig["sensors"]["pressure_noise_mpa"])
     noise = _rng(seed, run_index).standard_normal((n_fast, 3)) * sigma
     fast, slow, t_release = simulate_kernel(
-        pp, *valve, ctrl_kind, cp, *ctrl_tables,
+        pp, *valve, tw, ctrl_kind, cp, *ctrl_tables,
         ref[0], ref[1], load[0], load[1], cmd[0], cmd[1], noise, n_fast, float(x0_mm),
         float(cam0_deg), float(p0_mpag), float(hold0_deg))
+    if plant.has_terms and not np.all(np.isfinite(fast)):
+        specs = ", ".join(e.spec() for e in plant.effects if e.name == "term")
+        raise ConfigError(f"term: the plant's state became non-finite with {specs}; the "
+                          "expression must stay finite over the run's dp, p1, dtheta, theta, q "
+                          "and load")
     return Signals(fast, OUT_FAST), Signals(slow, OUT_SLOW), float(t_release)
 
 
