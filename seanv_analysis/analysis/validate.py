@@ -40,7 +40,7 @@ import pandas as pd
 from ..errors import ConfigError, DataError
 from ..io.run import Run
 from ..jsonable import JsonResult, clean_json
-from ..signals.derive import derive_samples
+from ..signals.derive import derive_columns, derive_samples
 from .tracking import load_level_holds
 
 __all__ = ["DEFAULT_THRESHOLD_PCT", "fit_percent", "reference_steps", "load_steps",
@@ -239,8 +239,10 @@ def build_controller(run: Run, model, rig=None):
     return CamController.from_rig(rig, **extra)
 
 
-def _cam_column(d: pd.DataFrame) -> str:
-    if "cam_deg" in d and np.isfinite(d["cam_deg"].to_numpy(float)).mean() > 0.5:
+def _cam_column(d) -> str:
+    """'cam_deg' where the derived table ``d`` (DataFrame or {column: array})
+    has cam feedback in most samples, else 'cam_cmd_deg'."""
+    if "cam_deg" in d and np.isfinite(np.asarray(d["cam_deg"], dtype=float)).mean() > 0.5:
         return "cam_deg"
     return "cam_cmd_deg"
 
@@ -478,12 +480,12 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
     if len(dm) < 2:
         raise DataError(f"{len(dm)} sample(s) where all streams overlap in time; expected a "
                         "longer common span to validate", path=run.meta.path)
-    ds = derive_samples(sim)
+    ds, _ = derive_columns(sim)    # numpy, the numbers of derive_samples
     t = dm["t_s"].to_numpy(float)
-    ts = ds["t_s"].to_numpy(float)
+    ts = np.asarray(ds["t_s"], dtype=float)
 
     def on_t(col):
-        out = np.interp(t, ts, ds[col].to_numpy(float))
+        out = np.interp(t, ts, np.asarray(ds[col], dtype=float))
         out[(t < ts[0]) | (t > ts[-1])] = np.nan
         return out
 
@@ -496,7 +498,8 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
                        "p_load_mpag": dm["p_load_mpag"].to_numpy(float)})
     band = float(plant_rig["controller"]["convergence_band_mm"])
     sm = step_metrics(t, ov.position_mm.to_numpy(), ref_t, ref_v, x0_mm=x0, band_mm=band)
-    ss = step_metrics(ts, ds["position_mm"].to_numpy(float), ref_t, ref_v, x0_mm=x0, band_mm=band)
+    ss = step_metrics(ts, np.asarray(ds["position_mm"], dtype=float), ref_t, ref_v, x0_mm=x0,
+                      band_mm=band)
     c = run.meta.controller or {}
 
     def agg(df, col, how):

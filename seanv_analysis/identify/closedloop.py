@@ -164,7 +164,7 @@ def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
     replayed on the twin ``rig`` from its logged cam command and load steps,
     from its first logged position; None when it cannot be replayed."""
     from ..analysis.validate import fit_percent
-    from ..signals.derive import derive_samples
+    from ..signals.derive import derive_columns
     from ..sim.run import simulate_cam_replay
 
     tg = run if isinstance(run, ReplayTarget) else replay_target(run, rig)
@@ -173,11 +173,11 @@ def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
     sim, _ = simulate_cam_replay(rig, cam_cmd=tg.cmd, load=tg.load, duration_s=tg.duration_s,
                                  x0_mm=tg.x0_mm, valve=valve, effects=tuple(effects),
                                  run_id=f"{tg.run_id}-replay")
-    ds = derive_samples(sim)
-    tsim = ds["t_s"].to_numpy(float)
+    ds, _ = derive_columns(sim)    # numpy, the numbers of derive_samples
+    tsim = np.asarray(ds["t_s"], dtype=float)
 
     def on_t(col):
-        out = np.interp(tg.t, tsim, ds[col].to_numpy(float))
+        out = np.interp(tg.t, tsim, np.asarray(ds[col], dtype=float))
         out[(tg.t < tsim[0]) | (tg.t > tsim[-1])] = np.nan
         return out
 
