@@ -15,18 +15,29 @@ except PackageNotFoundError:  # running from a source tree without install
 
 from .config import RigConfig, load_rig
 from .errors import ConfigError, DataError, FitError, SeanvError
-from .models import NeedleGeometry, ValveModel, ValveSide
 
 __all__ = ["__version__", "SeanvError", "DataError", "ConfigError", "FitError",
            "RigConfig", "load_rig", "ValveModel", "ValveSide", "NeedleGeometry",
            "load_dataset", "flowfit"]
 
+#: names imported on first use (numpy and the rest stay out of
+#: ``import seanv_analysis`` and ``seanv-analyze --help``): name -> module
+_LAZY = {"ValveModel": "seanv_analysis.models", "ValveSide": "seanv_analysis.models",
+         "NeedleGeometry": "seanv_analysis.models", "load_dataset": "seanv_analysis.api",
+         "flowfit": "seanv_analysis.api"}
+
 
 def __getattr__(name):
-    """The notebook API (:mod:`seanv_analysis.api`), imported on first use so
-    ``import seanv_analysis`` stays light."""
-    if name in ("load_dataset", "flowfit"):
+    """The valve model classes and the notebook API (:mod:`seanv_analysis.api`),
+    imported on first use so ``import seanv_analysis`` stays light."""
+    if name in _LAZY:
         import importlib  # by name: the root package stays below every layer
 
-        return getattr(importlib.import_module("seanv_analysis.api"), name)
+        value = getattr(importlib.import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
     raise AttributeError(f"module 'seanv_analysis' has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted({*globals(), *__all__})
