@@ -26,7 +26,16 @@ head ~ 4 x load).
 """
 from __future__ import annotations
 
-import math
+import os
+
+# one BLAS thread per test process, set before numpy loads, as the CLI does
+# (seanv_analysis.cli.BLAS_THREAD_VARIABLES): two xdist workers on two cores
+# with multi-threaded BLAS spin against each other (library calls the tests
+# make directly are not inside the stages' own one_blas_thread)
+for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import math  # noqa: E402
 from pathlib import Path
 from typing import Any
 

@@ -24,7 +24,7 @@ from ..config import RigConfig
 from ..errors import ConfigError, DataError, SeanvError
 from ..io.atomic import atomic_folder, remove_stale_temps, retire_folder
 from ..jsonable import JsonResult
-from ..stages import STAGES, Context, FailedRun, RunOutcome
+from ..stages import STAGES, Context, FailedRun, RunOutcome, one_blas_thread
 from ..stages.pipeline import Pipeline, load_pipeline
 from .cache import CACHE_DIRNAME, RunCache, run_key
 from .executor import Executor, TaskResult, make_executor, one_line_error
@@ -346,14 +346,8 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
             say(f"[{pipe.name}] {len(ctx.run_dirs)} run folder(s), executor: {result.executor}")
             mapper = CachedMapper(ex, cache, force=force, quiet=quiet)
             ctx.map_runs = mapper
-            for stage in pipe.stages:
-                t0 = time.perf_counter()
-                say(f"[{pipe.name}] stage {stage.name} ...")
-                _run_stage(ctx, stage.name, stage.options, result)
-                result.timings_s[stage.name] = time.perf_counter() - t0
-                status = "FAILED: " + result.stage_errors[stage.name] \
-                    if stage.name in result.stage_errors else "done"
-                say(f"[{pipe.name}] stage {stage.name} {status} ({result.timings_s[stage.name]:.1f} s)")
+            with one_blas_thread():     # the data-set stages, here (the workers have one)
+                _run_stages(pipe, ctx, result, say)
             result.computed, result.cached = mapper.computed, mapper.cached
             cache.save_index(force=True)
         result.warnings += [f"{w.category.__name__}: {w.message}" for w in caught
@@ -363,6 +357,18 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     if key is not None and result.success:
         record_run(out, key, result.outputs)
     return result
+
+
+def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, say) -> None:
+    """Each stage of ``pipe`` in order, timed and logged."""
+    for stage in pipe.stages:
+        t0 = time.perf_counter()
+        say(f"[{pipe.name}] stage {stage.name} ...")
+        _run_stage(ctx, stage.name, stage.options, result)
+        result.timings_s[stage.name] = time.perf_counter() - t0
+        status = "FAILED: " + result.stage_errors[stage.name] \
+            if stage.name in result.stage_errors else "done"
+        say(f"[{pipe.name}] stage {stage.name} {status} ({result.timings_s[stage.name]:.1f} s)")
 
 
 def _run_stage(ctx: Context, name: str, options: Mapping[str, Any], result: PipelineResult) -> None:

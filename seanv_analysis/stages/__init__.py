@@ -35,7 +35,7 @@ from __future__ import annotations
 from types import ModuleType
 
 from . import dataset, discover, figures, flowfit, identify, report, tracking, validate
-from .base import Context, FailedRun, RunMapper, RunOutcome, serial_map
+from .base import Context, FailedRun, RunMapper, RunOutcome, one_blas_thread, serial_map
 
 __all__ = ["STAGES", "Context", "FailedRun", "RunMapper", "RunOutcome", "serial_map", "dataset",
            "flowfit", "identify", "tracking", "validate", "discover", "figures", "report", "describe_stages",
@@ -72,8 +72,9 @@ def run_stages(data, names=("ingest", "flowfit"), *, rig=None, model=None,
         position-control runs) leaves no result.
     """
     ctx = Context.for_data(data, rig=rig, model=model, map_runs=map_runs)
-    for name in names:
-        value = STAGES[name].run(ctx, (options or {}).get(name, {}))
-        if value is not None:
-            ctx.add(name, value)
+    with one_blas_thread():
+        for name in names:
+            value = STAGES[name].run(ctx, (options or {}).get(name, {}))
+            if value is not None:
+                ctx.add(name, value)
     return ctx
