@@ -25,12 +25,13 @@ demo: $(STAMP)
 # two pytest-xdist workers (the 2-core machine): 5 min -> about 3.3 min
 TEST_WORKERS ?= 2
 
-# --dist loadgroup: the tests sharing the golden pipeline run share one worker
+# the golden pipeline run is computed once and shared by the workers
+# (tests/conftest.py: golden_run)
 test: $(STAMP)
-	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup
+	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS)
 
 test-fast: $(STAMP)
-	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadgroup -m "not slow"
+	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS) -m "not slow"
 
 bench: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks

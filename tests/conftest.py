@@ -36,6 +36,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import math  # noqa: E402
+from contextlib import contextmanager  # noqa: E402
 from pathlib import Path
 from typing import Any
 
@@ -214,39 +215,73 @@ def rig():
 GOLDEN_DRIFT = "drift:side=drain,step=0.05,every=3"
 
 
+@contextmanager
+def _shared_once(tmp_path_factory, worker_id: str, name: str):
+    """(folder, done) for a session fixture computed once per test run, not
+    once per xdist worker: the folder lies in the run's temporary root,
+    shared by its workers, and the block runs under an exclusive file lock
+    (the first worker computes, the others wait and read). ``done`` is True
+    when an earlier worker finished it (its ``.done`` marker is there).
+    Without xdist the folder is this session's own.
+
+    (pytest-xdist's ``--dist loadgroup`` cannot keep such tests on one
+    worker under pytest 9.2: its ``xdist_group`` suffix is written to
+    ``item._nodeid``, which pytest no longer reads.)
+    """
+    import fcntl
+
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if worker_id != "master" else base
+    folder = root / f"shared-{name}"
+    with open(root / f"shared-{name}.lock", "w") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        marker = folder / ".done"
+        done = marker.is_file()
+        yield folder, done
+        if not done:
+            marker.write_text("")
+
+
 @pytest.fixture(scope="session")
-def golden_data(tmp_path_factory):
+def golden_data(tmp_path_factory, worker_id):
     """The golden data set (tests/test_golden.py): 24 flow steps on both sides
     at two loads with a drain drift, and the position-control test with and
-    without the flow model, simulated with the built-in plant (seed 5)."""
+    without the flow model, simulated with the built-in plant (seed 5).
+    Made once per test run (read it, do not write into it)."""
     from datetime import datetime, timedelta, timezone
 
     from seanv_analysis.sim import simulate_flow_step, simulate_scenario
 
-    root = tmp_path_factory.mktemp("golden") / "data"
-    t = datetime(2026, 3, 2, 9, 0, tzinfo=timezone.utc)
-    grid = [(side, cam, load) for load in (0.3, 0.5) for rep in range(2)
-            for side, cams in (("supply", (-5.0, 0.0, 5.0)), ("drain", (-40.0, -32.5, -25.0)))
-            for cam in cams]
-    for i, (side, cam, load) in enumerate(grid):
-        run, _ = simulate_flow_step(side=side, cam_deg=cam, load_mpag=load, seed=5, run_index=i,
-                                    effects=[GOLDEN_DRIFT], run_id=f"fs{i:02d}-{side}",
-                                    started_at=t + timedelta(minutes=i))
-        write_run(root / "flow" / run.meta.run_id, run.meta.to_json_dict(), run.tables)
-    simulate_scenario("paper-position", root / "position", seed=5)
-    return root
+    with _shared_once(tmp_path_factory, worker_id, "golden-data") as (folder, done):
+        root = folder / "data"
+        if done:
+            return root
+        t = datetime(2026, 3, 2, 9, 0, tzinfo=timezone.utc)
+        grid = [(side, cam, load) for load in (0.3, 0.5) for rep in range(2)
+                for side, cams in (("supply", (-5.0, 0.0, 5.0)), ("drain", (-40.0, -32.5, -25.0)))
+                for cam in cams]
+        for i, (side, cam, load) in enumerate(grid):
+            run, _ = simulate_flow_step(side=side, cam_deg=cam, load_mpag=load, seed=5, run_index=i,
+                                        effects=[GOLDEN_DRIFT], run_id=f"fs{i:02d}-{side}",
+                                        started_at=t + timedelta(minutes=i))
+            write_run(root / "flow" / run.meta.run_id, run.meta.to_json_dict(), run.tables)
+        simulate_scenario("paper-position", root / "position", seed=5)
+        return root
 
 
 @pytest.fixture(scope="session")
-def golden_run(golden_data, tmp_path_factory):
-    """The paper pipeline on the golden data set, serial: (result.json document, out folder)."""
+def golden_run(golden_data, tmp_path_factory, worker_id):
+    """The paper pipeline on the golden data set, serial: (result.json
+    document, out folder). Run once per test run (read it, do not write)."""
     import json
 
     from seanv_analysis.batch import run_pipeline
 
-    out = tmp_path_factory.mktemp("golden-run") / "out"
-    run_pipeline("paper", [golden_data / "flow", golden_data / "position"], out_dir=out,
-                 workers=1, quiet=True, command=["golden"])
+    with _shared_once(tmp_path_factory, worker_id, "golden-run") as (folder, done):
+        out = folder / "out"
+        if not done:
+            run_pipeline("paper", [golden_data / "flow", golden_data / "position"], out_dir=out,
+                         workers=1, quiet=True, command=["golden"])
     return json.loads((out / "result.json").read_text()), out
 
 
@@ -281,16 +316,8 @@ SLOW_TESTS = (
 )
 
 
-#: tests using the session fixture golden_run (the paper pipeline on the golden
-#: data, ~25 s): one xdist worker runs them all (``--dist loadgroup``), so the
-#: fixture is computed once per test run, not once per worker
-GOLDEN_RUN_GROUP = "golden_run"
-
-
 def pytest_collection_modifyitems(config, items):
     for item in items:
         rel = item.nodeid.split("tests/", 1)[-1]
         if rel.split("::", 1)[0] in SLOW_MODULES or rel.startswith(SLOW_TESTS):
             item.add_marker(pytest.mark.slow)
-        if "golden_run" in getattr(item, "fixturenames", ()):
-            item.add_marker(pytest.mark.xdist_group(GOLDEN_RUN_GROUP))
