@@ -25,13 +25,15 @@ demo: $(STAMP)
 # two pytest-xdist workers (the 2-core machine): 5 min -> about 3.3 min
 TEST_WORKERS ?= 2
 
-# the golden pipeline run is computed once and shared by the workers
-# (tests/conftest.py: golden_run)
+# --dist loadfile: a test module's fixtures (foreign-rig data sets, identify
+# runs, report pipelines) are made once, on the worker that runs the module
+# (with --dist load both workers made most of them); the golden pipeline run
+# is made once and shared by the workers (tests/conftest.py: golden_run)
 test: $(STAMP)
-	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS)
+	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 test-fast: $(STAMP)
-	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS) -m "not slow"
+	MPLBACKEND=Agg $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow"
 
 bench: $(STAMP)
 	MPLBACKEND=Agg $(PY) -m benchmarks
