@@ -61,6 +61,12 @@ N_BOOT = 40
 STABILITY = 0.6
 #: features whose (projected, weighted) columns correlate this much are one choice
 SAME_FEATURE = 0.95
+#: share of a feature's (weighted) sum of squares that must lie outside the
+#: span of the nuisance columns and the features already chosen
+OWN_SHARE = 0.05
+#: features whose gain is within this share of the RSS of the best count as
+#: ties, and the simplest of them is taken (:func:`complexity`)
+TIE = 0.03
 #: f_scale of the base fit's soft_l1 loss (:func:`.static.fit_static`) [sigma]
 ROBUST_SCALE = 2.0
 ROBUST = bool(os.environ.get("TERMS_ROBUST"))
@@ -125,6 +131,12 @@ def library(variables: dict[str, np.ndarray]) -> list[str]:
     return out
 
 
+def complexity(text: str) -> int:
+    """How complex a feature is: the steps of its compiled program (a
+    variable 1, v**2 3, tanh(v/s) 4, a hinge 5)."""
+    return int(compile_expr(text).code.size)
+
+
 def term_spec(side: str, mode: str, features: tuple[str, ...],
               x0: tuple[float, ...] | None = None) -> EffectSpec:
     """The ``term`` effect with coefficients a1.. of ``features`` as its
@@ -149,6 +161,7 @@ class _Side:
     jac: dict[str, np.ndarray]
     run_dep: np.ndarray       # feature reads run
     variables: dict           # the term variables on the side's rows
+    complexity: np.ndarray    # of each feature (:func:`complexity`)
 
 
 def _jacobians(fit: StaticFit, data: FlowData, side: str, sigma: np.ndarray):
@@ -194,7 +207,8 @@ def _prepare(fit: StaticFit, data: FlowData, sigma: np.ndarray) -> list[_Side]:
         rob = (1.0 + (r / ROBUST_SCALE) ** 2) ** -0.25 if ROBUST else np.ones_like(r)
         r, nuis, jac = r * rob, nuis * rob[:, None], {k: v * rob for k, v in jac.items()}
         run_dep = np.array(["run" in compile_expr(t).variables for t in feats])
-        out.append(_Side(side, m, r, nuis, feats, g, jac, run_dep, variables))
+        out.append(_Side(side, m, r, nuis, feats, g, jac, run_dep, variables,
+                         np.array([complexity(t) for t in feats])))
     return out
 
 
@@ -207,7 +221,8 @@ def _orth(n: np.ndarray) -> np.ndarray:
 
 
 def _stepwise(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
-              allowed: np.ndarray | None = None) -> tuple[list[int], float]:
+              allowed: np.ndarray | None = None, complexity: np.ndarray | None = None
+              ) -> tuple[list[int], float]:
     """Forward stepwise least squares: up to ``k`` columns of ``x`` (the
     ``allowed`` ones) with ``nuisance`` always in; (chosen, fraction of the
     residual sum of squares they remove beyond the nuisance)."""
@@ -218,17 +233,22 @@ def _stepwise(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
     if rss0 <= 0:
         return [], 0.0
     chosen: list[int] = []
-    scale = np.sum(x0 ** 2, axis=0)
+    scale = np.sum(x ** 2, axis=0)
     for _ in range(k):
         nx = np.sum(x0 ** 2, axis=0)
-        ok = nx > 1e-8 * np.maximum(scale, 1e-300)
+        # a feature (nearly) in the span of the nuisance and the chosen ones is
+        # only a change of z0, C, y_c or of them: not a term of its own
+        ok = nx > OWN_SHARE * np.maximum(scale, 1e-300)
         if allowed is not None:
             ok &= allowed
         ok[chosen] = False
         if not ok.any():
             break
         gain = np.where(ok, (x0.T @ r0) ** 2 / np.where(ok, nx, 1.0), -1.0)
-        j = int(np.argmax(gain))
+        # the simplest of the features that do (nearly) as well as the best
+        near = gain >= gain.max() - TIE * rss0
+        j = int(np.flatnonzero(near)[np.argmin(complexity[near])]) if complexity is not None \
+            else int(np.argmax(gain))
         chosen.append(j)
         e = x0[:, j] / np.sqrt(nx[j])
         r0 = r0 - e * (e @ r0)
@@ -244,7 +264,8 @@ def _stats(sides: list[_Side], k: int, r_of=None) -> np.ndarray:
     """Fraction of the weighted RSS that ``k`` stepwise features remove, per
     (side, mode) in the order of ``sides`` x ``TERM_MODES`` (the search's
     statistic; ``r_of``: side -> the residual to use, default its own)."""
-    return np.array([_stepwise(s.r if r_of is None else r_of(s), s.nuisance, _design(s, mode), k)[1]
+    return np.array([_stepwise(s.r if r_of is None else r_of(s), s.nuisance, _design(s, mode), k,
+                               complexity=s.complexity)[1]
                      for s in sides for mode in fx.TERM_MODES])
 
 
@@ -261,7 +282,8 @@ def _stability(s: _Side, mode: str, chosen: list[int], rng: np.random.Generator)
     hits = np.zeros(len(chosen))
     for _ in range(N_BOOT):
         idx = rng.integers(0, n, n)
-        got, _ = _stepwise(s.r[idx], s.nuisance[idx], x[idx], len(chosen))
+        got, _ = _stepwise(s.r[idx], s.nuisance[idx], x[idx], len(chosen),
+                           complexity=s.complexity)
         for i, c in enumerate(chosen):
             hits[i] += bool(got) and corr[c, got].max() >= SAME_FEATURE
     return hits / N_BOOT
@@ -309,7 +331,7 @@ def _search(sides: list[_Side], data: FlowData, rng) -> _Choice | None:
     for s in sides:
         for mode in fx.TERM_MODES:
             x = _design(s, mode)
-            chosen, _ = _stepwise(s.r, s.nuisance, x, MAX_TERMS)
+            chosen, _ = _stepwise(s.r, s.nuisance, x, MAX_TERMS, complexity=s.complexity)
             if not chosen:
                 continue
             share = _stability(s, mode, chosen, rng)
@@ -342,8 +364,8 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     Residual permutation: each side's standardised residuals permuted among
     its runs (data that obey the base model with the same noise), the
     statistic the fraction of the RSS the k-feature stepwise fit removes, per
-    (side, mode) against its own null, family-wise by the min-p of all
-    (side, mode) searches on each replicate (Westfall-Young). A
+    (side, mode) against its own null, family-wise by the smallest p of all
+    (side, mode) searches on each replicate (Westfall-Young min-p). A
     term reading the run order is also tested by permuting the run order
     within side and load (:func:`.engine.permutation_strata`), the data as
     measured, the search restricted to run-dependent features; the larger
@@ -353,11 +375,13 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     combos = [(x.side, mode) for x in sides for mode in fx.TERM_MODES]
     observed = _stats(sides, k)[combos.index((choice.side, choice.mode))]
     null = np.array([_stats(sides, k, r_of=lambda x: rng.permutation(x.r)) for _ in range(n_perm)])
-    # Westfall-Young min-p over the (side, mode) searches: each its own null,
-    # so a side whose residual is heavy-tailed does not set the bar of the other
-    p_obs = (1 + np.sum(null[:, combos.index((choice.side, choice.mode))] >= observed)) / (1 + n_perm)
-    p_null = np.mean(null[None, :, :] >= null[:, None, :], axis=1).min(axis=1)
-    p = float((1 + np.sum(p_null <= p_obs)) / (1 + n_perm))
+    # Westfall-Young min-p over the (side, mode) searches: each against its own
+    # null (ranks), so a side whose residual is heavy-tailed does not set the
+    # bar of the other
+    c = combos.index((choice.side, choice.mode))
+    p_obs = (1 + np.sum(null[:, c] >= observed)) / (1 + n_perm)
+    p_null = ((1 + np.sum(null[None, :, :] >= null[:, None, :], axis=1)) / (1 + n_perm)).min(axis=1)
+    p = float((1 + np.sum(p_null < p_obs)) / (1 + n_perm))
     if not choice.run_dep:
         return p
     from .engine import permutation_strata
@@ -373,7 +397,7 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
         variables = {**me.variables, "run": run_index[me.rows]}
         g = np.column_stack([evaluate(t, variables) for t in me.features])
         x = me.jac[choice.mode][:, None] * g
-        return _stepwise(me.r, nuis, x, n_run, allowed=me.run_dep)[1]
+        return _stepwise(me.r, nuis, x, n_run, allowed=me.run_dep, complexity=me.complexity)[1]
 
     observed = stat(data.run_index)
     exceed = 0
@@ -387,7 +411,7 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
 
 def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits, fit_mask,
                  refit_sigma=None, alpha: float = 0.01, min_heldout_drop: float = 0.10,
-                 n_perm: int = 199, seed: int = 0) -> ProposedTerm | None:
+                 n_perm: int = 999, seed: int = 0) -> ProposedTerm | None:
     """The missing term of eq. (5) in closed form, or None (module doc).
 
     Parameters
