@@ -229,7 +229,7 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
         # a proposal makes the residual 'unexplained' (never a known effect)
         proposed = propose_term(final, data, sigma, splits=splits, fit_mask=fit_m,
                                 refit_sigma=lambda m: _fit_base(model, data.subset(m))[1],
-                                seed=seed)
+                                floor_mm3_s=floor, seed=seed)
         if proposed is not None and verdict == "none":
             verdict, trend_var = "unexplained", proposed.trend_variable
     geometry = {s: {"needle_y_c_mm": float(final.model.side(s).geometry.needle_y_c_mm),

@@ -83,6 +83,8 @@ def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
     return out
 
 
+#: unit of the correction f of each ``term`` mode (the models.effects.Term doc)
+_TERM_UNITS = {"mul": "-", "add": "mm^3/s", "threshold": "deg"}
 #: term variable (:mod:`seanv_analysis.models.expr`) -> residual variable name
 _RESIDUAL_NAMES = {"dp": "dp_mpa", "p1": "p1_mpa", "dtheta": "opening_deg", "theta": "opening_deg",
                    "q": "q_mm3_s", "load": "load_mpag", "run": "run_index",
@@ -140,11 +142,13 @@ class ProposedTerm:
             else 0.0
 
     def to_json_dict(self) -> dict[str, Any]:
+        unit = _TERM_UNITS[self.mode]
         return {"side": self.side, "mode": self.mode, "expr": self.expr, "spec": self.spec,
-                "features": list(self.features),
-                "coefficients": [clean_json(a) for a in self.coefficients],
-                "coefficients_ci95": [[clean_json(a), clean_json(b)]
-                                      for a, b in self.coefficients_ci95],
+                "coefficients": [{"feature": g, "value": clean_json(a),
+                                  "ci95": [clean_json(lo), clean_json(hi)],
+                                  "unit": f"{unit} per unit of {g}"}
+                                 for g, a, (lo, hi) in zip(self.features, self.coefficients,
+                                                           self.coefficients_ci95)],
                 "p_value": clean_json(self.p_value),
                 "heldout_rmse_before_mm3_s": clean_json(self.rmse_before_mm3_s),
                 "heldout_rmse_after_mm3_s": clean_json(self.rmse_after_mm3_s),

@@ -410,7 +410,7 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
 
 
 def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits, fit_mask,
-                 refit_sigma=None, alpha: float = 0.01, min_heldout_drop: float = 0.10,
+                 refit_sigma=None, floor_mm3_s: float = 0.0, alpha: float = 0.01, min_heldout_drop: float = 0.10,
                  n_perm: int = 999, seed: int = 0) -> ProposedTerm | None:
     """The missing term of eq. (5) in closed form, or None (module doc).
 
@@ -422,6 +422,8 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
         ``splits``: the engine's (fit, held-out) masks over ``data``
     sigma : flow noise sigma of the fit runs [mm^3/s] (:func:`.engine.noise_model`)
     refit_sigma : fit mask -> sigma for the other folds' refits (k-fold)
+    floor_mm3_s : smallest RMS change of the fitted flows the term must make
+        [mm^3/s] (the rig's flow resolution; a smaller term is not proposed)
     alpha : level of the permutation test; ``min_heldout_drop``: relative
         held-out RMSE drop required
     """
@@ -440,6 +442,14 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
         return None
     spec = term_spec(choice.side, choice.mode, choice.features, choice.coef)
     fitted = fit_static(final.model, fit_data, sigma, effects=[spec], geometry=final.geometry)
+    # material, as a named effect must be: the term moves the prediction by
+    # more than the rig's flow resolution (.engine.practical_floor_mm3_s)
+    size = float(np.sqrt(np.mean((predict_static(fitted.model, fit_data, fitted.effects)
+                                  - predict_static(final.model, fit_data)) ** 2)))
+    if _DEBUG:
+        print("  size", size, floor_mm3_s)
+    if size <= floor_mm3_s:
+        return None
     before, after = [], []
     for f_m, h_m in splits:
         fd, hd = data.subset(f_m), data.subset(h_m)
