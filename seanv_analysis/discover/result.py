@@ -262,7 +262,8 @@ class Discovery(JsonResult):
 
     def augmented_model_and_effects(self, rig=None) -> tuple[ValveModel, list[str]]:
         """The refitted valve and the effects found as ``models.effects``
-        specs (what the simulator's plant and ``validate`` take).
+        specs (what the simulator's plant and ``validate`` take); with a
+        proposed term, the valve refitted with it and its ``term`` spec last.
 
         Raises
         ------

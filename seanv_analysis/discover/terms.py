@@ -32,7 +32,6 @@ costs well under a second.
 """
 from __future__ import annotations
 
-import os
 from dataclasses import dataclass, replace
 from itertools import combinations
 
@@ -67,14 +66,8 @@ OWN_SHARE = 0.05
 #: features whose gain is within this share of the RSS of the best count as
 #: ties, and the simplest of them is taken (:func:`complexity`)
 TIE = 0.03
-#: f_scale of the base fit's soft_l1 loss (:func:`.static.fit_static`) [sigma]
-ROBUST_SCALE = 2.0
-ROBUST = bool(os.environ.get("TERMS_ROBUST"))
 #: step of the finite differences of the linearisation (threshold [deg], z0 [mm], y_c [mm])
 STEP_DEG, STEP_Z0_MM, STEP_YC_MM = 1e-3, 1e-4, 1e-2
-
-
-_DEBUG = bool(os.environ.get("TERMS_DEBUG"))
 
 
 def _num(x: float) -> str:
@@ -202,10 +195,6 @@ def _prepare(fit: StaticFit, data: FlowData, sigma: np.ndarray) -> list[_Side]:
         g = np.column_stack([evaluate(t, variables) for t in feats]).astype(float)
         nuis, jac = _jacobians(fit, data, side, sigma)
         r = (data.q_mm3_s[m] - predict_static(fit.model, data, fit.effects)[m]) / sigma[m]
-        # the base fit's robust loss (soft_l1, f_scale 2) as row weights, so a
-        # run it discounts cannot decide the search either
-        rob = (1.0 + (r / ROBUST_SCALE) ** 2) ** -0.25 if ROBUST else np.ones_like(r)
-        r, nuis, jac = r * rob, nuis * rob[:, None], {k: v * rob for k, v in jac.items()}
         run_dep = np.array(["run" in compile_expr(t).variables for t in feats])
         out.append(_Side(side, m, r, nuis, feats, g, jac, run_dep, variables,
                          np.array([complexity(t) for t in feats])))
@@ -246,7 +235,7 @@ def _stepwise(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
             break
         gain = np.where(ok, (x0.T @ r0) ** 2 / np.where(ok, nx, 1.0), -1.0)
         # the simplest of the features that do (nearly) as well as the best
-        near = gain >= gain.max() - TIE * rss0
+        near = ok & (gain >= gain.max() - TIE * rss0)
         j = int(np.flatnonzero(near)[np.argmin(complexity[near])]) if complexity is not None \
             else int(np.argmax(gain))
         chosen.append(j)
@@ -289,21 +278,19 @@ def _stability(s: _Side, mode: str, chosen: list[int], rng: np.random.Generator)
     return hits / N_BOOT
 
 
-def _inner_improvement(s: _Side, mode: str, cols: list[int], data: FlowData,
-                       inner_fit: np.ndarray, all_r: np.ndarray) -> float:
-    """Relative weighted RMSE drop on the inner validation runs (all sides)
-    of the linearised term fitted on the inner fit runs, against the
-    nuisance-only refit (both from the side's base residual)."""
+def _inner_improvement(s: _Side, mode: str, cols: list[int], inner_fit: np.ndarray) -> float:
+    """Relative weighted RMSE drop on the side's inner validation runs of the
+    linearised term fitted on its inner fit runs, against the nuisance-only
+    refit (both from the side's base residual): how much of the side's
+    error the term removes on runs it was not fitted to."""
     fit_rows, val_rows = inner_fit[s.rows], ~inner_fit[s.rows]
     if fit_rows.sum() < 4 or not val_rows.any():
         return 0.0
     x = _design(s, mode)[:, cols]
-    other = all_r[~s.rows & ~inner_fit][:0]
 
     def val_rmse(cols_mat):
         coef, *_ = np.linalg.lstsq(cols_mat[fit_rows], s.r[fit_rows], rcond=None)
-        e = np.concatenate([s.r[val_rows] - cols_mat[val_rows] @ coef, other])
-        return float(np.sqrt(np.mean(e ** 2)))
+        return float(np.sqrt(np.mean((s.r[val_rows] - cols_mat[val_rows] @ coef) ** 2)))
 
     before = val_rmse(s.nuisance)
     after = val_rmse(np.column_stack([s.nuisance, x]))
@@ -317,16 +304,12 @@ class _Choice:
     features: tuple[str, ...]
     coef: tuple[float, ...]
     inner_improvement: float
-    stat: float
     run_dep: bool
 
 
 def _search(sides: list[_Side], data: FlowData, rng) -> _Choice | None:
     """Steps 1-3 on the fit data: the best stable (side, mode, terms)."""
     inner_fit, _ = chrono_split(data.run_index, fraction=0.25, groups=data.side)
-    all_r = np.zeros(len(data))
-    for s in sides:
-        all_r[s.rows] = s.r
     best: _Choice | None = None
     for s in sides:
         for mode in fx.TERM_MODES:
@@ -335,8 +318,6 @@ def _search(sides: list[_Side], data: FlowData, rng) -> _Choice | None:
             if not chosen:
                 continue
             share = _stability(s, mode, chosen, rng)
-            if _DEBUG:
-                print("  step", s.side, mode, [s.features[c] for c in chosen], share)
             stable = []
             for c, sh in zip(chosen, share):
                 if sh < STABILITY:
@@ -344,16 +325,13 @@ def _search(sides: list[_Side], data: FlowData, rng) -> _Choice | None:
                 stable.append(c)
             for k in range(1, len(stable) + 1):
                 cols = stable[:k]
-                imp = _inner_improvement(s, mode, cols, data, inner_fit, all_r)
-                if _DEBUG:
-                    print("   cand", s.side, mode, [s.features[c] for c in cols], share, round(imp, 3))
+                imp = _inner_improvement(s, mode, cols, inner_fit)
                 if best is not None and imp <= best.inner_improvement:
                     continue
                 design = np.column_stack([s.nuisance, x[:, cols]])
                 coef, *_ = np.linalg.lstsq(design, s.r, rcond=None)
-                _, stat = _stepwise(s.r, s.nuisance, x[:, cols], k)
                 best = _Choice(s.side, mode, tuple(s.features[c] for c in cols),
-                               tuple(float(a) for a in coef[s.nuisance.shape[1]:]), imp, stat,
+                               tuple(float(a) for a in coef[s.nuisance.shape[1]:]), imp,
                                bool(s.run_dep[cols].any()))
     return best
 
@@ -436,8 +414,6 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
     if choice is None or choice.inner_improvement <= 0:
         return None
     p = _p_value(sides, choice, fit_data, n_perm, rng)
-    if _DEBUG:
-        print("  choice", choice, "p", p)
     if p >= alpha:
         return None
     spec = term_spec(choice.side, choice.mode, choice.features, choice.coef)
@@ -446,8 +422,6 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
     # more than the rig's flow resolution (.engine.practical_floor_mm3_s)
     size = float(np.sqrt(np.mean((predict_static(fitted.model, fit_data, fitted.effects)
                                   - predict_static(final.model, fit_data)) ** 2)))
-    if _DEBUG:
-        print("  size", size, floor_mm3_s)
     if size <= floor_mm3_s:
         return None
     before, after = [], []
@@ -463,8 +437,6 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
         after.append(hd.q_mm3_s - predict_static(t_fit.model, hd, t_fit.effects))
     rmse_b = float(np.sqrt(np.mean(np.concatenate(before) ** 2)))
     rmse_a = float(np.sqrt(np.mean(np.concatenate(after) ** 2)))
-    if _DEBUG:
-        print("  heldout", rmse_b, rmse_a, fitted.effects[spec.label][1])
     if not rmse_b > 0 or 1.0 - rmse_a / rmse_b < min_heldout_drop:
         return None
     coef = tuple(float(a) for a in fitted.effects[spec.label][1])
