@@ -249,13 +249,52 @@ def _design(s: _Side, mode: str, rows: np.ndarray | slice = slice(None)) -> np.n
     return (s.jac[mode][:, None] * s.g)[rows]
 
 
-def _stats(sides: list[_Side], k: int, r_of=None) -> np.ndarray:
+def _stepwise_many(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
+                   complexity: np.ndarray) -> np.ndarray:
+    """:func:`_stepwise`'s fraction of the RSS removed for each column of the
+    residuals ``r`` (n x B) at once (k = 1 or 2; the same choices, ties and
+    admissibility), for the permutation replicates."""
+    u = _orth(nuisance)
+    r0 = r - u @ (u.T @ r)
+    x0 = x - u @ (u.T @ x)
+    rss0 = np.sum(r0 ** 2, axis=0)
+    scale = np.maximum(np.sum(x ** 2, axis=0), 1e-300)
+    nx = np.sum(x0 ** 2, axis=0)
+    cols = np.arange(r.shape[1])
+
+    def pick(num, den, ok, rss):
+        gain = np.where(ok, num / np.where(ok, den, 1.0), -1.0)
+        near = ok & (gain >= gain.max(axis=0) - TIE * rss)
+        j = np.argmin(np.where(near, complexity[:, None], np.inf), axis=0)
+        return j, np.maximum(gain[j, cols], 0.0), ok.any(axis=0)
+
+    ok1 = np.repeat((nx > OWN_SHARE * scale)[:, None], r.shape[1], axis=1)
+    j1, g1, any1 = pick((x0.T @ r0) ** 2, nx[:, None], ok1, rss0)
+    rss = rss0 - np.where(any1, g1, 0.0)
+    if k >= 2:
+        e = x0[:, j1] / np.sqrt(np.where(any1, nx[j1], 1.0))          # n x B
+        r1 = r0 - e * np.sum(e * r0, axis=0)
+        den = nx[:, None] - (x0.T @ e) ** 2                              # p x B
+        ok2 = (den > OWN_SHARE * scale[:, None]) & any1
+        ok2[j1, cols] = False
+        _, g2, any2 = pick((x0.T @ r1) ** 2, den, ok2, rss0)
+        rss = rss - np.where(any2, g2, 0.0)
+    return np.where(rss0 > 0, 1.0 - rss / np.where(rss0 > 0, rss0, 1.0), 0.0)
+
+
+def _stats(sides: list[_Side], k: int, rng: np.random.Generator | None = None,
+           n: int = 1) -> np.ndarray:
     """Fraction of the weighted RSS that ``k`` stepwise features remove, per
     (side, mode) in the order of ``sides`` x ``TERM_MODES`` (the search's
-    statistic; ``r_of``: side -> the residual to use, default its own)."""
-    return np.array([_stepwise(s.r if r_of is None else r_of(s), s.nuisance, _design(s, mode), k,
-                               complexity=s.complexity)[1]
-                     for s in sides for mode in fx.TERM_MODES])
+    statistic): (1 x combos) on the data, or with ``rng`` (n x combos) on
+    ``n`` replicates whose residuals are permuted among each side's runs."""
+    out = []
+    for s in sides:
+        r = s.r[:, None] if rng is None else \
+            np.column_stack([rng.permutation(s.r) for _ in range(n)])
+        for mode in fx.TERM_MODES:
+            out.append(_stepwise_many(r, s.nuisance, _design(s, mode), k, s.complexity))
+    return np.column_stack(out)
 
 
 def _stability(s: _Side, mode: str, chosen: list[int], rng: np.random.Generator) -> np.ndarray:
@@ -351,8 +390,8 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     """
     k = len(choice.features)
     combos = [(x.side, mode) for x in sides for mode in fx.TERM_MODES]
-    observed = _stats(sides, k)[combos.index((choice.side, choice.mode))]
-    null = np.array([_stats(sides, k, r_of=lambda x: rng.permutation(x.r)) for _ in range(n_perm)])
+    observed = _stats(sides, k)[0, combos.index((choice.side, choice.mode))]
+    null = _stats(sides, k, rng, n_perm)
     # Westfall-Young min-p over the (side, mode) searches: each against its own
     # null (ranks), so a side whose residual is heavy-tailed does not set the
     # bar of the other
