@@ -124,3 +124,5 @@ def test_the_figure_shows_the_residual_with_the_term(found, tmp_path):
 
     paths = plot_discovery_residuals(found["approach"], out_dir=tmp_path, formats=("png",))
     assert paths and paths[0].stat().st_size > 0
+    ax = found["approach"].plot(variable="cam_approach")
+    assert any("proposed term" in t.get_text() for t in ax.get_legend().get_texts())

@@ -36,7 +36,7 @@ def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "dis
         return _draw(discovery, out_dir, stem, variables, formats)
 
 
-def _with_term(discovery, data):
+def residual_with_term(discovery, data):
     """Residual [mm^3/s] with the proposed closed-form term (``discovery.proposed_term``,
     :mod:`seanv_analysis.discover.terms`), None when there is none."""
     term = getattr(discovery, "proposed_term", None)
@@ -67,7 +67,7 @@ def _draw(discovery, out_dir, stem, variables, formats) -> list[Path]:
         var = residual_variables(discovery.base_model, data)
         r_before = data.q_mm3_s - predict_static(discovery.base_fit.model, data)
         r_after = data.q_mm3_s - predict_static(discovery.final_fit.model, data, discovery.final_fit.effects)
-        r_term = _with_term(discovery, data)
+        r_term = residual_with_term(discovery, data)
         for ax, name in zip(axes, variables):
             x = var.get(name)
             if x is None:
