@@ -34,7 +34,7 @@ from ..models import ValveModel, side_pressures
 from .candidates import candidate_specs, fit_candidate
 from .diagnostics import ljung_box, robust_scale, trend_tests
 from .result import Discovery, EffectFinding
-from .split import chrono_split, kfold_splits
+from .split import chrono_split, kfold_splits, permutation_strata  # noqa: F401 (re-exported)
 from .static import FlowData, StaticFit, fit_static, geometry_sides, predict_static
 from .terms import propose_term
 
@@ -389,25 +389,3 @@ def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected
         f, _ = _f_test(cur.rss_weighted, cur.n_params, new.rss_weighted, new.n_params, len(data))
         exceed += f >= f_obs
     return (1 + exceed) / (1 + n_perm)
-
-
-def permutation_strata(data: FlowData, *, tol_mpa: float = 0.02) -> list[np.ndarray]:
-    """Run indices grouped by side and load level (loads within ``tol_mpa``
-    of the level's first are one level; runs without a logged load are one
-    level of their side).
-
-    Not finer (e.g. the repeats of one cam angle): where a protocol repeats
-    an angle right away, its repeats span a few runs only and a run-order
-    effect could not show among them."""
-    load = np.asarray(data.load_mpag, float)
-    load = np.where(np.isfinite(load), load, -1.0)
-    groups: list[np.ndarray] = []
-    for side in np.unique(data.side):
-        rows = np.flatnonzero(data.side == side)
-        ordered = rows[np.argsort(load[rows], kind="stable")]
-        start = 0
-        for k in range(1, ordered.size + 1):
-            if k == ordered.size or load[ordered[k]] - load[ordered[start]] > tol_mpa:
-                groups.append(ordered[start:k])
-                start = k
-    return groups

@@ -41,7 +41,7 @@ from ..models import ValveModel, side_pressures
 from ..models import effects as fx
 from ..models.expr import compile_expr, evaluate
 from .result import ProposedTerm
-from .split import chrono_split
+from .split import chrono_split, permutation_strata
 from .static import EffectSpec, FlowData, StaticFit, fit_static, predict_static
 
 __all__ = ["propose_term", "library", "side_variables", "term_spec", "MAX_TERMS"]
@@ -384,7 +384,7 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     (side, mode) against its own null, family-wise by the smallest p of all
     (side, mode) searches on each replicate (Westfall-Young min-p). A
     term reading the run order is also tested by permuting the run order
-    within side and load (:func:`.engine.permutation_strata`), the data as
+    within side and load (:func:`.split.permutation_strata`), the data as
     measured, the search restricted to run-dependent features; the larger
     p counts.
     """
@@ -401,8 +401,6 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     p = float((1 + np.sum(p_null < p_obs)) / (1 + n_perm))
     if not choice.run_dep:
         return p
-    from .engine import permutation_strata
-
     strata = permutation_strata(data)
     me = next(s for s in sides if s.side == choice.side)
     fixed = [f for f in choice.features if "run" not in compile_expr(f).variables]
