@@ -116,6 +116,7 @@ def test_json_schema_report_and_augmented_model(found):
     (term,) = parse_effects(specs)
     assert isinstance(term, Term) and term.expr == d.proposed_term.expr
     assert model is d.proposed_term.model
+    assert d.augmented_model_dict()["proposed_term"] == d.proposed_term.spec
     assert "proposed_term" not in found["clean0"].to_json_dict()
 
 

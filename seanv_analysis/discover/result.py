@@ -236,9 +236,14 @@ class Discovery(JsonResult):
         return out
 
     def augmented_model_dict(self) -> dict[str, Any]:
-        """Model file content: the refitted valve plus the effects found."""
-        d = self.model.to_dict()
+        """Model file content: the refitted valve plus the effects found
+        (with a proposed term: the valve refitted with it, and the term as
+        ``proposed_term``, its ``term:`` spec)."""
+        term = self.proposed_term
+        d = (term.model if term is not None and term.model is not None else self.model).to_dict()
         d["effects"] = [e.to_json_dict() for e in self.effects]
+        if term is not None:
+            d["proposed_term"] = term.spec
         return d
 
     def with_closed_loop(self, before: dict | None, after: dict | None) -> "Discovery":

@@ -183,6 +183,8 @@ def _jacobians(fit: StaticFit, data: FlowData, side: str, sigma: np.ndarray):
 
 
 def _prepare(fit: StaticFit, data: FlowData, sigma: np.ndarray) -> list[_Side]:
+    """Each side's linearised problem (:class:`_Side`) around ``fit`` on
+    ``data`` (sides with >= 8 runs)."""
     out = []
     for side in ("supply", "drain"):
         m = data.side == side
@@ -245,8 +247,9 @@ def _stepwise(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
     return chosen, 1.0 - float(r0 @ r0) / rss0
 
 
-def _design(s: _Side, mode: str, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
-    return (s.jac[mode][:, None] * s.g)[rows]
+def _design(s: _Side, mode: str) -> np.ndarray:
+    """The side's weighted feature columns in ``mode``: J_mode g_k."""
+    return s.jac[mode][:, None] * s.g
 
 
 def _stepwise_many(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
