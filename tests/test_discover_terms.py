@@ -13,10 +13,13 @@ augmented model carries the term for the closed-loop check.
 """
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from foreign_rig import ForeignTruth, flowstep_plan, write_flowsteps
 from json_schemas import check_schema, keys_without_unit
+from test_foreign_rig import run_cli
 
 from seanv_analysis.api import load_dataset
 from seanv_analysis.discover import discover_flow_steps, predict_static
@@ -37,12 +40,20 @@ CASES = {"choke": (1, ForeignTruth(dp_choke=CHOKE)),
 
 
 @pytest.fixture(scope="module")
-def found(tmp_path_factory):
-    """{case: Discovery} on the foreign rig's flow steps."""
+def folders(tmp_path_factory):
+    """{case: data folder} of the foreign rig's flow steps."""
     out = {}
     for name, (seed, truth) in CASES.items():
-        folder = tmp_path_factory.mktemp(name)
-        write_flowsteps(folder, plan=PLAN, seed=seed, truth=truth)
+        out[name] = tmp_path_factory.mktemp(name)
+        write_flowsteps(out[name], plan=PLAN, seed=seed, truth=truth)
+    return out
+
+
+@pytest.fixture(scope="module")
+def found(folders):
+    """{case: Discovery} on the foreign rig's flow steps."""
+    out = {}
+    for name, folder in folders.items():
         ds = load_dataset(folder)
         out[name] = discover_flow_steps(ds.summary, model=ValveModel.from_rig(ds.rig), seed=0)
     return out
@@ -110,7 +121,8 @@ def test_json_schema_report_and_augmented_model(found):
     assert pt["heldout_rmse_after_mm3_s"] < pt["heldout_rmse_before_mm3_s"]
     assert [c["feature"] for c in pt["coefficients"]] == list(d.proposed_term.features)
     text = d.report()
-    assert "No named effect explains the residual; a proposed term (not a known effect): " \
+    assert "No named effect explains the flow-step residual; a proposed term (not a known " \
+           "effect): " \
            f"{d.proposed_term.spec} lowers the held-out error from" in text
     model, specs = d.augmented_model_and_effects()
     (term,) = parse_effects(specs)
@@ -127,3 +139,14 @@ def test_the_figure_shows_the_residual_with_the_term(found, tmp_path):
     assert paths and paths[0].stat().st_size > 0
     ax = found["approach"].plot(variable="cam_approach")
     assert any("proposed term" in t.get_text() for t in ax.get_legend().get_texts())
+
+
+def test_the_discover_command_writes_the_proposal(folders, found, tmp_path):
+    doc = run_cli("discover", folders["choke"], "--out", tmp_path / "out", "--json", "-q")
+    check_schema("discover", doc)
+    assert doc["verdict"] == "unexplained"
+    assert doc["proposed_term"]["spec"] == found["choke"].proposed_term.spec
+    text = (tmp_path / "out" / "discover.txt").read_text()
+    assert "a proposed term (not a known effect): term:side=supply" in text
+    model = json.loads((tmp_path / "out" / "model_augmented.json").read_text())
+    assert model["proposed_term"] == doc["proposed_term"]["spec"]

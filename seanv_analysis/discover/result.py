@@ -156,7 +156,8 @@ class ProposedTerm:
 
     def sentence(self) -> str:
         """The report's paragraph on the proposal."""
-        return ("No named effect explains the residual; a proposed term (not a known effect): "
+        return ("No named effect explains the flow-step residual; a proposed term (not a known "
+                "effect): "
                 f"{self.spec} lowers the held-out error from {self.rmse_before_mm3_s:.0f} to "
                 f"{self.rmse_after_mm3_s:.0f} mm^3/s ({-self.heldout_drop:+.0%}; search "
                 f"permutation p = {self.p_value:.3f}, inner validation "
@@ -330,11 +331,11 @@ class Discovery(JsonResult):
             lines.append("Discovery: the residual of the base flow model is structured "
                          f"(it trends with {self.trend_variable}), but no candidate effect "
                          "explains it materially.")
-            if self.proposed_term is not None:
-                lines.append(self.proposed_term.sentence())
         else:
             lines.append("Discovery: nothing found. The residual of the base flow model is "
                          "consistent with noise; no candidate effect lowers the error materially.")
+        if self.proposed_term is not None:
+            lines.append(self.proposed_term.sentence())
         if self.geometry:
             sides = ", ".join(f"{s} y_c {g['needle_y_c_mm']:.1f} mm (rig file {g['rig_file_mm']:.1f})"
                               for s, g in self.geometry.items())
