@@ -20,7 +20,8 @@ physically meaningful correction terms of eq. (5) (the ``term`` effect of
    only where stable over bootstrap resamples of runs, the best (side,
    mode, terms) chosen by the inner chronological validation split;
 4. the closed form refitted (coefficients jointly with z0, C, y_c) by
-   :func:`.static.fit_static`, Wald 95 % intervals;
+   :func:`.static.fit_static`, Wald 95 % intervals (a feature whose
+   interval holds 0 is dropped and the rest refitted);
 5. false-alarm control: the whole search repeated on permuted data
    (standardised residuals permuted among runs; for run-dependent terms
    the run order permuted within side and load); proposed only when the
@@ -427,6 +428,26 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     return max(p, (1 + exceed) / (1 + n_perm))
 
 
+def _refit(final: StaticFit, data: FlowData, sigma: np.ndarray, choice: _Choice
+           ) -> tuple[EffectSpec, StaticFit]:
+    """The chosen term refitted jointly with z0, C, y_c (step 4); a feature
+    whose coefficient's 95 % interval holds 0 is dropped (the first kept
+    when all do) and the rest refitted."""
+    spec = term_spec(choice.side, choice.mode, choice.features, choice.coef)
+    fitted = fit_static(final.model, data, sigma, effects=[spec], geometry=final.geometry)
+    if len(choice.features) == 1:
+        return spec, fitted
+    ci = fitted.param_ci95()
+    keep = [k for k, name in enumerate(spec.params)
+            if not ci[f"{spec.label}.{name}"][0] <= 0.0 <= ci[f"{spec.label}.{name}"][1]] or [0]
+    if len(keep) == len(choice.features):
+        return spec, fitted
+    values = fitted.effects[spec.label][1]
+    spec = term_spec(choice.side, choice.mode, tuple(choice.features[k] for k in keep),
+                     tuple(float(values[k]) for k in keep))
+    return spec, fit_static(final.model, data, sigma, effects=[spec], geometry=final.geometry)
+
+
 def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits, fit_mask,
                  refit_sigma=None, floor_mm3_s: float = 0.0, alpha: float = 0.01, min_heldout_drop: float = 0.10,
                  n_perm: int = 999, seed: int = 0) -> ProposedTerm | None:
@@ -456,8 +477,7 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
     p = _p_value(sides, choice, fit_data, n_perm, rng)
     if p >= alpha:
         return None
-    spec = term_spec(choice.side, choice.mode, choice.features, choice.coef)
-    fitted = fit_static(final.model, fit_data, sigma, effects=[spec], geometry=final.geometry)
+    spec, fitted = _refit(final, fit_data, sigma, choice)
     # material, as a named effect must be: the term moves the prediction by
     # more than the rig's flow resolution (.engine.practical_floor_mm3_s)
     size = float(np.sqrt(np.mean((predict_static(fitted.model, fit_data, fitted.effects)
@@ -483,7 +503,7 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
     ci_all = fitted.param_ci95()
     ci = tuple(ci_all[f"{spec.label}.{name}"] for name in spec.params)
     return ProposedTerm(side=choice.side, mode=choice.mode,
-                        expr=fx.Term.linear_expr(coef, choice.features),
-                        features=choice.features, coefficients=coef, coefficients_ci95=ci,
+                        expr=fx.Term.linear_expr(coef, spec.fixed["features"]),
+                        features=spec.fixed["features"], coefficients=coef, coefficients_ci95=ci,
                         p_value=p, rmse_before_mm3_s=rmse_b, rmse_after_mm3_s=rmse_a,
                         inner_improvement=choice.inner_improvement, model=fitted.model)
