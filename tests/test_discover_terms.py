@@ -150,3 +150,24 @@ def test_the_discover_command_writes_the_proposal(folders, found, tmp_path):
     assert "a proposed term (not a known effect): term:side=supply" in text
     model = json.loads((tmp_path / "out" / "model_augmented.json").read_text())
     assert model["proposed_term"] == doc["proposed_term"]["spec"]
+
+
+def test_the_parametric_term_is_the_term_effect_with_its_expression(found):
+    """The refit's form (features + coefficients as parameters) predicts what
+    the ``term`` effect with the written expression predicts; every library
+    feature is a valid expression of the grammar."""
+    from seanv_analysis.discover.static import EffectSpec
+    from seanv_analysis.discover.terms import library, side_variables
+    from seanv_analysis.models.expr import compile_expr
+
+    d = found["leak"]
+    t = d.proposed_term
+    spec = term_spec(t.side, t.mode, t.features)
+    got = predict_static(t.model, d.fit_data, {spec.label: (spec, np.asarray(t.coefficients))})
+    fixed = EffectSpec("term", t.side, (), (), (), (), {"mode": t.mode, "expr": t.expr})
+    want = predict_static(t.model, d.fit_data, {"t": (fixed, np.array([]))})
+    assert np.allclose(got, want, rtol=1e-3, atol=0.5)       # 4 significant digits in the text
+    assert Term.linear_expr([60.0, -1.5], ["dp**2", "load"]) == "60*dp**2 + -1.5*load"
+    feats = library(side_variables(d.model, d.fit_data, "supply"))
+    assert 30 < len(feats) < 100 and "dp**2" in feats
+    assert all(compile_expr(f).text == f for f in feats)
