@@ -34,8 +34,9 @@ from ..models import ValveModel, side_pressures
 from .candidates import candidate_specs, fit_candidate
 from .diagnostics import ljung_box, robust_scale, trend_tests
 from .result import Discovery, EffectFinding
-from .split import chrono_split, kfold_splits
+from .split import chrono_split, kfold_splits, permutation_strata  # noqa: F401 (re-exported)
 from .static import FlowData, StaticFit, fit_static, geometry_sides, predict_static
+from .terms import propose_term
 
 __all__ = ["discover_flow_steps", "noise_model", "residual_variables", "trend_amplitude",
            "practical_floor_mm3_s"]
@@ -180,7 +181,7 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
                         min_improvement=min_improvement, n_perm=n_perm,
                         max_effects=max_effects, seed=seed,
                         floor_mm3_s=practical_floor_mm3_s(fit_data, leakage_mm3_s))
-    base, final, findings, trends, lb = selection
+    base, final, findings, trends, lb, sigma = selection
 
     # Held-out error, before and after, with fits on the fit part only.
     before, after, n_held = [], [], 0
@@ -196,6 +197,7 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
     rmse_before = _rmse(np.concatenate(before))
     rmse_after = _rmse(np.concatenate(after))
 
+    proposed = None
     if findings:
         verdict, trend_var = "effect_found", None
     else:
@@ -223,6 +225,13 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
             trend_var = structured[0].variable if structured else "run_index"
         else:
             verdict, trend_var = "none", None
+        # nothing named: search the closed-form terms of eq. (5) (.terms);
+        # a proposal makes the residual 'unexplained' (never a known effect)
+        proposed = propose_term(final, data, sigma, splits=splits, fit_mask=fit_m,
+                                refit_sigma=lambda m: _fit_base(model, data.subset(m))[1],
+                                floor_mm3_s=floor, seed=seed)
+        if proposed is not None and verdict == "none":
+            verdict, trend_var = "unexplained", proposed.trend_variable
     geometry = {s: {"needle_y_c_mm": float(final.model.side(s).geometry.needle_y_c_mm),
                     "rig_file_mm": float(model.side(s).geometry.needle_y_c_mm)}
                 for s in final.geometry} or None
@@ -232,7 +241,7 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
                      effect_fits=final.effects, trends=trends, ljung_box=lb,
                      residual_before=np.concatenate(before), residual_after=np.concatenate(after),
                      heldout_data=data.subset(held_m), fit_data=fit_data,
-                     base_fit=base, final_fit=final, holdout=holdout)
+                     base_fit=base, final_fit=final, holdout=holdout, proposed_term=proposed)
 
 
 def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improvement, n_perm,
@@ -300,7 +309,7 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
         current, selected, findings = _prune_geometry(
             base, current, selected, findings, data, d_in, d_val, sigma, s_in, s_val, geom_sides,
             alpha=alpha, min_improvement=min_improvement)
-    return base, current, findings, trends, lb
+    return base, current, findings, trends, lb, sigma
 
 
 #: marks the geometry pseudo-candidate in the selection
@@ -380,25 +389,3 @@ def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected
         f, _ = _f_test(cur.rss_weighted, cur.n_params, new.rss_weighted, new.n_params, len(data))
         exceed += f >= f_obs
     return (1 + exceed) / (1 + n_perm)
-
-
-def permutation_strata(data: FlowData, *, tol_mpa: float = 0.02) -> list[np.ndarray]:
-    """Run indices grouped by side and load level (loads within ``tol_mpa``
-    of the level's first are one level; runs without a logged load are one
-    level of their side).
-
-    Not finer (e.g. the repeats of one cam angle): where a protocol repeats
-    an angle right away, its repeats span a few runs only and a run-order
-    effect could not show among them."""
-    load = np.asarray(data.load_mpag, float)
-    load = np.where(np.isfinite(load), load, -1.0)
-    groups: list[np.ndarray] = []
-    for side in np.unique(data.side):
-        rows = np.flatnonzero(data.side == side)
-        ordered = rows[np.argsort(load[rows], kind="stable")]
-        start = 0
-        for k in range(1, ordered.size + 1):
-            if k == ordered.size or load[ordered[k]] - load[ordered[start]] > tol_mpa:
-                groups.append(ordered[start:k])
-                start = k
-    return groups

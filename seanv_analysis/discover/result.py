@@ -17,7 +17,7 @@ from ..jsonable import JsonResult, clean_json
 from ..models import ValveModel
 from ..models import effects as fx
 
-__all__ = ["EffectFinding", "Discovery", "STATIC_EVIDENCE"]
+__all__ = ["EffectFinding", "Discovery", "ProposedTerm", "STATIC_EVIDENCE"]
 
 #: how the static selection backs an effect (:mod:`.engine`): the residual
 #: permutation check and the F-test against the model without it
@@ -83,6 +83,90 @@ def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
     return out
 
 
+#: unit of the correction f of each ``term`` mode (the models.effects.Term doc)
+_TERM_UNITS = {"mul": "-", "add": "mm^3/s", "threshold": "deg"}
+#: term variable (:mod:`seanv_analysis.models.expr`) -> residual variable name
+_RESIDUAL_NAMES = {"dp": "dp_mpa", "p1": "p1_mpa", "dtheta": "opening_deg", "theta": "opening_deg",
+                   "q": "q_mm3_s", "load": "load_mpag", "run": "run_index",
+                   "approach": "cam_approach"}
+
+
+@dataclass(frozen=True)
+class ProposedTerm:
+    """A closed-form correction of eq. (5) the term search proposes
+    (:mod:`.terms`) when no named effect explains the residual: not a known
+    effect, a formula to examine.
+
+    side, mode : the valve side and the ``term`` effect's mode ('mul' Q ->
+        Q (1 + f), 'add' Q -> Q + f [mm^3/s], 'threshold' theta_d -> theta_d + f [deg])
+    expr : f = sum_k a_k g_k in the expression grammar (canonical text)
+    features, coefficients, coefficients_ci95 : the g_k texts, the a_k and
+        their Wald 95 % intervals (refit jointly with z0, C, y_c)
+    p_value : of the permutation test of the whole search
+    rmse_before_mm3_s, rmse_after_mm3_s : held-out flow RMSE of the base
+        model (needle geometry freed) and with the term [mm^3/s]
+    inner_improvement : relative error drop on the inner validation split [-]
+    model : the valve refitted with the term (z0, C, y_c)
+    """
+
+    side: str
+    mode: str
+    expr: str
+    features: tuple[str, ...]
+    coefficients: tuple[float, ...]
+    coefficients_ci95: tuple[tuple[float, float], ...]
+    p_value: float
+    rmse_before_mm3_s: float
+    rmse_after_mm3_s: float
+    inner_improvement: float
+    model: ValveModel | None = None
+
+    @property
+    def spec(self) -> str:
+        """The ``term`` effect spec (``--effect`` string) of the proposal."""
+        return fx.Term(side=self.side, mode=self.mode, expr=self.expr).spec()
+
+    @property
+    def trend_variable(self) -> str:
+        """The residual variable (:func:`.engine.residual_variables`) of the
+        term's first feature."""
+        from ..models.expr import compile_expr
+
+        names = compile_expr(self.features[0]).variables if self.features else ()
+        return next((_RESIDUAL_NAMES[v] for v in names if v in _RESIDUAL_NAMES), "run_index")
+
+    @property
+    def heldout_drop(self) -> float:
+        """Relative held-out RMSE drop with the term (0.3 = 30 % lower)."""
+        return 1.0 - self.rmse_after_mm3_s / self.rmse_before_mm3_s if self.rmse_before_mm3_s \
+            else 0.0
+
+    def to_json_dict(self) -> dict[str, Any]:
+        unit = _TERM_UNITS[self.mode]
+        return {"side": self.side, "mode": self.mode, "expr": self.expr, "spec": self.spec,
+                "coefficients": [{"feature": g, "value": clean_json(a),
+                                  "ci95": [clean_json(lo), clean_json(hi)],
+                                  "unit": f"{unit} per unit of {g}"}
+                                 for g, a, (lo, hi) in zip(self.features, self.coefficients,
+                                                           self.coefficients_ci95)],
+                "p_value": clean_json(self.p_value),
+                "heldout_rmse_before_mm3_s": clean_json(self.rmse_before_mm3_s),
+                "heldout_rmse_after_mm3_s": clean_json(self.rmse_after_mm3_s),
+                "inner_improvement_ratio": clean_json(self.inner_improvement)}
+
+    def sentence(self) -> str:
+        """The report's paragraph on the proposal."""
+        return ("No named effect explains the flow-step residual; a proposed term (not a known "
+                "effect): "
+                f"{self.spec} lowers the held-out error from {self.rmse_before_mm3_s:.0f} to "
+                f"{self.rmse_after_mm3_s:.0f} mm^3/s ({-self.heldout_drop:+.0%}; search "
+                f"permutation p = {self.p_value:.3f}, inner validation "
+                f"{-self.inner_improvement:+.0%}). Coefficients (95 % intervals): "
+                + "; ".join(f"{a:.4g} [{lo:.4g}, {hi:.4g}] of {g}" for a, (lo, hi), g in
+                            zip(self.coefficients, self.coefficients_ci95, self.features))
+                + ". Check it against the physics before naming it.")
+
+
 @dataclass(frozen=True)
 class Discovery(JsonResult):
     """What discovery found and how much it helps on held-out runs.
@@ -121,6 +205,9 @@ class Discovery(JsonResult):
     #: rig keys the closed-loop search refitted with the effect found (e.g. the
     #: line's bulk modulus), applied to the twin of the closed-loop check
     twin_overrides: dict | None = None
+    #: the closed-form term the search proposes when no named effect explains
+    #: the residual (:mod:`.terms`); None: none
+    proposed_term: ProposedTerm | None = None
 
     @property
     def improvement(self) -> float:
@@ -145,12 +232,19 @@ class Discovery(JsonResult):
             out["position_control"] = self.position_control
         if self.validation:
             out["validation"] = self.validation
+        if self.proposed_term is not None:
+            out["proposed_term"] = self.proposed_term.to_json_dict()
         return out
 
     def augmented_model_dict(self) -> dict[str, Any]:
-        """Model file content: the refitted valve plus the effects found."""
-        d = self.model.to_dict()
+        """Model file content: the refitted valve plus the effects found
+        (with a proposed term: the valve refitted with it, and the term as
+        ``proposed_term``, its ``term:`` spec)."""
+        term = self.proposed_term
+        d = (term.model if term is not None and term.model is not None else self.model).to_dict()
         d["effects"] = [e.to_json_dict() for e in self.effects]
+        if term is not None:
+            d["proposed_term"] = term.spec
         return d
 
     def with_closed_loop(self, before: dict | None, after: dict | None) -> "Discovery":
@@ -174,7 +268,8 @@ class Discovery(JsonResult):
 
     def augmented_model_and_effects(self, rig=None) -> tuple[ValveModel, list[str]]:
         """The refitted valve and the effects found as ``models.effects``
-        specs (what the simulator's plant and ``validate`` take).
+        specs (what the simulator's plant and ``validate`` take); with a
+        proposed term, the valve refitted with it and its ``term`` spec last.
 
         Raises
         ------
@@ -191,6 +286,9 @@ class Discovery(JsonResult):
                 specs.append(cls.from_fit(e.side, e.params).spec())
             except ValueError as exc:
                 raise ConfigError(str(exc)) from None
+        if self.proposed_term is not None:
+            # the valve refitted with the term, and the term itself
+            return self.proposed_term.model or self.model, [*specs, self.proposed_term.spec]
         return self.model, specs
 
     def __repr__(self) -> str:
@@ -236,6 +334,8 @@ class Discovery(JsonResult):
         else:
             lines.append("Discovery: nothing found. The residual of the base flow model is "
                          "consistent with noise; no candidate effect lowers the error materially.")
+        if self.proposed_term is not None:
+            lines.append(self.proposed_term.sentence())
         if self.geometry:
             sides = ", ".join(f"{s} y_c {g['needle_y_c_mm']:.1f} mm (rig file {g['rig_file_mm']:.1f})"
                               for s, g in self.geometry.items())

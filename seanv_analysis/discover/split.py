@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["chrono_split", "kfold_splits"]
+__all__ = ["chrono_split", "kfold_splits", "permutation_strata"]
 
 
 def chrono_split(run_index: np.ndarray, *, fraction: float = 0.3,
@@ -46,3 +46,26 @@ def kfold_splits(run_index: np.ndarray, *, k: int = 5, seed: int = 0):
     for fold in folds:
         held = np.isin(run_index, fold)
         yield ~held, held
+
+
+def permutation_strata(data, *, tol_mpa: float = 0.02) -> list[np.ndarray]:
+    """Run indices of ``data`` (a :class:`.static.FlowData`: its side and
+    load_mpag) grouped by side and load level (loads within ``tol_mpa``
+    of the level's first are one level; runs without a logged load are one
+    level of their side).
+
+    Not finer (e.g. the repeats of one cam angle): where a protocol repeats
+    an angle right away, its repeats span a few runs only and a run-order
+    effect could not show among them."""
+    load = np.asarray(data.load_mpag, float)
+    load = np.where(np.isfinite(load), load, -1.0)
+    groups: list[np.ndarray] = []
+    for side in np.unique(data.side):
+        rows = np.flatnonzero(data.side == side)
+        ordered = rows[np.argsort(load[rows], kind="stable")]
+        start = 0
+        for k in range(1, ordered.size + 1):
+            if k == ordered.size or load[ordered[k]] - load[ordered[start]] > tol_mpa:
+                groups.append(ordered[start:k])
+                start = k
+    return groups

@@ -772,14 +772,29 @@ class Term(Effect):
         form = cls._FORMS.get(mode, mode + ": {expr}").format(expr=params.get("expr", "?"))
         return cls.SENTENCE.format(side=side, form=form)
 
+    @staticmethod
+    def linear_expr(coefficients: Iterable[float], features: Iterable[str], *,
+                    digits: int = 4) -> str:
+        """The expression a1*(g1) + a2*(g2) + ... of ``features`` (expression
+        texts) with ``coefficients`` written to ``digits`` significant digits
+        (the form discover's term search proposes), canonical."""
+        parts = [f"{float(a):.{digits}g}*({g})" for a, g in zip(coefficients, features)]
+        return compile_expr(" + ".join(parts) or "0").text
+
     @classmethod
     def apply_static(cls, terms, data, rows, p):
+        """The term's correction on ``rows``; with ``features`` (expression
+        texts, a fixed parameter) the expression is sum_k a_k g_k of them,
+        the a_k the fitted parameters a1, a2, ... (the term search's refit)."""
         mode = p.get("mode", "mul")
         if mode not in TERM_MODES:
             raise ValueError(f"{cls.name}: mode: expected one of {', '.join(TERM_MODES)}, "
                              f"got {mode!r}")
+        features = p.get("features")
+        expr = (cls.linear_expr([p[f"a{k + 1}"] for k in range(len(features))], features,
+                                digits=17) if features else p.get("expr", "0"))
         try:
-            program = compile_expr(p.get("expr", "0"))
+            program = compile_expr(expr)
         except ValueError as exc:
             raise ValueError(f"{cls.name}: {exc}") from None
         mask = np.zeros(len(terms.theta_deg), bool)

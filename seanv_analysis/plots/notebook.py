@@ -112,7 +112,7 @@ def _validation(val, ax, quantity: str = "position"):
 
 def _discovery(d, ax, variable: str = "run_index"):
     from ..discover import predict_static, residual_variables
-    from .residuals import LABELS
+    from .residuals import LABELS, residual_with_term
 
     if d.fit_data is None or d.base_fit is None:
         raise ValueError("this discovery had no flow-step runs: nothing to plot (its evidence "
@@ -129,6 +129,9 @@ def _discovery(d, ax, variable: str = "run_index"):
         ax.scatter(x, before, s=10, marker=marker, facecolors="none", edgecolors="0.6",
                    label=f"before ({part})")
         ax.scatter(x, after, s=10, marker=marker, label=f"after ({part})")
+        with_term = residual_with_term(d, data)
+        if with_term is not None:
+            ax.scatter(x, with_term, s=12, marker="x", label=f"with the proposed term ({part})")
     ax.axhline(0.0, color="k", lw=0.8)
     ax.set_xlabel(LABELS.get(variable, variable.replace("_", " ")))
     ax.set_ylabel("Residual $Q - Q_{model}$ [mm$^3$/s]")

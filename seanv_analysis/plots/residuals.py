@@ -1,5 +1,6 @@
 """Discovery figure: flow residual (measured - model) against the explanatory
-variables, before and after adding the effects found."""
+variables, before and after adding the effects found (and with the proposed
+closed-form term, when the term search proposed one)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -35,6 +36,20 @@ def plot_discovery_residuals(discovery, *, out_dir: str | Path, stem: str = "dis
         return _draw(discovery, out_dir, stem, variables, formats)
 
 
+def residual_with_term(discovery, data):
+    """Residual [mm^3/s] with the proposed closed-form term (``discovery.proposed_term``,
+    :mod:`seanv_analysis.discover.terms`), None when there is none."""
+    term = getattr(discovery, "proposed_term", None)
+    if term is None:
+        return None
+    from ..discover import predict_static
+    from ..discover.terms import term_spec
+
+    spec = term_spec(term.side, term.mode, term.features)
+    return data.q_mm3_s - predict_static(term.model or discovery.model, data,
+                                         {spec.label: (spec, np.asarray(term.coefficients))})
+
+
 def _draw(discovery, out_dir, stem, variables, formats) -> list[Path]:
     """The figure (a grid of two columns), in the house style."""
     # the variables and predictions exactly as discovery saw them
@@ -52,6 +67,7 @@ def _draw(discovery, out_dir, stem, variables, formats) -> list[Path]:
         var = residual_variables(discovery.base_model, data)
         r_before = data.q_mm3_s - predict_static(discovery.base_fit.model, data)
         r_after = data.q_mm3_s - predict_static(discovery.final_fit.model, data, discovery.final_fit.effects)
+        r_term = residual_with_term(discovery, data)
         for ax, name in zip(axes, variables):
             x = var.get(name)
             if x is None:
@@ -64,6 +80,10 @@ def _draw(discovery, out_dir, stem, variables, formats) -> list[Path]:
                            label=f"before ({part})" if side == "supply" else None)
                 ax.scatter((x + jitter)[m], r_after[m], s=10, marker=marker, color=colour, alpha=0.8,
                            label=f"after, {side} ({part})")
+                if r_term is not None:
+                    ax.scatter((x + jitter)[m], r_term[m], s=12, marker="x", color="tab:green",
+                               linewidths=0.8, label=f"with the proposed term ({part})"
+                               if side == "supply" else None)
     for ax, name in zip(axes, variables):
         ax.axhline(0, color="k", lw=0.8)
         ax.set_xlabel(LABELS.get(name, name))

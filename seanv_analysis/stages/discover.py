@@ -197,8 +197,9 @@ CLOSED_LOOP_EVIDENCE = ("fitted on the identified twin driven by the logged cam 
 
 def closed_loop(ctx: Context, discovery) -> DiscoverResult:
     """The closed-loop check of a discovery: the position-control runs
-    validated with the base model and with the augmented model and effects."""
-    if not position_paths(ctx) or not discovery.effects:
+    validated with the base model and with the augmented model and effects
+    (a proposed closed-form term included: ``augmented_model_and_effects``)."""
+    if not position_paths(ctx) or not (discovery.effects or discovery.proposed_term):
         return DiscoverResult(discovery)
     note = ""
     try:
