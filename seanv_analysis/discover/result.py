@@ -351,9 +351,13 @@ class Discovery(JsonResult):
                 "position_control_shift": "flow RMSE of actual flow shifted by the nominal "
                                           "vs the estimated lag"}.get(self.heldout_source,
                                                                      "flow RMSE")
+        # with a proposed term and no named effect, "after" is the named
+        # effects' (none): say so, the term's own figure is above
+        after = "after the named effects (none)" if self.proposed_term and not self.effects \
+            else "after"
         lines.append(f"Held-out runs ({self.holdout}, n = {self.n_heldout_runs}): {what} "
                      f"{self.rmse_before_mm3_s:.0f} mm^3/s before, {self.rmse_after_mm3_s:.0f} mm^3/s "
-                     f"after ({-self.improvement:+.0%} error, residual = measured - model).")
+                     f"{after} ({-self.improvement:+.0%} error, residual = measured - model).")
         if self.position_control and self.position_control.get("method"):
             pc = self.position_control
             n = int(pc["n_runs"])
