@@ -216,7 +216,7 @@ GOLDEN_DRIFT = "drift:side=drain,step=0.05,every=3"
 
 
 @contextmanager
-def _shared_once(tmp_path_factory, worker_id: str, name: str):
+def _shared_once(tmp_path_factory, name: str):
     """(folder, done) for a session fixture computed once per test run, not
     once per xdist worker: the folder lies in the run's temporary root,
     shared by its workers, and the block runs under an exclusive file lock
@@ -231,7 +231,8 @@ def _shared_once(tmp_path_factory, worker_id: str, name: str):
     import fcntl
 
     base = tmp_path_factory.getbasetemp()
-    root = base.parent if worker_id != "master" else base
+    # an xdist worker's base is <run>/popen-gwN: the run's root is shared
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
     folder = root / f"shared-{name}"
     with open(root / f"shared-{name}.lock", "w") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
@@ -243,7 +244,7 @@ def _shared_once(tmp_path_factory, worker_id: str, name: str):
 
 
 @pytest.fixture(scope="session")
-def golden_data(tmp_path_factory, worker_id):
+def golden_data(tmp_path_factory):
     """The golden data set (tests/test_golden.py): 24 flow steps on both sides
     at two loads with a drain drift, and the position-control test with and
     without the flow model, simulated with the built-in plant (seed 5).
@@ -252,7 +253,7 @@ def golden_data(tmp_path_factory, worker_id):
 
     from seanv_analysis.sim import simulate_flow_step, simulate_scenario
 
-    with _shared_once(tmp_path_factory, worker_id, "golden-data") as (folder, done):
+    with _shared_once(tmp_path_factory, "golden-data") as (folder, done):
         root = folder / "data"
         if done:
             return root
@@ -270,14 +271,14 @@ def golden_data(tmp_path_factory, worker_id):
 
 
 @pytest.fixture(scope="session")
-def golden_run(golden_data, tmp_path_factory, worker_id):
+def golden_run(golden_data, tmp_path_factory):
     """The paper pipeline on the golden data set, serial: (result.json
     document, out folder). Run once per test run (read it, do not write)."""
     import json
 
     from seanv_analysis.batch import run_pipeline
 
-    with _shared_once(tmp_path_factory, worker_id, "golden-run") as (folder, done):
+    with _shared_once(tmp_path_factory, "golden-run") as (folder, done):
         out = folder / "out"
         if not done:
             run_pipeline("paper", [golden_data / "flow", golden_data / "position"], out_dir=out,
