@@ -322,3 +322,13 @@ def pytest_collection_modifyitems(config, items):
         rel = item.nodeid.split("tests/", 1)[-1]
         if rel.split("::", 1)[0] in SLOW_MODULES or rel.startswith(SLOW_TESTS):
             item.add_marker(pytest.mark.slow)
+
+
+@pytest.fixture(scope="module")
+def dask_cluster():
+    """One LocalCluster for the module (2 worker processes, 1 thread each)."""
+    distributed = pytest.importorskip("dask.distributed")
+    cluster = distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                       dashboard_address=None)
+    yield cluster
+    cluster.close()

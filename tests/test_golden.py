@@ -9,7 +9,9 @@ The data (conftest ``golden_data``): 24 flow steps on both sides at two
 loads with the paper's drain-side drift (step 5 % every 3 runs, strong enough
 for 24 runs), plus the position-control test with and without the flow
 model, simulated with the built-in plant (seed 5). The serial run
-(``golden_run``) is also what test_batch holds the other executors to. Re-record after an intended change of numbers with::
+(``golden_run``) is also what the process pool and dask runs below are held to,
+and what the JSON schemas are checked on. Re-record after an intended change of
+numbers with::
 
     SEANV_UPDATE_GOLDEN=1 .venv/bin/python -m pytest tests/test_golden.py
 """
@@ -19,6 +21,11 @@ import json
 import math
 import os
 from pathlib import Path
+
+import pytest
+from json_schemas import check_schema, keys_without_unit
+
+from seanv_analysis.batch import run_pipeline
 
 GOLDEN = Path(__file__).parent / "golden" / "paper_pipeline.json"
 #: keys of result.json that depend on the machine or the clock, not the numbers
@@ -101,3 +108,60 @@ def test_line_structure_kept_on_our_own_plant(golden_run):
     c = next(c for c in doc["identify"]["constants"] if c["key"] == "tube.inertance_factor")
     assert c["value"] == 1.0 and c["default"] == 1.0
     assert "kept" in c["note"]
+
+
+# The other tests of the golden pipeline run, in this module so that one xdist
+# worker runs them all (--dist loadfile) and none waits for the run.
+
+def test_pipeline_result_follows_the_schema_and_names_units(golden_run):
+    doc, _ = golden_run
+    check_schema("run", doc)
+    assert keys_without_unit(doc) == []
+    # integers stay integers (JSON Schema's "integer" also admits 6.0)
+    assert all(isinstance(r["steps"], int) for r in doc["validation"]["runs"])
+    assert all(isinstance(c["steps"], int) for c in doc["validation"]["by_controller"].values())
+
+
+def test_schema_catches_a_unitless_or_mistyped_key(golden_run):
+    doc, _ = golden_run
+    bad = json.loads(json.dumps(doc))
+    side = bad["flowfit"]["supply"]
+    side["C"] = side.pop("C_mm3_s_deg2_sqrtMPa")
+    with pytest.raises(pytest.importorskip("jsonschema").ValidationError):
+        check_schema("run", bad)
+    assert "/flowfit/supply/C" in keys_without_unit(bad)
+    bad = json.loads(json.dumps(doc))
+    bad["validation"]["runs"][0]["steps"] = "6"
+    with pytest.raises(pytest.importorskip("jsonschema").ValidationError):
+        check_schema("run", bad)
+
+
+def test_simulated_paper_pipeline_identical_on_all_executors(golden_data, golden_run, tmp_path,
+                                                             dask_cluster):
+    """Identified parameters, tracking and closed-loop validation: bit for
+    bit the same from a process pool and a dask cluster as from the serial
+    run of the golden data set.
+
+    Neither runs discover: data-set stages (flowfit, identify, tracking,
+    discover) run in the calling process whatever the executor, and
+    discover's only per-run work, the closed-loop re-runs of
+    ``validation_augmented``, is validate's own function (checked here
+    through both executors under ``validation``): 25-50 s less."""
+    from dask.distributed import Client
+
+    serial, _ = golden_run
+    doc = {"stages": [{"name": "ingest"}, {"name": "flowfit"}, {"name": "identify"},
+                      {"name": "tracking"}, {"name": "validate"}]}
+    data = [golden_data / "flow", golden_data / "position"]
+    keys = ("flowfit", "identify", "tracking", "validation", "excluded", "stage_errors",
+            "runs_read")
+    pool = run_pipeline(doc, data, out_dir=tmp_path / "p", workers=2, quiet=True).to_json_dict()
+    with Client(dask_cluster) as client:
+        dask = run_pipeline(doc, data, out_dir=tmp_path / "d", client=client, quiet=True).to_json_dict()
+    assert serial["runs_read"] == 26 and pool["executor"].startswith("process pool (2")
+    assert dask["executor"].startswith("dask")
+    assert serial["stage_errors"] == {} and serial["flowfit"] is not None
+    assert serial["validation"] is not None and serial["validation_augmented"] is not None
+    for other in (pool, dask):
+        for k in keys:
+            assert json.loads(json.dumps(other[k])) == serial[k], k
