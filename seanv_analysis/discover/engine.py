@@ -34,7 +34,12 @@ from ..models import ValveModel, side_pressures
 from .candidates import candidate_specs, fit_candidate
 from .diagnostics import ljung_box, robust_scale, trend_tests
 from .result import Discovery, EffectFinding
-from .split import chrono_split, kfold_splits, permutation_strata  # noqa: F401 (re-exported)
+from .split import (  # noqa: F401 (permutation_strata re-exported)
+    chrono_split,
+    kfold_splits,
+    permutation_strata,
+    permuted_run_order,
+)
 from .static import FlowData, StaticFit, fit_static, geometry_sides, predict_static
 from .terms import propose_term
 
@@ -376,10 +381,7 @@ def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected
     exceed = 0
     for _ in range(n_perm):
         if by_order:
-            order = data.run_index.copy()
-            for idx in strata:
-                order[idx] = data.run_index[rng.permutation(idx)]
-            d_star = replace(data, run_index=order)
+            d_star = replace(data, run_index=permuted_run_order(data.run_index, strata, rng))
         else:
             d_star = replace(data, q_mm3_s=q_hat + sigma * rng.permutation(z))
         cur = fit_static(current.model, d_star, sigma, effects=selected, geometry=current.geometry)

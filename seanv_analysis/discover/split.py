@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["chrono_split", "kfold_splits", "permutation_strata"]
+__all__ = ["chrono_split", "kfold_splits", "permutation_strata", "permuted_run_order"]
 
 
 def chrono_split(run_index: np.ndarray, *, fraction: float = 0.3,
@@ -69,3 +69,14 @@ def permutation_strata(data, *, tol_mpa: float = 0.02) -> list[np.ndarray]:
                 groups.append(ordered[start:k])
                 start = k
     return groups
+
+
+def permuted_run_order(run_index: np.ndarray, strata, rng: np.random.Generator) -> np.ndarray:
+    """A copy of ``run_index`` with the run order permuted within each
+    stratum (:func:`permutation_strata`: rows of one side and load level),
+    the other rows as they are: a replicate of the data for a test of a
+    run-order effect."""
+    order = run_index.copy()
+    for idx in strata:
+        order[idx] = run_index[rng.permutation(idx)]
+    return order

@@ -42,7 +42,7 @@ from ..models import ValveModel, side_pressures
 from ..models import effects as fx
 from ..models.expr import compile_expr, evaluate
 from .result import ProposedTerm
-from .split import chrono_split, permutation_strata
+from .split import chrono_split, permutation_strata, permuted_run_order
 from .static import EffectSpec, FlowData, StaticFit, fit_static, predict_static
 
 __all__ = ["propose_term", "library", "side_variables", "term_spec", "MAX_TERMS"]
@@ -421,10 +421,7 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     observed = stat(data.run_index)
     exceed = 0
     for _ in range(n_perm):
-        order = data.run_index.copy()
-        for idx in strata:
-            order[idx] = data.run_index[rng.permutation(idx)]
-        exceed += stat(order) >= observed
+        exceed += stat(permuted_run_order(data.run_index, strata, rng)) >= observed
     return max(p, (1 + exceed) / (1 + n_perm))
 
 
