@@ -26,16 +26,16 @@ head ~ 4 x load).
 """
 from __future__ import annotations
 
-import os
+from seanv_analysis.config import default_one_blas_thread
 
-# one BLAS thread per test process, set before numpy loads, as the CLI does
-# (seanv_analysis.cli.BLAS_THREAD_VARIABLES): two xdist workers on two cores
-# with multi-threaded BLAS spin against each other (library calls the tests
-# make directly are not inside the stages' own one_blas_thread)
-for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+# one BLAS thread per test process, set before numpy loads, as the CLI does:
+# two xdist workers on two cores with multi-threaded BLAS spin against each
+# other (library calls the tests make directly are not inside the stages'
+# own one_blas_thread)
+default_one_blas_thread()
 
 import math  # noqa: E402
+import os  # noqa: E402
 from contextlib import contextmanager  # noqa: E402
 from pathlib import Path
 from typing import Any

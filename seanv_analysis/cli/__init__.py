@@ -103,9 +103,6 @@ from . import (  # noqa: E402,F401
     validate_cmd,
 )
 
-#: environment variables that set the BLAS libraries' thread counts
-BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
-
 
 def main(argv: list[str] | None = None) -> None:
     """Console-script entry point (SIGTERM unwinds like Ctrl-C: exit 143).
@@ -119,16 +116,11 @@ def main(argv: list[str] | None = None) -> None:
     not promise either."""
     import atexit
     import gc
-    import os
     import signal
 
-    # one BLAS thread unless the user chose (before numpy loads): the
-    # package's linear algebra is on small matrices, where extra BLAS threads
-    # only spin (identify + discover on 2 cores: 36 s CPU for 22 s with
-    # them, 23 s for 23 s without) and make the last bits depend on the
-    # machine's core count
-    for var in BLAS_THREAD_VARIABLES:
-        os.environ.setdefault(var, "1")
+    from ..config import default_one_blas_thread
+
+    default_one_blas_thread()   # before numpy loads; a user's setting wins
     from ..batch.process_setup import return_large_blocks_to_os
 
     atexit.register(gc.freeze)   # registered first: runs after the other exit handlers

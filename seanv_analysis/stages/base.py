@@ -76,13 +76,9 @@ class RunMapper(Protocol):
 
 def one_blas_thread():
     """Context in which the BLAS libraries numpy and scipy loaded use one
-    thread (threadpoolctl), as the batch's worker processes and dask's do.
-
-    The stages' linear algebra is on small matrices (fits of a few
-    parameters, Savitzky-Golay): extra BLAS threads only spin (identify +
-    discover on 2 cores: 36 s CPU for 22 s wall with them, 23 s for 23 s
-    without) and their sums' order makes the last bits depend on the
-    machine's core count."""
+    thread (threadpoolctl), as the batch's worker processes and dask's do:
+    for a process whose numpy is already loaded (why one thread:
+    :func:`seanv_analysis.config.default_one_blas_thread`)."""
     from threadpoolctl import threadpool_limits
 
     return threadpool_limits(limits=1, user_api="blas")
