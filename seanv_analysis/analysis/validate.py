@@ -484,10 +484,8 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
     t = dm["t_s"].to_numpy(float)
     ts = np.asarray(ds["t_s"], dtype=float)
 
-    def on_t(col):
-        out = np.interp(t, ts, np.asarray(ds[col], dtype=float))
-        out[(t < ts[0]) | (t > ts[-1])] = np.nan
-        return out
+    def on_t(col):      # NaN outside the simulated span
+        return np.interp(t, ts, np.asarray(ds[col], dtype=float), left=np.nan, right=np.nan)
 
     cam_m, cam_s = _cam_column(dm), _cam_column(ds)
     ov = pd.DataFrame({"t_s": t, "x_ref_mm": dm["x_ref_mm"].to_numpy(float),

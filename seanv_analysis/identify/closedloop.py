@@ -176,10 +176,8 @@ def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
     ds, _ = derive_columns(sim)    # numpy, the numbers of derive_samples
     tsim = np.asarray(ds["t_s"], dtype=float)
 
-    def on_t(col):
-        out = np.interp(tg.t, tsim, np.asarray(ds[col], dtype=float))
-        out[(tg.t < tsim[0]) | (tg.t > tsim[-1])] = np.nan
-        return out
+    def on_t(col):      # NaN outside the simulated span
+        return np.interp(tg.t, tsim, np.asarray(ds[col], dtype=float), left=np.nan, right=np.nan)
 
     ov = pd.DataFrame({"t_s": tg.t, "q_mm3_s": tg.q, "q_sim_mm3_s": on_t("q_mm3_s"),
                        "position_mm": tg.x, "position_sim_mm": on_t("position_mm")})
