@@ -78,9 +78,11 @@ def _one(args):
         before = validate_runs(pos, ValveModel.from_rig(rig), rig=rig).table
         after = validate_runs(pos, model, rig=rig, effects=specs).table
         drop = float(1.0 - after["rmse_flow_mm3_s"].mean() / before["rmse_flow_mm3_s"].mean())
+    term = res.proposed_term
     return {"effect": name, "spec": spec, "seed": seed, "verdict": res.verdict, "found": found,
             "named": bool(found) and found[0] == (name, side) if name != "none" else None,
-            "heldout_drop": drop}
+            "heldout_drop": drop,
+            "proposed_term": None if term is None else f"{term.side} {term.mode}: {term.expr}"}
 
 
 def _matrix(seeds, clean_seeds):

@@ -16,6 +16,7 @@ import math
 import re
 
 import numpy as np
+import pandas as pd
 import pytest
 from click.testing import CliRunner
 from hypothesis import given, settings
@@ -23,6 +24,7 @@ from test_expr import ENVS, TREES, reference, render
 
 from seanv_analysis import load_rig
 from seanv_analysis.cli import cli
+from seanv_analysis.discover.static import EffectSpec, FlowData, predict_static
 from seanv_analysis.errors import ConfigError
 from seanv_analysis.models import ValveModel
 from seanv_analysis.models import expr as E
@@ -82,6 +84,24 @@ def test_threshold_term_moves_the_sealing_threshold(side, cam, load):
 def test_a_term_acts_on_its_side_only():
     row = _row("drain", -35.0, effects=["term:side=supply,mode=mul,expr=-0.5"])
     assert row["q_mm3_s"] == pytest.approx(_model_flow("drain", -35.0, row), rel=0.01)
+
+
+def test_an_add_term_acts_through_the_sealed_valve_too():
+    """A supply 'add' term (a leak past the needle, open or sealed) feeds
+    the head during drain runs as well: the simulator's drain flow is eq. (5)
+    plus the term at the sealed supply valve's pressure difference (the
+    summary's ``dp_sealed_mpa``), and discover's static model predicts the
+    same from the summary row."""
+    row = _row("drain", -35.0, 0.4, effects=["term:side=supply,mode=add,expr=200*dp"])
+    # the supply's pressure difference with the head at the drain run's p1
+    assert 1.0 < row["dp_sealed_mpa"] < 3.3 - row["p1_mpa"] + 0.1
+    want = _model_flow("drain", -35.0, row) + 200.0 * row["dp_sealed_mpa"]
+    assert row["q_mm3_s"] == pytest.approx(want, rel=0.01)
+    assert abs(200.0 * row["dp_sealed_mpa"]) > 0.1 * abs(row["q_mm3_s"])
+    data = FlowData.from_summary(pd.DataFrame([{**row, "run_index": 0}]))
+    term = EffectSpec("term", "supply", (), (), (), (), {"mode": "add", "expr": "200*dp"})
+    assert predict_static(MODEL, data, {"t": (term, np.array([]))})[0] == \
+        pytest.approx(want, rel=0.01)
 
 
 def test_threshold_by_approach_direction():

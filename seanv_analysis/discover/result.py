@@ -94,8 +94,8 @@ _RESIDUAL_NAMES = {"dp": "dp_mpa", "p1": "p1_mpa", "dtheta": "opening_deg", "the
 @dataclass(frozen=True)
 class ProposedTerm:
     """A closed-form correction of eq. (5) the term search proposes
-    (:mod:`.terms`) when no named effect explains the residual: not a known
-    effect, a formula to examine.
+    (:mod:`.terms`) where the named effects (if any) leave a structured
+    residual: not a known effect, a formula to examine.
 
     side, mode : the valve side and the ``term`` effect's mode ('mul' Q ->
         Q (1 + f), 'add' Q -> Q + f [mm^3/s], 'threshold' theta_d -> theta_d + f [deg])
@@ -104,9 +104,11 @@ class ProposedTerm:
         their Wald 95 % intervals (refit jointly with z0, C, y_c)
     p_value : of the permutation test of the whole search
     rmse_before_mm3_s, rmse_after_mm3_s : held-out flow RMSE of the base
-        model (needle geometry freed) and with the term [mm^3/s]
+        model (needle geometry freed, named effects kept) and with the term
+        as well [mm^3/s]
     inner_improvement : relative error drop on the inner validation split [-]
-    model : the valve refitted with the term (z0, C, y_c)
+    model : the valve refitted with the term (z0, C, y_c; the named effects
+        refitted beside it)
     """
 
     side: str
@@ -154,10 +156,14 @@ class ProposedTerm:
                 "heldout_rmse_after_mm3_s": clean_json(self.rmse_after_mm3_s),
                 "inner_improvement_ratio": clean_json(self.inner_improvement)}
 
-    def sentence(self) -> str:
-        """The report's paragraph on the proposal."""
-        return ("No named effect explains the flow-step residual; a proposed term (not a known "
-                "effect): "
+    def sentence(self, beside_named: bool = False) -> str:
+        """The report's paragraph on the proposal (``beside_named``: named
+        effects were found and the term acts on top of them)."""
+        lead = ("Beyond the named effects, the flow-step residual holds a proposed term (not a "
+                "known effect): " if beside_named else
+                "No named effect explains the flow-step residual; a proposed term (not a known "
+                "effect): ")
+        return (lead +
                 f"{self.spec} lowers the held-out error from {self.rmse_before_mm3_s:.0f} to "
                 f"{self.rmse_after_mm3_s:.0f} mm^3/s ({-self.heldout_drop:+.0%}; search "
                 f"permutation p = {self.p_value:.3f}, inner validation "
@@ -205,8 +211,8 @@ class Discovery(JsonResult):
     #: rig keys the closed-loop search refitted with the effect found (e.g. the
     #: line's bulk modulus), applied to the twin of the closed-loop check
     twin_overrides: dict | None = None
-    #: the closed-form term the search proposes when no named effect explains
-    #: the residual (:mod:`.terms`); None: none
+    #: the closed-form term the search proposes where the named effects (if
+    #: any) leave a structured residual (:mod:`.terms`); None: none
     proposed_term: ProposedTerm | None = None
 
     @property
@@ -335,7 +341,7 @@ class Discovery(JsonResult):
             lines.append("Discovery: nothing found. The residual of the base flow model is "
                          "consistent with noise; no candidate effect lowers the error materially.")
         if self.proposed_term is not None:
-            lines.append(self.proposed_term.sentence())
+            lines.append(self.proposed_term.sentence(beside_named=bool(self.effects)))
         if self.geometry:
             sides = ", ".join(f"{s} y_c {g['needle_y_c_mm']:.1f} mm (rig file {g['rig_file_mm']:.1f})"
                               for s, g in self.geometry.items())

@@ -56,15 +56,20 @@ class FlowData:
         """Build from a per-run summary table (``SUMMARY_COLUMNS``) of flow_step runs.
 
         Head and tank pressures are recovered from (p1, dp) per side:
-        supply p_h = p1 - dp, p_s = p1; drain p_h = p1, p_t = p1 - dp.
+        supply p_h = p1 - dp, p_s = p1; drain p_h = p1, p_t = p1 - dp; the
+        sealed valve's side from ``dp_sealed_mpa`` when the summary has it
+        (supply runs p_t = p_h - dp_sealed, drain runs p_s = p_h + dp_sealed;
+        else p_t = 0 and p_s unknown, NaN).
         """
         side = summary["side"].to_numpy(dtype=object).astype(str)
         p1 = summary["p1_mpa"].to_numpy(float)
         dp = summary["dp_mpa"].to_numpy(float)
+        sealed = (summary["dp_sealed_mpa"].to_numpy(float) if "dp_sealed_mpa" in summary
+                  else np.full(len(summary), np.nan))
         sup = side == "supply"
         p_head = np.where(sup, p1 - dp, p1)
-        p_supply = np.where(sup, p1, np.nan)
-        p_tank = np.where(sup, 0.0, p1 - dp)
+        p_supply = np.where(sup, p1, p_head + sealed)
+        p_tank = np.where(sup, np.nan_to_num(p_head - sealed), p1 - dp)
         theta = summary["cam_measured_deg"].to_numpy(float) if "cam_measured_deg" in summary else \
             np.full(len(summary), np.nan)
         theta = np.where(np.isfinite(theta), theta, summary["cam_deg"].to_numpy(float))
@@ -146,7 +151,9 @@ def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[E
         q_max_mm3_s=np.full(n, np.inf))
     for spec, values in effects.values():
         p = dict(zip(spec.params, values), **spec.fixed)
+        known = len(terms.corrections)
         spec.effect.apply_static(terms, data, _side_mask(data, spec.side), p)
+        terms.corrections[known:] = [replace(c, side=spec.side) for c in terms.corrections[known:]]
     q = np.zeros(n)
     for s in ("supply", "drain"):
         m = data.side == s
@@ -171,6 +178,29 @@ def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[E
                 approach=data.approach[m])
         else:
             q[m] = flow_at(theta_d)
+    if any(c.mode == "add" for c in terms.corrections):
+        q += _sealed_valve_flow(model, data, terms)
+    return q
+
+
+def _sealed_valve_flow(model: ValveModel, data: FlowData, terms: fx.FlowTerms) -> np.ndarray:
+    """Each run's flow through the valve of the other side, sealed in the run
+    [mm^3/s]: only its 'add' terms (:func:`~seanv_analysis.models.effects.sealed_valve_terms`);
+    0 where that valve's pressures are unknown (a summary without ``dp_sealed_mpa``)."""
+    q = np.zeros(len(data))
+    for s, other in (("supply", "drain"), ("drain", "supply")):
+        m = data.side == other
+        if not m.any() or not any(c.mode == "add" and c.side == s for c in terms.corrections):
+            continue
+        vs = model.side(s)
+        p1, dp = side_pressures(s, data.p_supply_mpag, terms.p_head_mpag, data.p_tank_mpag)
+        m &= np.isfinite(p1) & np.isfinite(dp)
+        p1, dp = p1[m], dp[m]
+        q[m] = fx.sealed_valve_terms(
+            terms.corrections, side=s, theta_deg=terms.theta_deg[m],
+            theta_d_deg=vs.threshold_deg(p1, dp), p1_mpa=p1, dp_mpa=dp,
+            opens_upward=vs.opens_upward, load_mpag=data.load_mpag[m],
+            run_index=data.run_index[m], approach=data.approach[m])
     return q
 
 

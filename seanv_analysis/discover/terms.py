@@ -1,8 +1,9 @@
-"""Propose the missing term in closed form when no named effect explains the residual.
+"""Propose the missing term in closed form where the named effects leave a structured residual.
 
 Eq. (5), Q = C (theta - theta_d)^2 dp^0.5 per side (theta_d of eq. 3-4),
-with the needle geometry y_c freed, may still leave a structured residual
-that no effect of the vocabulary names. This module searches a library of
+with the needle geometry y_c freed and the named effects discover kept
+(if any), may still leave a structured residual that no effect of the
+vocabulary names. This module searches a library of
 physically meaningful correction terms of eq. (5) (the ``term`` effect of
 :mod:`seanv_analysis.models.effects`) for the one that explains it:
 
@@ -11,11 +12,15 @@ physically meaningful correction terms of eq. (5) (the ``term`` effect of
    sqrt(v) (v >= 0), tanh(v/s) (s at quantiles of |v|), hinges
    max(v - k, 0) (knots at the 25/50/75 % quantiles) and products of two
    variables; each has its expression text (:mod:`seanv_analysis.models.expr`);
-2. the three modes linearised around the base fit: residual
+2. the three modes linearised around the base fit, on all runs: residual
    r ~ J_mode sum_k a_k g_k with J_mul = Q_hat, J_add = 1,
-   J_threshold = dQ/dtheta_d; the base fit's own Jacobian (z0, C, y_c of
-   the side) is always in the regression, so a term that is only a change
-   of C or z0 cannot be proposed; weights 1/sigma (discover's noise model);
+   J_threshold = dQ/dtheta_d; 'mul' and 'threshold' act on the side's own
+   runs, 'add' on every run (each run's flow is what both valves pass, and
+   an added flow, a leak, passes the sealed valve too, as in the
+   simulator; :func:`.static.predict_static`); the base fit's own Jacobian
+   (both sides' z0, C, y_c and the named effects' parameters) is always in
+   the regression, so a term that is only a change of those cannot be
+   proposed; weights 1/sigma (discover's noise model);
 3. forward stepwise (<= :data:`MAX_TERMS` terms) per (side, mode), kept
    only where stable over bootstrap resamples of runs, the best (side,
    mode, terms) chosen by the inner chronological validation split;
@@ -23,7 +28,7 @@ physically meaningful correction terms of eq. (5) (the ``term`` effect of
    :func:`.static.fit_static`, Wald 95 % intervals (a feature whose
    interval holds 0 is dropped and the rest refitted);
 5. false-alarm control: the whole search repeated on permuted data
-   (standardised residuals permuted among runs; for run-dependent terms
+   (standardised residuals permuted among each side's runs; for run-dependent terms
    the run order permuted within side and load); proposed only when the
    observed fit beats the permutation distribution at p < ``alpha`` and
    the held-out RMSE (never used before) drops by >= ``min_heldout_drop``.
@@ -76,19 +81,28 @@ def _num(x: float) -> str:
     return f"{float(x):.4g}"
 
 
-def side_variables(model: ValveModel, data: FlowData, side: str) -> dict[str, np.ndarray]:
-    """The term variables of :mod:`seanv_analysis.models.expr` on ``side``'s
-    rows of ``data`` under ``model`` (eq. 5 flow q [mm^3/s] signed, dtheta
-    the opening past eq. 3-4's threshold [deg])."""
+def valve_variables(model: ValveModel, data: FlowData, side: str) -> dict[str, np.ndarray]:
+    """The term variables of :mod:`seanv_analysis.models.expr` of valve
+    ``side`` on every run of ``data`` under ``model``: on its own runs eq. (5)
+    flow q [mm^3/s] signed and dtheta the opening past eq. 3-4's threshold
+    [deg]; on the other side's runs the valve is sealed (q = 0, dtheta < 0,
+    its own pressures: NaN where the summary does not give them)."""
     m = data.side == side
     vs = model.side(side)
-    p1, dp = side_pressures(side, data.p_supply_mpag[m], data.p_head_mpag[m], data.p_tank_mpag[m])
-    d = data.theta_deg[m] - vs.threshold_deg(p1, dp)
+    p1, dp = side_pressures(side, data.p_supply_mpag, data.p_head_mpag, data.p_tank_mpag)
+    with np.errstate(invalid="ignore"):
+        d = data.theta_deg - vs.threshold_deg(p1, dp)
+    q = np.where(m, predict_static(model, data), 0.0)
     return fx.term_variables(dp_mpa=dp, p1_mpa=p1, dtheta_deg=d if vs.opens_upward else -d,
-                             theta_deg=data.theta_deg[m],
-                             q_mm3_s=predict_static(model, data)[m],
-                             load_mpag=data.load_mpag[m], run_index=data.run_index[m],
-                             approach=data.approach[m])
+                             theta_deg=data.theta_deg, q_mm3_s=q, load_mpag=data.load_mpag,
+                             run_index=data.run_index, approach=data.approach)
+
+
+def side_variables(model: ValveModel, data: FlowData, side: str) -> dict[str, np.ndarray]:
+    """:func:`valve_variables` on ``side``'s own runs (where the library's
+    knots and scales come from)."""
+    m = data.side == side
+    return {k: v[m] for k, v in valve_variables(model, data, side).items()}
 
 
 def library(variables: dict[str, np.ndarray]) -> list[str]:
@@ -143,64 +157,87 @@ def term_spec(side: str, mode: str, features: tuple[str, ...],
 
 @dataclass(frozen=True)
 class _Side:
-    """One side's linearised problem (weighted): residual r, nuisance
-    columns N, feature matrix G, the mode Jacobians, run strata."""
+    """One valve side's linearised problem (weighted) on all runs of the fit
+    data: residual r and nuisance columns N (both sides' z0, C, y_c and the
+    kept named effects' parameters), the side's features on every run
+    (``g``; the other side's runs with the valve sealed) and the mode
+    Jacobians, its own runs ``rows``."""
 
     side: str
-    rows: np.ndarray          # boolean mask over the fit data
+    rows: np.ndarray          # boolean mask of the side's own runs
     r: np.ndarray
     nuisance: np.ndarray
     features: tuple[str, ...]
     g: np.ndarray
     jac: dict[str, np.ndarray]
     run_dep: np.ndarray       # feature reads run
-    variables: dict           # the term variables on the side's rows
+    variables: dict           # the valve's term variables on every run
     complexity: np.ndarray    # of each feature (:func:`complexity`)
 
 
-def _jacobians(fit: StaticFit, data: FlowData, side: str, sigma: np.ndarray):
-    """(nuisance columns, {mode: J}) on ``side``'s rows, weighted by 1/sigma."""
-    m = data.side == side
-    w = 1.0 / sigma[m]
-    q0 = predict_static(fit.model, data)[m]
-    vs = fit.model.side(side)
+def _nuisance(fit: StaticFit, data: FlowData, w: np.ndarray) -> np.ndarray:
+    """Weighted columns d(prediction)/d(parameter) of what the base fit
+    already has: each side's z0, C (and y_c where it was fitted) and every
+    kept named effect's parameters (forward differences)."""
+    q0 = predict_static(fit.model, data, fit.effects)
     cols = []
-    h_c = 1e-6 * abs(vs.c_flow)
-    for change, h in ((dict(z0_mm=vs.z0_mm + STEP_Z0_MM), STEP_Z0_MM),
-                      (dict(c_flow=vs.c_flow + h_c), h_c)):
-        q1 = predict_static(fit.model.with_side(side, **change), data)[m]
-        cols.append((q1 - q0) / h)
-    if side in fit.geometry:
-        geom = replace(vs.geometry, needle_y_c_mm=vs.geometry.needle_y_c_mm + STEP_YC_MM)
-        try:
-            q1 = predict_static(fit.model.with_side(side, geometry=geom), data)[m]
-            cols.append((q1 - q0) / STEP_YC_MM)
-        except ValueError:
-            pass
+    for side in ("supply", "drain"):
+        if not np.any(data.side == side):
+            continue
+        vs = fit.model.side(side)
+        h_c = 1e-6 * abs(vs.c_flow)
+        changes = [(fit.model.with_side(side, z0_mm=vs.z0_mm + STEP_Z0_MM), STEP_Z0_MM),
+                   (fit.model.with_side(side, c_flow=vs.c_flow + h_c), h_c)]
+        if side in fit.geometry:
+            geom = replace(vs.geometry, needle_y_c_mm=vs.geometry.needle_y_c_mm + STEP_YC_MM)
+            try:
+                changes.append((fit.model.with_side(side, geometry=geom), STEP_YC_MM))
+            except ValueError:
+                pass
+        cols += [(predict_static(m, data, fit.effects) - q0) / h for m, h in changes]
+    for label, (spec, values) in fit.effects.items():
+        for k, v in enumerate(np.asarray(values, float)):
+            h = 1e-6 * max(abs(v), 1.0)
+            moved = np.array(values, float)
+            moved[k] = v + h
+            cols.append((predict_static(fit.model, data, {**fit.effects, label: (spec, moved)})
+                         - q0) / h)
+    return np.column_stack(cols) * w[:, None]
+
+
+def _jacobians(fit: StaticFit, data: FlowData, side: str, w: np.ndarray) -> dict[str, np.ndarray]:
+    """{mode: weighted J} of ``side``'s valve on every run: 'mul' its flow
+    (0 where sealed), 'add' 1, 'threshold' dQ/dtheta_d (0 where sealed)."""
+    own = data.side == side
+    q0 = predict_static(fit.model, data, fit.effects)
     shifted = term_spec(side, "threshold", ("1",))
-    q_th = predict_static(fit.model, data, {"t": (shifted, np.array([STEP_DEG]))})[m]
-    jac = {"mul": q0, "add": np.ones_like(q0), "threshold": (q_th - q0) / STEP_DEG}
-    return np.column_stack(cols) * w[:, None], {k: v * w for k, v in jac.items()}
+    q_th = predict_static(fit.model, data, {**fit.effects, "t": (shifted, np.array([STEP_DEG]))})
+    jac = {"mul": np.where(own, q0, 0.0), "add": np.ones_like(q0),
+           "threshold": np.where(own, (q_th - q0) / STEP_DEG, 0.0)}
+    return {k: v * w for k, v in jac.items()}
 
 
 def _prepare(fit: StaticFit, data: FlowData, sigma: np.ndarray) -> list[_Side]:
     """Each side's linearised problem (:class:`_Side`) around ``fit`` on
     ``data`` (sides with >= 8 runs)."""
     out = []
+    w = 1.0 / sigma
+    r = (data.q_mm3_s - predict_static(fit.model, data, fit.effects)) * w
+    nuis = None
     for side in ("supply", "drain"):
         m = data.side == side
         if m.sum() < 8:
             continue
-        variables = side_variables(fit.model, data, side)
-        feats = tuple(library(variables))
+        variables = valve_variables(fit.model, data, side)
+        feats = tuple(library({k: v[m] for k, v in variables.items()}))
         if not feats:
             continue
-        g = np.column_stack([evaluate(t, variables) for t in feats]).astype(float)
-        nuis, jac = _jacobians(fit, data, side, sigma)
-        r = (data.q_mm3_s[m] - predict_static(fit.model, data, fit.effects)[m]) / sigma[m]
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            g = np.column_stack([evaluate(t, variables) for t in feats]).astype(float)
+        nuis = _nuisance(fit, data, w) if nuis is None else nuis
         run_dep = np.array(["run" in compile_expr(t).variables for t in feats])
-        out.append(_Side(side, m, r, nuis, feats, g, jac, run_dep, variables,
-                         np.array([complexity(t) for t in feats])))
+        out.append(_Side(side, m, r, nuis, feats, g, _jacobians(fit, data, side, w), run_dep,
+                         variables, np.array([complexity(t) for t in feats])))
     return out
 
 
@@ -248,9 +285,17 @@ def _stepwise(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
     return chosen, 1.0 - float(r0 @ r0) / rss0
 
 
-def _design(s: _Side, mode: str) -> np.ndarray:
-    """The side's weighted feature columns in ``mode``: J_mode g_k."""
-    return s.jac[mode][:, None] * s.g
+def _design(s: _Side, mode: str, g: np.ndarray | None = None) -> np.ndarray:
+    """The side's weighted feature columns in ``mode``: J_mode g_k (``g``:
+    the features on every run, default the side's). 'mul' and 'threshold'
+    act on the side's own runs only; an 'add' feature acts on every run (a
+    leak past the sealed valve) and is left out (a zero column) where it is
+    not finite on some run (sqrt of a negative opening, pressures unknown)."""
+    g = s.g if g is None else g
+    if mode != "add":
+        return s.jac[mode][:, None] * np.where(s.rows[:, None], g, 0.0)
+    x = s.jac[mode][:, None] * g
+    return np.where(np.all(np.isfinite(x), axis=0), x, 0.0)
 
 
 def _stepwise_many(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
@@ -287,18 +332,29 @@ def _stepwise_many(r: np.ndarray, nuisance: np.ndarray, x: np.ndarray, k: int,
 
 
 def _stats(sides: list[_Side], k: int, rng: np.random.Generator | None = None,
-           n: int = 1) -> np.ndarray:
+           n: int = 1, groups: np.ndarray | None = None) -> np.ndarray:
     """Fraction of the weighted RSS that ``k`` stepwise features remove, per
     (side, mode) in the order of ``sides`` x ``TERM_MODES`` (the search's
     statistic): (1 x combos) on the data, or with ``rng`` (n x combos) on
     ``n`` replicates whose residuals are permuted among each side's runs."""
     out = []
+    r = sides[0].r[:, None] if rng is None else _permuted_within_sides(sides[0].r, groups, rng, n)
     for s in sides:
-        r = s.r[:, None] if rng is None else \
-            np.column_stack([rng.permutation(s.r) for _ in range(n)])
         for mode in fx.TERM_MODES:
             out.append(_stepwise_many(r, s.nuisance, _design(s, mode), k, s.complexity))
     return np.column_stack(out)
+
+
+def _permuted_within_sides(r: np.ndarray, groups: np.ndarray, rng: np.random.Generator,
+                           n: int) -> np.ndarray:
+    """``n`` replicates (columns) of the standardised residual ``r``, each
+    permuted among the runs of each valve side (``groups``); one replicate
+    serves every (side, mode) search (the family-wise null of :func:`_p_value`)."""
+    out = np.repeat(r[:, None], n, axis=1)
+    for g in np.unique(groups):
+        idx = np.flatnonzero(groups == g)
+        out[idx] = np.column_stack([r[rng.permutation(idx)] for _ in range(n)])
+    return out
 
 
 def _stability(s: _Side, mode: str, chosen: list[int], rng: np.random.Generator) -> np.ndarray:
@@ -326,7 +382,7 @@ def _inner_improvement(s: _Side, mode: str, cols: list[int], inner_fit: np.ndarr
     linearised term fitted on its inner fit runs, against the nuisance-only
     refit (both from the side's base residual): how much of the side's
     error the term removes on runs it was not fitted to."""
-    fit_rows, val_rows = inner_fit[s.rows], ~inner_fit[s.rows]
+    fit_rows, val_rows = inner_fit, ~inner_fit
     if fit_rows.sum() < 4 or not val_rows.any():
         return 0.0
     x = _design(s, mode)[:, cols]
@@ -395,7 +451,7 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     k = len(choice.features)
     combos = [(x.side, mode) for x in sides for mode in fx.TERM_MODES]
     observed = _stats(sides, k)[0, combos.index((choice.side, choice.mode))]
-    null = _stats(sides, k, rng, n_perm)
+    null = _stats(sides, k, rng, n_perm, groups=data.side)
     # Westfall-Young min-p over the (side, mode) searches: each against its own
     # null (ranks), so a side whose residual is heavy-tailed does not set the
     # bar of the other
@@ -413,9 +469,10 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     nuis = np.column_stack([me.nuisance, _design(me, choice.mode)[:, idx_fixed]])
 
     def stat(run_index):
-        variables = {**me.variables, "run": run_index[me.rows]}
-        g = np.column_stack([evaluate(t, variables) for t in me.features])
-        x = me.jac[choice.mode][:, None] * g
+        variables = {**me.variables, "run": run_index}
+        with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+            g = np.column_stack([evaluate(t, variables) for t in me.features])
+        x = _design(me, choice.mode, g)
         return _stepwise(me.r, nuis, x, n_run, allowed=me.run_dep, complexity=me.complexity)[1]
 
     observed = stat(data.run_index)
@@ -430,8 +487,9 @@ def _refit(final: StaticFit, data: FlowData, sigma: np.ndarray, choice: _Choice
     """The chosen term refitted jointly with z0, C, y_c (step 4); a feature
     whose coefficient's 95 % interval holds 0 is dropped (the first kept
     when all do) and the rest refitted."""
+    named = [sp for sp, _ in final.effects.values()]
     spec = term_spec(choice.side, choice.mode, choice.features, choice.coef)
-    fitted = fit_static(final.model, data, sigma, effects=[spec], geometry=final.geometry)
+    fitted = fit_static(final.model, data, sigma, effects=[*named, spec], geometry=final.geometry)
     if len(choice.features) == 1:
         return spec, fitted
     ci = fitted.param_ci95()
@@ -442,7 +500,8 @@ def _refit(final: StaticFit, data: FlowData, sigma: np.ndarray, choice: _Choice
     values = fitted.effects[spec.label][1]
     spec = term_spec(choice.side, choice.mode, tuple(choice.features[k] for k in keep),
                      tuple(float(values[k]) for k in keep))
-    return spec, fit_static(final.model, data, sigma, effects=[spec], geometry=final.geometry)
+    return spec, fit_static(final.model, data, sigma, effects=[*named, spec],
+                            geometry=final.geometry)
 
 
 def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits, fit_mask,
@@ -452,8 +511,9 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
 
     Parameters
     ----------
-    final : the base fit on the fit runs (needle geometry freed where the
-        data identify it), no named effect kept
+    final : the fit on the fit runs (needle geometry freed where the data
+        identify it) with the named effects discover kept, if any (the
+        term is searched, refitted and judged on top of them)
     data : all flow-step runs; ``fit_mask`` the fit runs (``final``'s data);
         ``splits``: the engine's (fit, held-out) masks over ``data``
     sigma : flow noise sigma of the fit runs [mm^3/s] (:func:`.engine.noise_model`)
@@ -478,9 +538,10 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
     # material, as a named effect must be: the term moves the prediction by
     # more than the rig's flow resolution (.engine.practical_floor_mm3_s)
     size = float(np.sqrt(np.mean((predict_static(fitted.model, fit_data, fitted.effects)
-                                  - predict_static(final.model, fit_data)) ** 2)))
+                                  - predict_static(final.model, fit_data, final.effects)) ** 2)))
     if size <= floor_mm3_s:
         return None
+    named = [sp for sp, _ in final.effects.values()]
     before, after = [], []
     for f_m, h_m in splits:
         fd, hd = data.subset(f_m), data.subset(h_m)
@@ -488,9 +549,9 @@ def propose_term(final: StaticFit, data: FlowData, sigma: np.ndarray, *, splits,
             b_fit, t_fit = final, fitted
         else:
             s_f = refit_sigma(f_m)
-            b_fit = fit_static(final.model, fd, s_f, geometry=final.geometry)
-            t_fit = fit_static(final.model, fd, s_f, effects=[spec], geometry=final.geometry)
-        before.append(hd.q_mm3_s - predict_static(b_fit.model, hd))
+            b_fit = fit_static(final.model, fd, s_f, effects=named, geometry=final.geometry)
+            t_fit = fit_static(final.model, fd, s_f, effects=[*named, spec], geometry=final.geometry)
+        before.append(hd.q_mm3_s - predict_static(b_fit.model, hd, b_fit.effects))
         after.append(hd.q_mm3_s - predict_static(t_fit.model, hd, t_fit.effects))
     rmse_b = float(np.sqrt(np.mean(np.concatenate(before) ** 2)))
     rmse_a = float(np.sqrt(np.mean(np.concatenate(after) ** 2)))

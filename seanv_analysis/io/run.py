@@ -31,6 +31,8 @@ SUMMARY_COLUMNS = {
     "q_steady_mm3_s": "float64",    # steady-motion estimate
     "dp_mpa": "float64",            # side's pressure difference over the same window as q_mm3_s
     "p1_mpa": "float64",            # side's upstream pressure over that window
+    "dp_sealed_mpa": "float64",     # the other (sealed) valve's pressure difference over that
+                                    # window (supply run: p_head - p_tank; drain: p_supply - p_head)
     "flow_method": "str",           # 'steady' | 'peak'
     "motion_steady": "bool",        # the actuator moved at a steady speed in the steady window
                                     # (False: stick-slip, not settled, did not move, not a flow step)

@@ -214,11 +214,14 @@ class TermCorrection:
     """One closed-form correction of the static flow model: ``program``
     (:class:`~seanv_analysis.models.expr.Program`) acting in ``mode``
     (:data:`TERM_MODES`) on the flow steps where ``rows`` (a boolean mask
-    over all of them) is True."""
+    over all of them) is True; ``side`` the valve it belongs to ('' until the
+    static model tags it): its 'add' form acts in the other side's runs too,
+    the valve sealed there (:func:`sealed_valve_terms`)."""
 
     rows: np.ndarray
     program: Program
     mode: str
+    side: str = ""
 
 
 @dataclass(frozen=True)
@@ -869,6 +872,26 @@ def apply_corrections(corrections: Iterable[TermCorrection], rows: np.ndarray, *
         sub = c.rows[rows]
         f = evaluate(c.program, variables(sub, theta_d, q))
         q[sub] = q[sub] * (1.0 + f) if c.mode == "mul" else q[sub] + f
+    return q
+
+
+def sealed_valve_terms(corrections: Iterable[TermCorrection], *, side: str, theta_deg,
+                       theta_d_deg, p1_mpa, dp_mpa, opens_upward: bool, load_mpag, run_index,
+                       approach) -> np.ndarray:
+    """Flow of valve ``side`` while it is sealed [mm^3/s] (the other side's
+    flow steps; the arrays hold those rows, in ``side``'s valve's pressures):
+    eq. (5) gives 0 and so do its 'mul' and 'threshold' terms, but an 'add'
+    term (a leak past the needle) acts open or sealed, as in the simulator,
+    where both valves feed the head at every instant."""
+    q = np.zeros(np.shape(theta_deg))
+    d = np.asarray(theta_deg, float) - theta_d_deg
+    variables = term_variables(dp_mpa=dp_mpa, p1_mpa=p1_mpa,
+                               dtheta_deg=d if opens_upward else -d, theta_deg=theta_deg,
+                               q_mm3_s=np.zeros_like(q), load_mpag=load_mpag,
+                               run_index=run_index, approach=approach)
+    for c in corrections:
+        if c.mode == "add" and c.side == side:
+            q = q + evaluate(c.program, variables)
     return q
 
 

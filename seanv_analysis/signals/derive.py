@@ -753,6 +753,20 @@ def _estimate(run: Run, method: str, derived, info: Mapping[str, Any] | None,
                    dt=dt, v_stall=v_stall, area=area, band=settle_band, smooth_s=smooth)
 
 
+def _sealed_dp(derived, est: FlowEstimate, side: str, rig) -> float:
+    """The other (sealed) valve's pressure difference over ``est``'s window
+    [MPa], averaged as ``est``'s dp is (mean for 'steady', median for
+    'peak'): a leak past the sealed needle feeds the head too."""
+    if not est.success:
+        return math.nan
+    t = _col(derived, "t_s")
+    _, dp = _side_arrays(derived, "drain" if side == "supply" else "supply", rig)
+    inside = (t >= est.t_start_s) & (t <= est.t_end_s)
+    if not inside.any():
+        return math.nan
+    return float(np.nanmean(dp[inside]) if est.method == "steady" else np.nanmedian(dp[inside]))
+
+
 def _started_at(meta) -> pd.Timestamp:
     ts = pd.Timestamp(meta.started_at)
     return ts.tz_localize("UTC") if ts.tzinfo is None else ts.tz_convert("UTC")
@@ -777,7 +791,8 @@ def summarize_run(run: Run, *, method: str = "steady",
         :func:`seanv_analysis.signals.filters.apply_filters`). Flow-step runs get
         ``q_peak_mm3_s`` and ``q_steady_mm3_s`` (:func:`estimate_flow`),
         ``q_mm3_s`` = the chosen one, ``dp_mpa``/``p1_mpa`` over the chosen
-        method's window, ``motion_steady`` (the steady method's window passed
+        method's window, ``dp_sealed_mpa`` the other (sealed) valve's
+        pressure difference over it, ``motion_steady`` (the steady method's window passed
         its constant-velocity test while moving, whichever method is
         chosen), ``cam_measured_deg`` and ``cam_approach``
         (:func:`step_window`), ``load_mpag`` from run.json or, when null, the
@@ -801,8 +816,8 @@ def summarize_run(run: Run, *, method: str = "steady",
         "started_at": _started_at(meta), "load_mpag": nan,
         "cam_deg": nan if meta.cam_deg is None else float(meta.cam_deg),
         "cam_measured_deg": nan, "cam_approach": 0.0, "q_mm3_s": nan, "q_peak_mm3_s": nan,
-        "q_steady_mm3_s": nan, "dp_mpa": nan, "p1_mpa": nan, "flow_method": "",
-        "motion_steady": False,
+        "q_steady_mm3_s": nan, "dp_mpa": nan, "p1_mpa": nan, "dp_sealed_mpa": nan,
+        "flow_method": "", "motion_steady": False,
     }
     if meta.kind != "flow_step":
         if meta.load_mpag is not None:
@@ -831,6 +846,7 @@ def summarize_run(run: Run, *, method: str = "steady",
     row.update(load_mpag=load, cam_measured_deg=step.cam_measured_deg,
                cam_approach=step.cam_approach, q_mm3_s=chosen.q_mm3_s,
                q_peak_mm3_s=peak.q_mm3_s, q_steady_mm3_s=steady.q_mm3_s,
-               dp_mpa=chosen.dp_mpa, p1_mpa=chosen.p1_mpa, flow_method=method,
+               dp_mpa=chosen.dp_mpa, p1_mpa=chosen.p1_mpa,
+               dp_sealed_mpa=_sealed_dp(table, chosen, meta.side, run.rig), flow_method=method,
                motion_steady=bool(steady.success and steady.moving and steady.steady))
     return row
