@@ -212,11 +212,16 @@ def main() -> dict:
             "heldout_drop_ge_30pct_rate": sum(x["heldout_drop"] >= 0.3 for x in r) / len(r),
             "median_heldout_drop": sorted(x["heldout_drop"] for x in r)[len(r) // 2],
             "misses": [(x["spec"], x["seed"], x["verdict"], x["found"]) for x in r if not x["named"]],
+            # the term search runs beyond the named effects too: a term here
+            # is what the named effect left (none expected on this data)
+            "proposed_terms": [(x["spec"], x["seed"], x["proposed_term"]) for x in r
+                               if x["proposed_term"]],
         }
     c = [x for x in rows if x["effect"] == "none"]
     out["clean_none_rate"] = sum(x["verdict"] == "none" for x in c) / len(c)
     out["clean_cases"] = len(c)
-    out["clean_misses"] = [(x["seed"], x["verdict"], x["found"]) for x in c if x["verdict"] != "none"]
+    out["clean_misses"] = [(x["seed"], x["verdict"], x["found"], x["proposed_term"]) for x in c
+                           if x["verdict"] != "none" or x["proposed_term"]]
 
     from seanv_analysis.stages import run_stages
 
