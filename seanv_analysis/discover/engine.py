@@ -17,9 +17,8 @@ Procedure:
    the fit set by at least ``min_improvement``, and (c) a residual
    permutation check (refits on data resampled under the current model)
    gives p < ``alpha_perm``;
-5. closed-form term search (:mod:`.terms`) on what the kept effects
-   leave: a proposed term, never a named effect; a named effect the term
-   makes redundant is dropped (:func:`_yield_to_term`);
+5. closed-form term search (:mod:`.terms`) on what the kept effects (if
+   any) leave: a proposed term, never a named effect;
 6. verdict: ``effect_found``; ``unexplained`` when nothing is kept but the
    residual still trends with a variable or a term is proposed; ``none``
    otherwise;
@@ -45,7 +44,7 @@ from .split import (  # noqa: F401 (permutation_strata re-exported)
     permuted_run_order,
 )
 from .static import FlowData, StaticFit, fit_static, geometry_sides, predict_static
-from .terms import propose_term, term_spec
+from .terms import propose_term
 
 __all__ = ["discover_flow_steps", "noise_model", "residual_variables", "trend_amplitude",
            "practical_floor_mm3_s"]
@@ -192,20 +191,10 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
                         max_effects=max_effects, seed=seed, floor_mm3_s=floor)
     base, final, findings, trends, lb, sigma = selection
 
-    def propose(fit: StaticFit):
-        """The closed-form term search (.terms) on top of ``fit``."""
-        return propose_term(fit, data, sigma, splits=splits, fit_mask=fit_m,
+    # what the named effects (if any) leave may still hold a closed-form term (.terms)
+    proposed = propose_term(final, data, sigma, splits=splits, fit_mask=fit_m,
                             refit_sigma=lambda m: _fit_base(model, data.subset(m))[1],
                             floor_mm3_s=floor, seed=seed)
-
-    # what the named effects leave may still hold a closed-form term; a named
-    # effect the term makes redundant was standing in for it and is dropped
-    proposed = propose(final)
-    if proposed is not None and findings:
-        final, findings = _yield_to_term(base, final, findings, proposed, fit_data, sigma,
-                                         alpha=alpha, min_improvement=min_improvement)
-        if not findings:
-            proposed = propose(final)
 
     # Held-out error, before and after, with fits on the fit part only.
     before, after, n_held = [], [], 0
@@ -347,22 +336,20 @@ def _geometry_candidate(current, cur_in, data, d_in, d_val, sigma, s_in, s_val, 
 
 
 def _prune_geometry(base, current, selected, findings, data, d_in, d_val, sigma, s_in, s_val,
-                    sides, *, alpha, min_improvement, also=()):
+                    sides, *, alpha, min_improvement):
     """Keep an effect only if it still beats the base model with the needle
     geometry identified (with the other effects kept): F-test and the inner
     validation improvement, as in the selection. What it does not beat is
-    the unpublished geometry, not an effect. ``also``: effects in every fit
-    and never dropped (a proposed term, :func:`_yield_to_term`); the fit
-    returned holds the kept effects without them."""
+    the unpublished geometry, not an effect."""
     kept = list(selected)
     for spec in list(selected):
         others = [x for x in kept if x is not spec]
-        with_e = fit_static(base.model, data, sigma, effects=[*kept, *also], geometry=sides)
-        without = fit_static(base.model, data, sigma, effects=[*others, *also], geometry=sides)
+        with_e = fit_static(base.model, data, sigma, effects=kept, geometry=sides)
+        without = fit_static(base.model, data, sigma, effects=others, geometry=sides)
         _, p = _f_test(without.rss_weighted, without.n_params, with_e.rss_weighted,
                        with_e.n_params, len(data))
-        w_in = fit_static(base.model, d_in, s_in, effects=[*kept, *also], geometry=sides)
-        wo_in = fit_static(base.model, d_in, s_in, effects=[*others, *also], geometry=sides)
+        w_in = fit_static(base.model, d_in, s_in, effects=kept, geometry=sides)
+        wo_in = fit_static(base.model, d_in, s_in, effects=others, geometry=sides)
         r_with = _rmse((d_val.q_mm3_s - predict_static(w_in.model, d_val, w_in.effects)) / s_val)
         r_wo = _rmse((d_val.q_mm3_s - predict_static(wo_in.model, d_val, wo_in.effects)) / s_val)
         improvement = 1.0 - r_with / r_wo if r_wo > 0 else 0.0
@@ -373,23 +360,6 @@ def _prune_geometry(base, current, selected, findings, data, d_in, d_val, sigma,
     final = fit_static(base.model, data, sigma, effects=kept, geometry=sides)
     names = {(x.name, x.side) for x in kept}
     return final, kept, [f for f in findings if (f.name, f.side) in names]
-
-
-def _yield_to_term(base: StaticFit, final: StaticFit, findings, proposed, data: FlowData,
-                   sigma, *, alpha, min_improvement):
-    """(fit, findings) without the named effects the proposed term makes
-    redundant: each must still beat the model holding the term and the
-    other effects (:func:`_prune_geometry`'s tests). A named effect that
-    only stood in for the term (a pressure law where the load changes C)
-    is not reported as found."""
-    term = term_spec(proposed.side, proposed.mode, proposed.features, proposed.coefficients)
-    selected = [spec for spec, _ in final.effects.values()]
-    inner_fit, inner_val = chrono_split(data.run_index, fraction=0.25, groups=data.side)
-    final, _, findings = _prune_geometry(
-        base, final, selected, findings, data, data.subset(inner_fit), data.subset(inner_val),
-        sigma, sigma[inner_fit], sigma[inner_val], final.geometry, alpha=alpha,
-        min_improvement=min_improvement, also=(term,))
-    return final, findings
 
 
 def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected, f_obs, *, n_perm, rng):
