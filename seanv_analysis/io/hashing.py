@@ -23,17 +23,18 @@ from .run_tables import RunTables
 
 __all__ = ["file_sha256", "remember_sha256", "sha256_bytes", "code_version", "content_sha256"]
 
-_CACHE: dict[tuple[str, int, int, int, int], str] = {}
+_CACHE: dict[tuple[int, int, int, int, int], str] = {}
 _LOCK = threading.Lock()
 _CHUNK = 1 << 22
 
 
-def _key(path: Path) -> tuple[str, int, int, int, int]:
-    """(path, size, mtime, ctime, inode): a same-size edit whose mtime was
-    put back still changes the ctime (which no user can set), a file
-    replaced by another the inode."""
+def _key(path: Path) -> tuple[int, int, int, int, int]:
+    """(device, inode, size, mtime, ctime) of the file ``path`` leads to
+    (one ``stat``; every path of one file shares it): a same-size edit
+    whose mtime was put back still changes the ctime (which no user can
+    set), a file replaced by another the inode."""
     st = os.stat(path)
-    return (str(Path(path).resolve()), st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino)
+    return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
 
 
 def sha256_bytes(data: bytes | memoryview) -> str:
