@@ -10,8 +10,9 @@ physically meaningful correction terms of eq. (5) (the ``term`` effect of
 1. library: per side, features g_k of the run variables (dp, p1 [MPa],
    dtheta [deg], |q| [mm^3/s], load [MPaG], run, approach [-]): v, v^2,
    sqrt(v) (v >= 0), tanh(v/s) (s at quantiles of |v|), hinges
-   max(v - k, 0) (knots at the 25/50/75 % quantiles) and products of two
-   variables; each has its expression text (:mod:`seanv_analysis.models.expr`);
+   max(v - k, 0) (knots at the 25/50/75 % quantiles), for a three-valued
+   variable (approach: +-1, 0 unknown) v, max(v, 0) and min(v, 0), and
+   products of two variables; each has its expression text (:mod:`seanv_analysis.models.expr`);
 2. the three modes linearised around the base fit, on all runs: residual
    r ~ J_mode sum_k a_k g_k with J_mul = Q_hat, J_add = 1,
    J_threshold = dQ/dtheta_d; 'mul' and 'threshold' act on the side's own
@@ -115,7 +116,11 @@ def library(variables: dict[str, np.ndarray]) -> list[str]:
             continue
         first.append(v_text)
         texts.append(v_text)
-        if np.unique(v).size <= 3:          # approach: +-1, 0
+        if np.unique(v).size <= 3:          # approach: +-1, 0 (unknown)
+            # one direction against the rest: a run whose direction is
+            # unknown (its log starts at the angle) may belong to either
+            if v.min() < 0 < v.max():
+                texts += [f"max({v_text}, 0)", f"min({v_text}, 0)"]
             continue
         texts.append(f"{v_text}**2")
         if v.min() >= 0:
