@@ -7,6 +7,8 @@ simulator data.
 import numpy as np
 import pandas as pd
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from seanv_analysis import ValveModel, load_rig
 from seanv_analysis.discover import chrono_split, discover_flow_steps
@@ -178,3 +180,29 @@ def test_drift_still_named_when_loads_step_with_time():
         d = discover_flow_steps(load_stepped_summary(seed, drift_step=0.02), model=MODEL, seed=seed)
         assert ("drift", "drain") in {(e.name, e.side) for e in d.effects}, d.report()
         assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(-5, 5), st.floats(-1e3, 1e3, allow_nan=False)),
+                min_size=8, max_size=60))
+def test_spearman_is_scipys(pairs):
+    """discover's Spearman test (no scipy.stats import at start) gives
+    scipy.stats.spearmanr's rho and p, ties included; the F and chi-square
+    survival functions are scipy.stats' too."""
+    from scipy import stats
+
+    from seanv_analysis.discover.diagnostics import ljung_box, spearman
+    from seanv_analysis.discover.engine import _f_test
+
+    x, y = (np.array(v, float) for v in zip(*pairs))
+    if np.ptp(x) == 0 or np.ptp(y) == 0:
+        return
+    rho, p = spearman(x, y)
+    want = stats.spearmanr(x, y)
+    assert rho == pytest.approx(want.statistic, abs=1e-12)
+    assert p == pytest.approx(want.pvalue, rel=1e-9, abs=1e-300)
+    q, p_lb = ljung_box(y)
+    h = min(10, max(y.size // 4, 1))
+    assert p_lb == pytest.approx(stats.chi2.sf(q, h), rel=1e-9, abs=1e-300)
+    f, p_f = _f_test(10.0 + abs(y[0]), 2, 10.0, 3, x.size + 3)
+    assert p_f == pytest.approx(stats.f.sf(f, 1, x.size), rel=1e-9)

@@ -7,9 +7,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
-__all__ = ["Trend", "trend_tests", "ljung_box", "robust_scale"]
+__all__ = ["Trend", "trend_tests", "ljung_box", "robust_scale", "spearman"]
 
 
 def robust_scale(x: np.ndarray) -> float:
@@ -19,6 +19,28 @@ def robust_scale(x: np.ndarray) -> float:
     if x.size == 0:
         return 1.0
     return max(float(1.4826 * np.median(np.abs(x - np.median(x)))), 1e-12)
+
+
+def _average_ranks(x: np.ndarray) -> np.ndarray:
+    """Ranks 1..n of ``x``, ties given their average rank."""
+    _, inverse, counts = np.unique(x, return_inverse=True, return_counts=True)
+    last = np.cumsum(counts)
+    return (last - 0.5 * (counts - 1))[inverse]
+
+
+def spearman(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Spearman rank correlation of ``x`` and ``y`` and its two-sided
+    p-value (t with n - 2 degrees of freedom), what
+    ``scipy.stats.spearmanr`` gives, without importing ``scipy.stats``
+    (~0.5-0.9 s of a ``discover`` command's start)."""
+    n = np.size(x)
+    rho = float(np.corrcoef(_average_ranks(x), _average_ranks(y))[0, 1])
+    if not np.isfinite(rho):
+        return float("nan"), float("nan")
+    if abs(rho) >= 1.0:
+        return rho, 0.0
+    t = rho * np.sqrt((n - 2) / ((1.0 - rho) * (1.0 + rho)))
+    return rho, float(2.0 * special.stdtr(n - 2, -abs(t)))
 
 
 @dataclass(frozen=True)
@@ -49,7 +71,7 @@ def trend_tests(residual: np.ndarray, variables: dict[str, np.ndarray], *,
         ok = np.isfinite(v) & np.isfinite(residual)
         if ok.sum() < 8 or np.ptp(v[ok]) == 0:
             continue
-        rho, p = stats.spearmanr(v[ok], residual[ok])
+        rho, p = spearman(v[ok], residual[ok])
         if not np.isfinite(rho):
             continue
         edges = np.unique(np.quantile(v[ok], np.linspace(0, 1, n_bins + 1)))
@@ -83,4 +105,4 @@ def ljung_box(residual: np.ndarray, *, lags: int = 10) -> tuple[float, float]:
         return 0.0, 1.0
     r = np.array([np.dot(x[:-k], x[k:]) / denom for k in range(1, h + 1)])
     q = float(n * (n + 2) * np.sum(r ** 2 / (n - np.arange(1, h + 1))))
-    return q, float(stats.chi2.sf(q, h))
+    return q, float(special.chdtrc(h, q))   # chi-square survival

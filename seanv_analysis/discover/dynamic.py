@@ -27,7 +27,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
+from scipy import special
 
 from ..jsonable import json_num
 from .result import EffectFinding
@@ -145,7 +145,7 @@ def discover_delay(runs, *, nominal_lag_s: float, q_range=(-2.5e3, 8e3), fractio
     finding = None
     if excludes and abs(extra) >= min_extra_s and confirmed:
         se = (ci[1] - ci[0]) / (2 * 1.959964)
-        p = float(2 * stats.norm.sf(abs(extra) / se)) if se > 0 else 0.0
+        p = float(2 * special.ndtr(-abs(extra) / se)) if se > 0 else 0.0   # two-sided normal
         finding = EffectFinding("delay", "both", {"delay_s": extra},
                                 {"delay_s": (ci[0] - nominal_lag_s, ci[1] - nominal_lag_s)},
                                 p_value=p, f_p_value=p, evidence=DELAY_EVIDENCE)

@@ -30,7 +30,7 @@ from dataclasses import replace
 
 import numpy as np
 import pandas as pd
-from scipy import stats
+from scipy import special
 
 from ..errors import FitError
 from ..models import ValveModel, side_pressures
@@ -86,7 +86,7 @@ def _f_test(rss0: float, p0: int, rss1: float, p1: int, n: int) -> tuple[float, 
     if rss1 <= 0:
         return np.inf, 0.0
     f = ((rss0 - rss1) / df1) / (rss1 / df2)
-    return float(f), float(stats.f.sf(f, df1, df2)) if f > 0 else 1.0
+    return float(f), float(special.fdtrc(df1, df2, f)) if f > 0 else 1.0   # F survival
 
 
 def _rmse(x: np.ndarray) -> float:
