@@ -324,51 +324,6 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(pytest.mark.slow)
 
 
-# ---------------------------------------------------------------------------
-# `make test` (--dist loadfile): xdist hands out whole modules, those with the
-# most tests first, so the longest modules (a few long tests each: the
-# golden pipeline, the wheel, the closed-loop identification) came last and
-# one worker ran them while the other had nothing left. These go first,
-# longest first (single-process seconds on the 2-core machine, ~50-85 s down
-# to ~15 s); the rest follow in xdist's order.
-# ---------------------------------------------------------------------------
-LONG_MODULES = ("test_identify.py", "test_discover_engine.py", "test_golden.py", "test_wheel.py",
-                "test_foreign_rig.py", "test_discover_terms.py", "test_cli_run.py",
-                "test_discover_sim.py", "test_flowfit.py", "test_discover_twin.py",
-                "test_outputs.py", "test_cli_flowfit.py", "test_batch_signals.py",
-                "test_cli_tracking.py")
-
-
-def _module_rank(scope: str) -> int:
-    """Position of a work unit (a module's node id) in :data:`LONG_MODULES`
-    (after them: the rest)."""
-    name = scope.rsplit("/", 1)[-1]
-    return LONG_MODULES.index(name) if name in LONG_MODULES else len(LONG_MODULES)
-
-
-@pytest.hookimpl(optionalhook=True)
-def pytest_xdist_make_scheduler(config, log):
-    """--dist loadfile with :data:`LONG_MODULES` handed out first; any other
-    mode (or an xdist without the scheduler's work queue): xdist's own."""
-    if config.getvalue("dist") != "loadfile":
-        return None
-    from collections import OrderedDict
-
-    from xdist.scheduler import LoadFileScheduling
-
-    class LongestFirst(LoadFileScheduling):
-        def _assign_work_unit(self, node):
-            if not getattr(self, "_ranked", False):
-                self._ranked = True
-                order = sorted(self.workqueue, key=_module_rank)     # stable
-                self.workqueue = OrderedDict((k, self.workqueue[k]) for k in order)
-            super()._assign_work_unit(node)
-
-    if not hasattr(LoadFileScheduling, "_assign_work_unit"):
-        return None
-    return LongestFirst(config, log)
-
-
 @pytest.fixture(scope="module")
 def dask_cluster():
     """One LocalCluster for the module (2 worker processes, 1 thread each)."""
