@@ -137,7 +137,8 @@ def saturate_flow(q, q_max, sharpness=8.0):
     q_max = np.broadcast_to(np.asarray(q_max, dtype=float), q.shape)
     out = q.copy()
     m = np.isfinite(q_max)
-    out[m] = saturate_flow_core(q[m], q_max[m], sharpness)
+    if m.any():     # (none capped, the usual case: nothing to do)
+        out[m] = saturate_flow_core(q[m], q_max[m], sharpness)
     return out
 
 
