@@ -367,6 +367,7 @@ class _Needle:
             g.spring_constant_n_per_mm
         z, th = g.height_table
         self.z_tab, self.th_tab = np.asarray(z), np.asarray(th)
+        self._zl, self._tl = self.z_tab.tolist(), self.th_tab.tolist()   # for _theta_d1
         self.up = g.opens_upward
         self.choke = self.load_c = self.leak = self.shift = None
         self.plain = True
@@ -443,17 +444,6 @@ class _Needle:
             q5 /= (1.0 + (dp / self.choke["dp_c_mpa"]) ** n) ** (1.0 / n)
         return q + q5
 
-    @property
-    def _zl(self):
-        if not hasattr(self, "_zl_"):
-            self._zl_, self._tl_ = self.z_tab.tolist(), self.th_tab.tolist()
-        return self._zl_
-
-    @property
-    def _tl(self):
-        self._zl  # noqa: B018 - fills the cache
-        return self._tl_
-
 
 # ---------------------------------------------------------------------------
 # sampling and writing
@@ -480,9 +470,13 @@ def _write_table(path_stem: Path, df: pd.DataFrame, fmt: str) -> None:
 
 
 def _fmt_t(df: pd.DataFrame) -> pd.DataFrame:
-    # timestamps to the microsecond in CSV (float_format %.6g would cut them)
+    # timestamps to the microsecond in CSV (float_format %.6g would cut them);
+    # the other float columns as text here, as to_csv(float_format="%.6g",
+    # na_rep="") writes them (it formats value by value, several times slower)
     df = df.copy()
     df["t_s"] = df["t_s"].map(lambda v: f"{v:.6f}")
+    for col in df.columns[df.dtypes.map(lambda d: d.kind == "f").to_numpy(bool)]:
+        df[col] = ["%.6g" % v if v == v else "" for v in df[col].tolist()]
     return df
 
 

@@ -4,6 +4,8 @@ These exercise the statistics (selection, false alarms, held-out error) on
 exactly known effects; tests/test_discover_sim.py runs the whole loop on
 simulator data.
 """
+import functools
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -61,11 +63,18 @@ CASES = [("drift", "drain", 0.04), ("drift", "supply", -0.03),
          ("saturation", "supply", 6000.0)]
 
 
+@functools.lru_cache(maxsize=None)
+def discovered(seed: int, effect: tuple | None):
+    """discover_flow_steps on ``synth_summary(seed, effect)``, once per test
+    process: several tests read the same case (do not modify the result)."""
+    return discover_flow_steps(synth_summary(seed, effect), model=MODEL)
+
+
 @pytest.mark.parametrize("effect", CASES, ids=lambda e: f"{e[0]}-{e[1]}")
 def test_names_injected_effect_and_cuts_heldout_error(effect):
     hits = 0
     for seed in range(3):
-        d = discover_flow_steps(synth_summary(seed, effect), model=MODEL)
+        d = discovered(seed, effect)
         named = [(e.name, e.side) for e in d.effects]
         if d.verdict == "effect_found" and named[0] == effect[:2]:
             hits += 1
@@ -74,10 +83,10 @@ def test_names_injected_effect_and_cuts_heldout_error(effect):
 
 
 def test_backlash_width_and_exponent_recovered():
-    d = discover_flow_steps(synth_summary(0, ("backlash", "both", 2.0)), model=MODEL)
+    d = discovered(0, ("backlash", "both", 2.0))
     lo, hi = d.effects[0].params_ci95["width_deg"]
     assert abs(d.effects[0].params["width_deg"] - 2.0) < 0.3 and lo < 2.0 < hi
-    d = discover_flow_steps(synth_summary(0, ("pressure_law", "drain", 0.8)), model=MODEL)
+    d = discovered(0, ("pressure_law", "drain", 0.8))
     assert abs(d.effects[0].params["exponent"] - 0.8) < 0.1
 
 
@@ -100,7 +109,7 @@ def test_heldout_runs_are_never_fitted():
 
 
 def test_json_contract():
-    d = discover_flow_steps(synth_summary(1, ("drift", "drain", 0.04)), model=MODEL)
+    d = discovered(1, ("drift", "drain", 0.04))
     j = d.to_json_dict()
     assert set(j) >= {"verdict", "effects", "heldout", "trend_variable"}
     assert set(j["heldout"]) == {"n_runs", "rmse_before_mm3_s", "rmse_after_mm3_s"}

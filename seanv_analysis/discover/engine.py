@@ -381,16 +381,29 @@ def _permutation_check(current: StaticFit, data: FlowData, sigma, spec, selected
     strata = permutation_strata(data) if by_order else []
     q_hat = predict_static(current.model, data, current.effects)
     z = (data.q_mm3_s - q_hat) / sigma
+    # a current model that does not read the run order has the same refit on
+    # every replicate that only permutes it: fitted once
+    same_cur = (fit_static(current.model, data, sigma, effects=selected,
+                           geometry=current.geometry)
+                if by_order and not _reads_run_order(selected) else None)
     exceed = 0
     for _ in range(n_perm):
         if by_order:
             d_star = replace(data, run_index=permuted_run_order(data.run_index, strata, rng))
         else:
             d_star = replace(data, q_mm3_s=q_hat + sigma * rng.permutation(z))
-        cur = fit_static(current.model, d_star, sigma, effects=selected, geometry=current.geometry)
+        cur = same_cur if same_cur is not None else fit_static(
+            current.model, d_star, sigma, effects=selected, geometry=current.geometry)
         # grid-searched parameters (drift's period and phase) are searched
         # again on each replicate, as they were on the data
         new, _ = fit_candidate(cur, d_star, sigma, spec.unsearched(), selected)
         f, _ = _f_test(cur.rss_weighted, cur.n_params, new.rss_weighted, new.n_params, len(data))
         exceed += f >= f_obs
     return (1 + exceed) / (1 + n_perm)
+
+
+def _reads_run_order(specs) -> bool:
+    """True when a static prediction with the effects ``specs`` may read the
+    run order: an effect that needs it, or a closed-form term (its
+    expression may)."""
+    return any("run_index" in s.effect.STATIC.needs or s.name == "term" for s in specs)

@@ -303,15 +303,16 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
     x0 = np.clip(np.array(x0, float), np.array(lo) + 1e-12, np.array(hi) - 1e-12)
 
     def unpack(x):
-        m = model
+        sides = {}
         k = 0
         for s in present:
-            m = m.with_side(s, z0_mm=float(x[k]), c_flow=float(x[k + 1]))
+            change = {"z0_mm": float(x[k]), "c_flow": float(x[k + 1])}
             k += 2
             if s in with_geom:
-                geom = replace(m.side(s).geometry, needle_y_c_mm=float(x[k]))
-                m = m.with_side(s, geometry=geom)
+                change["geometry"] = replace(model.side(s).geometry, needle_y_c_mm=float(x[k]))
                 k += 1
+            sides[s] = replace(model.side(s), **change)
+        m = replace(model, **sides)      # one copy per call (the residual is called often)
         eff = {}
         for spec in effects:
             npar = len(spec.params)

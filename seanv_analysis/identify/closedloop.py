@@ -179,10 +179,11 @@ def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
     def on_t(col):      # NaN outside the simulated span
         return np.interp(tg.t, tsim, np.asarray(ds[col], dtype=float), left=np.nan, right=np.nan)
 
-    ov = pd.DataFrame({"t_s": tg.t, "q_mm3_s": tg.q, "q_sim_mm3_s": on_t("q_mm3_s"),
+    q_sim = on_t("q_mm3_s")
+    ov = pd.DataFrame({"t_s": tg.t, "q_mm3_s": tg.q, "q_sim_mm3_s": q_sim,
                        "position_mm": tg.x, "position_sim_mm": on_t("position_mm")})
-    r = (ov["q_mm3_s"] - ov["q_sim_mm3_s"]).to_numpy(float)
-    row = {"run_id": tg.run_id, "fit_flow_pct": fit_percent(ov["q_mm3_s"], ov["q_sim_mm3_s"]),
+    r = np.asarray(tg.q, dtype=float) - q_sim
+    row = {"run_id": tg.run_id, "fit_flow_pct": fit_percent(tg.q, q_sim),
            "rmse_flow_mm3_s": float(np.sqrt(np.nanmean(r * r)))}
     return Replay(tg.run_id, ov, row, tg.segment)
 

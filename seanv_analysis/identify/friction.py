@@ -93,6 +93,7 @@ def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S) -> list[flo
         return []
     out = []
     i, n = 0, t.size
+    t_arr, (t, x) = t, (t.tolist(), x.tolist())    # the sample loop on floats: ~3x faster
     while i < n - 1:
         # grow a hold from i while the position stays within the band
         j = i
@@ -106,7 +107,7 @@ def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S) -> list[flo
             while k < n and abs(x[k] - ref) <= 3 * res and t[k] - t[j] < 0.05:
                 k += 1
             if k < n and abs(x[k] - ref) > 3 * res:
-                w = (t >= t[j] - window_s - 1e-9) & (t <= t[j])
+                w = (t_arr >= t[j] - window_s - 1e-9) & (t_arr <= t[j])
                 fw = f[w]
                 fw = fw[np.isfinite(fw)]
                 if fw.size:

@@ -137,7 +137,8 @@ def saturate_flow(q, q_max, sharpness=8.0):
     q_max = np.broadcast_to(np.asarray(q_max, dtype=float), q.shape)
     out = q.copy()
     m = np.isfinite(q_max)
-    out[m] = saturate_flow_core(q[m], q_max[m], sharpness)
+    if m.any():     # (none capped, the usual case: nothing to do)
+        out[m] = saturate_flow_core(q[m], q_max[m], sharpness)
     return out
 
 
@@ -483,11 +484,15 @@ class Drift(Effect):
         w = 1.0 / sigma_mm3_s[rows]
         idx = data.run_index[rows]
         steps = np.linspace(-0.3, 0.3, 241)
+        # (1 - step)^k for every whole k the grid meets, made once: (steps, k)
+        k_all = np.floor(idx + np.arange(cls.MAX_EVERY)[:, None])
+        k_lo = float(np.min(k_all, initial=0.0))
+        powers = (1.0 - steps[:, None]) ** np.arange(k_lo, np.max(k_all, initial=0.0) + 1)
         results = []
         for every in range(1, cls.MAX_EVERY + 1):
             for offset in range(every):
                 k = np.floor((idx + offset) / every)
-                mult = (1.0 - steps[:, None]) ** k[None, :]          # (steps, runs)
+                mult = powers[:, (k - k_lo).astype(np.intp)]        # (steps, runs)
                 g = mult * q0[None, :] * w[None, :]
                 y = q * w
                 a = (g @ y) / np.maximum(np.sum(g * g, axis=1), 1e-300)  # best scale per step

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numpy as np
@@ -117,16 +117,7 @@ class NeedleGeometry:
     @cached_property
     def _table(self) -> tuple[np.ndarray, np.ndarray]:
         """(z_sorted, theta_sorted) for inverting eq. (4) with np.interp."""
-        theta = np.linspace(*_TABLE_RANGE_DEG, _TABLE_POINTS)
-        z = needle_height_mm(theta, self)
-        dz = np.diff(z)
-        if not (np.all(dz > 0) or np.all(dz < 0)):
-            raise ValueError(
-                "needle geometry: eq. (4) is not monotonic over "
-                f"{_TABLE_RANGE_DEG} deg; check needle_x_c_mm/needle_y_c_mm")
-        if dz[0] < 0:
-            return z[::-1].copy(), theta[::-1].copy()
-        return z, theta
+        return _height_table(self)
 
     @property
     def height_table(self) -> tuple[np.ndarray, np.ndarray]:
@@ -147,6 +138,30 @@ class NeedleGeometry:
         """
         z, theta = self._table
         return angle_for_height_core(z_mm, z, theta)
+
+
+@lru_cache(maxsize=256)
+def _height_table(geometry: NeedleGeometry) -> tuple[np.ndarray, np.ndarray]:
+    """(z [mm] increasing, theta [deg]) tabulating eq. (4) of ``geometry``,
+    made once per distinct geometry (the value is the key: a fit that
+    rebuilds its models at every step, e.g. discover's with z0 and C free,
+    makes equal geometries many times). Shared: callers must not write to it.
+
+    Raises
+    ------
+    ValueError
+        eq. (4) is not monotonic over the table's range (not cached).
+    """
+    theta = np.linspace(*_TABLE_RANGE_DEG, _TABLE_POINTS)
+    z = needle_height_mm(theta, geometry)
+    dz = np.diff(z)
+    if not (np.all(dz > 0) or np.all(dz < 0)):
+        raise ValueError(
+            "needle geometry: eq. (4) is not monotonic over "
+            f"{_TABLE_RANGE_DEG} deg; check needle_x_c_mm/needle_y_c_mm")
+    if dz[0] < 0:
+        return z[::-1].copy(), theta[::-1].copy()
+    return z, theta
 
 
 def fluid_force_n(p1_mpa, dp_mpa, geometry: NeedleGeometry):

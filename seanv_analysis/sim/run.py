@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from datetime import datetime, timezone
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, Iterable
 
@@ -41,6 +42,26 @@ def _rng(seed: int, run_index: int) -> np.random.Generator:
     return np.random.default_rng([int(seed), int(run_index), 0x5EA7])
 
 
+#: runs up to this many 1 kHz samples keep their noise draws (3 x 8 bytes each)
+_NOISE_CACHE_SAMPLES = 200_000
+
+
+@lru_cache(maxsize=4)
+def _cached_draws(seed: int, run_index: int, n_fast: int) -> np.ndarray:
+    draws = _rng(seed, run_index).standard_normal((n_fast, 3))
+    draws.flags.writeable = False
+    return draws
+
+
+def _unit_noise(seed: int, run_index: int, n_fast: int) -> np.ndarray:
+    """The run's (n_fast, 3) standard-normal pressure-noise draws [-]; a short
+    run's are drawn once (read-only, shared): a twin replayed many times with
+    one seed (identify's and discover's searches) draws the same numbers."""
+    if n_fast > _NOISE_CACHE_SAMPLES:
+        return _rng(seed, run_index).standard_normal((n_fast, 3))
+    return _cached_draws(int(seed), int(run_index), int(n_fast))
+
+
 def _steps(seq, name: str) -> tuple[np.ndarray, np.ndarray]:
     """(t, value) step sequence from a number or a pair of sequences."""
     if np.isscalar(seq):
@@ -67,7 +88,7 @@ def _run(plant: Plant, *, ctrl_kind: int, cp, ctrl_tables, ref, load, cmd, durat
     rate = float(rig["sensors"]["encoder_rate_hz"])
     n_fast = int(round(duration_s * rate)) + 1
     sigma = float(rig["sensors"]["pressure_noise_mpa"])
-    noise = _rng(seed, run_index).standard_normal((n_fast, 3)) * sigma
+    noise = _unit_noise(seed, run_index, n_fast) * sigma
     fast, slow, t_release = simulate_kernel(
         pp, *valve, tw, ctrl_kind, cp, *ctrl_tables,
         ref[0], ref[1], load[0], load[1], cmd[0], cmd[1], noise, n_fast, float(x0_mm),
