@@ -93,6 +93,7 @@ def bench_disk(rig) -> dict:
     from seanv_analysis.models import ValveModel, side_pressures
     from seanv_analysis.plots.fig4 import plot_fig4
     from seanv_analysis.stages import run_stages
+    from seanv_analysis.stages.flowfit import write as write_flowfit
 
     write = _conftest_writer()
     if write is None:
@@ -129,7 +130,7 @@ def bench_disk(rig) -> dict:
             fit = fit_flow(ds.summary, rig, cam="commanded", n_boot=200)
             stages["fit_s"] = round(time.perf_counter() - t, 2)
             t = time.perf_counter()
-            fit.write(Path(tmp) / "out")
+            write_flowfit(fit, Path(tmp) / "out")
             plot_fig4(fit, Path(tmp) / "out")
             stages["write_and_fig4_s"] = round(time.perf_counter() - t, 2)
             return fit, ds
@@ -137,7 +138,7 @@ def bench_disk(rig) -> dict:
         (fit, ds), dt, peak = _measure(run)
         stages = calls[0]  # the untraced call
         size = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
-    return {"runs": k, "bad_runs": len(ds.errors), "data_mib": round(size / 2 ** 20, 2),
+    return {"runs": k, "bad_runs": len(ds.failed), "data_mib": round(size / 2 ** 20, 2),
             "write_data_s": round(t_write, 2), "time_s": round(dt, 2), **stages,
             "tracemalloc_peak_mib": round(peak, 2), "result": fit.to_json_dict()}
 
