@@ -180,11 +180,11 @@ class _Side:
     complexity: np.ndarray    # of each feature (:func:`complexity`)
 
 
-def _nuisance(fit: StaticFit, data: FlowData, w: np.ndarray) -> np.ndarray:
+def _nuisance(fit: StaticFit, data: FlowData, q0: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Weighted columns d(prediction)/d(parameter) of what the base fit
-    already has: each side's z0, C (and y_c where it was fitted) and every
-    kept named effect's parameters (forward differences)."""
-    q0 = predict_static(fit.model, data, fit.effects)
+    already has (``q0``: its prediction [mm^3/s]): each side's z0, C (and
+    y_c where it was fitted) and every kept named effect's parameters
+    (forward differences)."""
     cols = []
     for side in ("supply", "drain"):
         if not np.any(data.side == side):
@@ -199,7 +199,7 @@ def _nuisance(fit: StaticFit, data: FlowData, w: np.ndarray) -> np.ndarray:
                 changes.append((fit.model.with_side(side, geometry=geom), STEP_YC_MM))
             except ValueError:
                 pass
-        cols += [(predict_static(m, data, fit.effects) - q0) / h for m, h in changes]
+        cols += [(predict_static(moved, data, fit.effects) - q0) / h for moved, h in changes]
     for label, (spec, values) in fit.effects.items():
         for k, v in enumerate(np.asarray(values, float)):
             h = 1e-6 * max(abs(v), 1.0)
@@ -210,11 +210,12 @@ def _nuisance(fit: StaticFit, data: FlowData, w: np.ndarray) -> np.ndarray:
     return np.column_stack(cols) * w[:, None]
 
 
-def _jacobians(fit: StaticFit, data: FlowData, side: str, w: np.ndarray) -> dict[str, np.ndarray]:
-    """{mode: weighted J} of ``side``'s valve on every run: 'mul' its flow
-    (0 where sealed), 'add' 1, 'threshold' dQ/dtheta_d (0 where sealed)."""
+def _jacobians(fit: StaticFit, data: FlowData, side: str, q0: np.ndarray,
+               w: np.ndarray) -> dict[str, np.ndarray]:
+    """{mode: weighted J} of ``side``'s valve on every run (``q0``: the fit's
+    prediction [mm^3/s]): 'mul' its flow (0 where sealed), 'add' 1,
+    'threshold' dQ/dtheta_d (0 where sealed)."""
     own = data.side == side
-    q0 = predict_static(fit.model, data, fit.effects)
     shifted = term_spec(side, "threshold", ("1",))
     q_th = predict_static(fit.model, data, {**fit.effects, "t": (shifted, np.array([STEP_DEG]))})
     jac = {"mul": np.where(own, q0, 0.0), "add": np.ones_like(q0),
@@ -227,7 +228,8 @@ def _prepare(fit: StaticFit, data: FlowData, sigma: np.ndarray) -> list[_Side]:
     ``data`` (sides with >= 8 runs)."""
     out = []
     w = 1.0 / sigma
-    r = (data.q_mm3_s - predict_static(fit.model, data, fit.effects)) * w
+    q0 = predict_static(fit.model, data, fit.effects)
+    r = (data.q_mm3_s - q0) * w
     nuis = None
     for side in ("supply", "drain"):
         m = data.side == side
@@ -239,10 +241,10 @@ def _prepare(fit: StaticFit, data: FlowData, sigma: np.ndarray) -> list[_Side]:
             continue
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
             g = np.column_stack([evaluate(t, variables) for t in feats]).astype(float)
-        nuis = _nuisance(fit, data, w) if nuis is None else nuis
+        nuis = _nuisance(fit, data, q0, w) if nuis is None else nuis
         run_dep = np.array(["run" in compile_expr(t).variables for t in feats])
-        out.append(_Side(side, m, r, nuis, feats, g, _jacobians(fit, data, side, w), run_dep,
-                         variables, np.array([complexity(t) for t in feats])))
+        out.append(_Side(side, m, r, nuis, feats, g, _jacobians(fit, data, side, q0, w),
+                         run_dep, variables, np.array([complexity(t) for t in feats])))
     return out
 
 
@@ -341,7 +343,8 @@ def _stats(sides: list[_Side], k: int, rng: np.random.Generator | None = None,
     """Fraction of the weighted RSS that ``k`` stepwise features remove, per
     (side, mode) in the order of ``sides`` x ``TERM_MODES`` (the search's
     statistic): (1 x combos) on the data, or with ``rng`` (n x combos) on
-    ``n`` replicates whose residuals are permuted among each side's runs."""
+    ``n`` replicates whose residuals are permuted among each side's runs
+    (``groups``: each run's side)."""
     out = []
     r = sides[0].r[:, None] if rng is None else _permuted_within_sides(sides[0].r, groups, rng, n)
     for s in sides:
