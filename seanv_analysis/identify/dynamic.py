@@ -42,6 +42,9 @@ servo's dead time, fitted on the same instants, carries that error, and in
 closed loop (the twin's own clock) the delay takes it up. So a delay's
 interval is widened by that half sample, and the delay is known as a sum
 with the servo's dead time; the replay's value is kept as ``replay_value``.
+Likewise the replay's cam angles are the servo feedback, quantised to its
+resolution: a backlash width (the difference of the play's two edges) is
+known to one count, and its interval is widened by that.
 
 The headline numbers are the held-out closed-loop errors (flow RMSE, flow
 and position fit) before and after, of each segment re-run from the logged
@@ -238,6 +241,12 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
             # time fitted on them: the delay is known as their sum
             step = float(rig["sim"]["time_step_s"]) + _command_timing_u(train_runs)
             lo, hi = max(lo - step, 0.0), hi + step
+        elif f.name == "backlash":
+            # the replay's cam angles are the servo feedback, quantised to its
+            # resolution: each edge of the play is known to half a count, the
+            # width (their difference) to one
+            res = float(rig["servo"].get("resolution_deg", 0.0))
+            lo, hi = max(lo - res, 0.0), hi + res
         f.ci95 = (lo, hi)
         twin = with_bulk(rig, f.bulk_mpa, where="discover")
         f.replay_value = f.value
