@@ -476,10 +476,17 @@ def _p_value(sides: list[_Side], choice: _Choice, data: FlowData, n_perm: int, r
     idx_fixed = [me.features.index(f) for f in fixed]
     nuis = np.column_stack([me.nuisance, _design(me, choice.mode)[:, idx_fixed]])
 
+    # only the run-dependent features change with the run order: compiled
+    # once, evaluated per replicate into a copy of the side's features
+    run_cols = np.flatnonzero(me.run_dep)
+    run_progs = [compile_expr(me.features[j]) for j in run_cols]
+
     def stat(run_index):
         variables = {**me.variables, "run": run_index}
+        g = me.g.copy()
         with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-            g = np.column_stack([evaluate(t, variables) for t in me.features])
+            for j, prog in zip(run_cols, run_progs):
+                g[:, j] = evaluate(prog, variables)
         x = _design(me, choice.mode, g)
         return _stepwise(me.r, nuis, x, n_run, allowed=me.run_dep, complexity=me.complexity)[1]
 
