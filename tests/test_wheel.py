@@ -59,7 +59,11 @@ def test_wheel_carries_the_package_data(installed):
         assert need in names
 
 
-def test_installed_copy_simulates_and_runs_the_paper_pipeline(installed):
+def test_installed_copy_simulates_and_runs_the_shipped_pipelines(installed):
+    """Every use of the package data from an installed copy: the data
+    contract and default rig (simulate, ingest), the shipped pipelines found
+    by name (the flowfit and tracking pipelines run; the paper pipeline, whose
+    stages are all tested in the checkout, is found and parsed)."""
     _, site, work, env = installed
     where = subprocess.run([sys.executable, "-c", "import seanv_analysis; print(seanv_analysis.__file__)"],
                            cwd=work, env=env, capture_output=True, text=True, check=True).stdout
@@ -68,9 +72,18 @@ def test_installed_copy_simulates_and_runs_the_paper_pipeline(installed):
         res = _run(installed, "simulate", scenario, "--out", f"data/{folder}")
         assert res.returncode == 0, res.stderr
     # figures are Python only (nothing shipped): tested in the checkout
-    res = _run(installed, "run", "paper", "data", "--out", "out",
-               "--workers", "1", "--json", "-q", "--no-figures")
-    assert res.returncode == 0, res.stderr + res.stdout[-2000:]
-    doc = json.loads(res.stdout)
-    assert doc["runs_read"] > 2 and not doc["failed"] and not doc["stage_errors"]
-    assert (work / "out" / "report.html").is_file()
+    for name, folder in (("flowfit", "flow"), ("tracking", "position")):
+        res = _run(installed, "run", name, f"data/{folder}", "--out", f"out-{name}",
+                   "--workers", "1", "--json", "-q", "--no-figures")
+        assert res.returncode == 0, res.stderr + res.stdout[-2000:]
+        doc = json.loads(res.stdout)
+        assert doc["runs_read"] >= 2 and not doc["failed"] and not doc["stage_errors"]
+        assert doc[name] is not None, name
+        assert (work / f"out-{name}" / "report.html").is_file()
+    shipped = subprocess.run(
+        [sys.executable, "-c", "from seanv_analysis.stages.pipeline import load_pipeline; "
+         "print(' '.join(load_pipeline('paper').stage_names))"],
+        cwd=work, env=env, capture_output=True, text=True)
+    assert shipped.returncode == 0, shipped.stderr
+    assert shipped.stdout.split() == ["ingest", "flowfit", "identify", "tracking", "validate",
+                                      "discover", "figures", "report"]
