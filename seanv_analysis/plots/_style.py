@@ -61,24 +61,39 @@ MATHTEXT_CACHE = 1024
 
 def _widen_mathtext_cache() -> None:
     """Keep more parsed math labels (``$\\theta_d$``, ``mm$^3$/s``) than
-    matplotlib's 50 (pyparsing, ~12 ms a parse).
+    matplotlib's 50 (pyparsing, ~12 ms a parse), shared by all renderers.
 
-    A label is parsed per (text, size, resolution): one figure saved as PNG
-    and SVG, with its tight box measured, asks for ~3 x its labels, so a
-    few figures in a row cycle through more than 50 and never hit the
-    cache (Fig. 4, 6, 7 of one data set: 338 parses, 40 % of their time).
-    ``MathTextParser._parse_cached`` is matplotlib's private lru cache; where
-    a release has none, nothing changes.
+    matplotlib caches a parse per parser instance (``self`` is part of its
+    lru key), and every renderer makes its own parser: each file saved and
+    each tight box measured parsed every label again (the golden data set's
+    Fig. 4, 6 and 7: 338 parses of 116 distinct labels). The parse depends
+    on the instance only through its output type (vector or raster), so the
+    cache here is keyed on that, and holds ``MATHTEXT_CACHE`` labels (a
+    label is still parsed per size and resolution). ``_parse_cached`` is
+    matplotlib's private lru cache; where a release has none, or its parser
+    has no ``_output_type``, nothing changes.
     """
     import functools
 
     from matplotlib import mathtext
 
     cached = getattr(mathtext.MathTextParser, "_parse_cached", None)
-    info = getattr(cached, "cache_info", None)
-    if info is None or not hasattr(cached, "__wrapped__") or info().maxsize >= MATHTEXT_CACHE:
+    parse = getattr(cached, "__wrapped__", None)
+    if parse is None or getattr(cached, "_seanv_shared", False) \
+            or not hasattr(mathtext.MathTextParser("agg"), "_output_type"):
         return
-    mathtext.MathTextParser._parse_cached = functools.lru_cache(MATHTEXT_CACHE)(cached.__wrapped__)
+    parsers = {"vector": mathtext.MathTextParser("path"), "raster": mathtext.MathTextParser("agg")}
+
+    @functools.lru_cache(MATHTEXT_CACHE)
+    def by_output_type(output_type, s, dpi, prop, antialiased, load_glyph_flags):
+        return parse(parsers[output_type], s, dpi, prop, antialiased, load_glyph_flags)
+
+    def shared(self, s, dpi, prop, antialiased, load_glyph_flags):
+        return by_output_type(self._output_type, s, dpi, prop, antialiased, load_glyph_flags)
+
+    shared._seanv_shared = True
+    shared.cache_info = by_output_type.cache_info
+    mathtext.MathTextParser._parse_cached = shared
 
 
 def new_figure(**kwargs: Any):
