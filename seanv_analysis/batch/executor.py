@@ -93,6 +93,29 @@ def _call(func: Callable, item: Any, kwargs: dict[str, Any], limit_blas: bool = 
         return False, one_line_error(exc) + where
 
 
+#: most tasks a process-pool worker is handed at once (:func:`_chunks`)
+CHUNK_MAX = 16
+
+
+def _chunks(n: int, workers: int) -> list[range]:
+    """Indices 0..n-1 in consecutive chunks, one process-pool task each.
+
+    A task costs the pool ~0.5 ms of the parent's time (future, queues,
+    pickling), as much as summarising a short run: a long list of small
+    tasks goes in chunks of up to ``CHUNK_MAX``, about 8 per worker or more,
+    so the workers still share the work evenly; up to 16 items per worker
+    (a few runs' closed-loop re-runs, figures) stay one task each."""
+    size = max(1, min(CHUNK_MAX, n // (8 * max(workers, 1))))
+    return [range(a, min(a + size, n)) for a in range(0, n, size)]
+
+
+def _call_chunk(func: Callable, items: Sequence[Any], kwargs: dict[str, Any]
+                ) -> list[tuple[bool, Any]]:
+    """:func:`_call` on each item in turn (in a worker that already runs
+    with one BLAS thread)."""
+    return [_call(func, item, kwargs, False) for item in items]
+
+
 def progress_enabled(quiet: bool = False) -> bool | None:
     """``disable`` argument for tqdm: True (off) when quiet or ``CI`` is set,
     else None (tqdm turns itself off when stderr is not a TTY)."""
@@ -224,14 +247,16 @@ class Executor:
                         done(i, *_call(func, item, kwargs, False))
             elif self.kind == "process":
                 pool = self._process_pool()  # its workers run with one BLAS thread
-                futures = {pool.submit(_call, func, item, kwargs, False): i
-                           for i, item in enumerate(items)}
+                futures = {pool.submit(_call_chunk, func, [items[i] for i in chunk], kwargs): chunk
+                           for chunk in _chunks(len(items), self.workers)}
                 for fut in as_completed(futures):
-                    i = futures[fut]
+                    chunk = futures[fut]
                     try:
-                        done(i, *fut.result())
+                        outcomes = fut.result()
                     except Exception as exc:  # worker died (killed, out of memory)
-                        done(i, False, one_line_error(exc))
+                        outcomes = [(False, one_line_error(exc))] * len(chunk)
+                    for i, outcome in zip(chunk, outcomes):
+                        done(i, *outcome)
             elif self.kind == "dask":
                 # pure=False: two tasks with equal arguments still both run
                 futures = [self.client.submit(_call, func, item, kwargs, pure=False)
