@@ -54,7 +54,12 @@ def scan_file(path: Path, *, want_hash: bool, find_nul: bool) -> FileScan:
     h = hashlib.sha256() if want_hash else None
     size, nul, blank, head, first = 0, -1, True, b"", b""
     with open(path, "rb") as fh:
-        while chunk := fh.read(_CHUNK if want_hash else HEAD_BYTES):
+        # reads of a small file ask for little more than its size: a 4 MiB
+        # request allocates (and faults in) 4 MiB for every file, ~4x the
+        # cost of reading a 20 KiB table
+        step = min(_CHUNK, max(os.fstat(fh.fileno()).st_size + 1, HEAD_BYTES)) if want_hash \
+            else HEAD_BYTES
+        while chunk := fh.read(step):
             if not size:
                 first = chunk
                 head = chunk[:HEAD_BYTES]
@@ -77,7 +82,6 @@ def scan_file(path: Path, *, want_hash: bool, find_nul: bool) -> FileScan:
     whole = len(first) == size if want_hash else len(first) < HEAD_BYTES
     return FileScan(size, h.hexdigest() if h is not None else None, nul, blank, head,
                     first if whole else None, st)
-
 
 
 def file_size(path: Path) -> int:

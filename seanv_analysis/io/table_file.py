@@ -26,6 +26,7 @@ from .hashing import remember_sha256
 from .scan import memory_pool, scan_file
 from .validate import (
     check_finite,
+    check_folder_link,
     check_increasing,
     check_link,
     check_pressure,
@@ -42,8 +43,15 @@ Listing = Mapping[str, Sequence[os.DirEntry]]
 
 
 def folder_listing(folder: Path) -> Listing | None:
-    """The entries of ``folder`` by lower-cased name (one directory read for
-    every table of a run), None when it cannot be listed."""
+    """The entries of run folder ``folder`` by lower-cased name (one
+    directory read for every table of a run), None when it cannot be listed.
+
+    Raises
+    ------
+    DataError
+        ``folder`` is a symbolic link (:func:`~.validate.check_folder_link`).
+    """
+    check_folder_link(folder)
     out: dict[str, list[os.DirEntry]] = {}
     try:
         with os.scandir(folder) as entries:
@@ -59,10 +67,11 @@ def locate_table(run_dir: Path, spec: TableSpec, kind: str, *,
     """The file of table ``spec`` in ``run_dir`` and its format; None when an
     optional table is absent.
 
-    ``listing``: :func:`folder_listing` of ``run_dir``. When it shows the
-    table as exactly one regular file (no link, no other entry of a
-    candidate's name in any case) that file is taken without a ``stat`` per
-    candidate; anything else is looked at file by file, as without it.
+    ``listing``: :func:`folder_listing` of ``run_dir`` (which refused a
+    linked folder). When it shows the table as exactly one regular file (no
+    link, no other entry of a candidate's name in any case) that file is
+    taken without a ``stat`` per candidate; anything else is looked at file
+    by file, as without it.
 
     Raises
     ------
@@ -76,9 +85,7 @@ def locate_table(run_dir: Path, spec: TableSpec, kind: str, *,
         listed = [e for name in by_name for e in listing.get(name.lower(), ())]
         if len(listed) == 1 and listed[0].name in by_name \
                 and listed[0].is_file(follow_symlinks=False):
-            path = run_dir / listed[0].name
-            check_link(run_dir, path)
-            return path, by_name[listed[0].name]
+            return run_dir / listed[0].name, by_name[listed[0].name]
     by_path = {run_dir / f"{spec.name}{suffix}": fmt for fmt in formats for suffix in fmt.suffixes}
     candidates = list(by_path)
     found = [p for p in candidates if p.is_file()]

@@ -25,7 +25,7 @@ from .contract import contract
 from .run import RunMeta
 
 __all__ = ["parse_run_json", "read_run_json", "check_finite", "check_increasing",
-           "check_time_plausible", "time_limits_s", "check_link",
+           "check_time_plausible", "time_limits_s", "check_link", "check_folder_link",
            "check_pressure", "check_rig_overrides", "format_value", "one_line",
            "max_pressure_mpag"]
 
@@ -136,6 +136,21 @@ def check_time_plausible(t: np.ndarray, *, path: str | Path, column: str,
 
 # links --------------------------------------------------------------------
 
+def check_folder_link(run_dir: str | Path) -> None:
+    """Refuse a run folder that is a symbolic link (the first check of
+    :func:`check_link`).
+
+    Raises
+    ------
+    DataError
+        naming the link (not its target).
+    """
+    if os.path.islink(run_dir):
+        raise DataError("is a symbolic link to a folder; run folders inside a data set are not "
+                        "followed through links: copy or move the run into the data set, or "
+                        "give the folder itself as DATA", path=run_dir)
+
+
 def check_link(run_dir: str | Path, path: str | Path) -> None:
     """Refuse a run folder that is a symbolic link, and a file of the run
     (run.json, a table) that is a symbolic link resolving outside the folder
@@ -149,10 +164,7 @@ def check_link(run_dir: str | Path, path: str | Path) -> None:
         naming the link (not its target).
     """
     run_dir, path = Path(run_dir), Path(path)
-    if run_dir.is_symlink():
-        raise DataError("is a symbolic link to a folder; run folders inside a data set are not "
-                        "followed through links: copy or move the run into the data set, or "
-                        "give the folder itself as DATA", path=run_dir)
+    check_folder_link(run_dir)
     if not path.is_symlink():
         return
     base = Path(os.path.realpath(run_dir)).parent
