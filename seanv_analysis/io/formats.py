@@ -178,6 +178,6 @@ def either(words: Iterable[str]) -> str:
 
 
 register_format(TableFormat("csv", "CSV", (".csv",), parse_csv, write_csv, text=True,
-                            writes_columns=True))
+                            writes_columns=True, parses_bytes=True))
 register_format(TableFormat("parquet", "Parquet", (".parquet",), parse_parquet,
                             write_table_parquet, parses_bytes=True))
