@@ -7,10 +7,12 @@ of a data set, collecting bad runs instead of stopping at them.
 
 Tables are parsed by pyarrow (multi-threaded C++ CSV and Parquet readers);
 checks and calibration are vectorised numpy, so a run costs little more than
-parsing its files. Each file is read from disk once for its hash and once
-more, from the page cache, by the parser. Finding runs and the metadata
-phase live in :mod:`.dataset`, one table file in :mod:`.table_file`, file
-formats in :mod:`.formats`; their public names are re-exported here.
+parsing its files. Each file is read from disk once for its hash; a file
+of up to 4 MiB is parsed from those bytes, a larger one read once more,
+from the page cache, by the parser. A run folder is listed once to find its
+tables. Finding runs and the metadata phase live in :mod:`.dataset`, one
+table file in :mod:`.table_file`, file formats in :mod:`.formats`; their
+public names are re-exported here.
 """
 from __future__ import annotations
 
