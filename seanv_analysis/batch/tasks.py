@@ -11,7 +11,6 @@ run entirely next time.
 from __future__ import annotations
 
 import os
-from pathlib import Path
 from typing import Any, Callable, Mapping
 
 from .cache import read_entry, run_key, write_entry
@@ -24,10 +23,10 @@ def file_hashes(run) -> tuple[dict[str, str], dict[str, tuple[int, int]]]:
     hashes: dict[str, str] = {}
     stats: dict[str, tuple[int, int]] = {}
     for path, digest in run.file_sha256.items():
-        p = Path(path)
-        st = os.stat(p)
-        hashes[p.name] = digest
-        stats[p.name] = (st.st_size, st.st_mtime_ns)
+        st = os.stat(path)
+        name = os.path.basename(path)   # a file's path: its name
+        hashes[name] = digest
+        stats[name] = (st.st_size, st.st_mtime_ns)
     return hashes, stats
 
 

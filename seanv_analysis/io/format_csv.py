@@ -108,11 +108,14 @@ def _float_array(values: np.ndarray) -> pa.Array:
     return pa.Array.from_buffers(pa.float64(), values.size, [valid, pa.py_buffer(values)])
 
 
-def parse_csv(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool) -> pa.Table:
+def parse_csv(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool, *,
+              data: bytes | None = None) -> pa.Table:
     """Parse a CSV table into Arrow, the contract's columns as float64 under
     the contract's names; ``head``: the file's first 64 KiB (already read by
     :func:`~seanv_analysis.io.scan.scan_file`), where the header is sniffed.
-    ``pool``: the Arrow memory pool to parse into.
+    ``pool``: the Arrow memory pool to parse into. ``data``: the file's
+    whole content when already read (parsed from memory, the file is not
+    opened again), None to read ``path``.
 
     Raises
     ------
@@ -129,7 +132,8 @@ def parse_csv(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool) -> 
     try:
         # the file's read buffers come from the reader's pool too (else from
         # Arrow's default pool, which keeps ~ the file's size resident after)
-        with pa.OSFile(str(path), "r", memory_pool=pool) as source:
+        with (pa.BufferReader(data) if data is not None
+              else pa.OSFile(str(path), "r", memory_pool=pool)) as source:
             table = pacsv.read_csv(source, convert_options=pacsv.ConvertOptions(
                 column_types=types), memory_pool=pool)
     except UnicodeDecodeError:

@@ -45,7 +45,9 @@ __all__ = ["TableFormat", "ParseFn", "WriteFn", "FORMATS", "register_format",
 #: ``head`` is the file's first 64 KiB (already read: for sniffing a text
 #: header), ``pool`` the Arrow memory pool to parse into. Raise
 #: :class:`~seanv_analysis.errors.DataError` naming the file for a file that
-#: cannot be parsed.
+#: cannot be parsed. A format with ``parses_bytes`` also takes ``data=``: the
+#: file's whole content when the reader already holds it (a small file,
+#: read in one piece for its hash), else None (read the file at ``path``).
 ParseFn = Callable[[Path, TableSpec, bytes, pa.MemoryPool], pa.Table]
 
 #: ``write(df, path)``: write one run table atomically
@@ -69,6 +71,8 @@ class TableFormat:
     writes_columns : ``write`` also takes the table as {column: numpy array}
         (what a run read or simulated holds, so it is written without
         building a DataFrame)
+    parses_bytes : ``parse`` also takes ``data=`` (see :data:`ParseFn`), so
+        a small file is parsed from the bytes already read, not opened again
     """
 
     name: str
@@ -78,6 +82,7 @@ class TableFormat:
     write: WriteFn | None = None
     text: bool = False
     writes_columns: bool = False
+    parses_bytes: bool = False
 
 
 #: every registered format by suffix, in registration order
@@ -173,6 +178,6 @@ def either(words: Iterable[str]) -> str:
 
 
 register_format(TableFormat("csv", "CSV", (".csv",), parse_csv, write_csv, text=True,
-                            writes_columns=True))
+                            writes_columns=True, parses_bytes=True))
 register_format(TableFormat("parquet", "Parquet", (".parquet",), parse_parquet,
-                            write_table_parquet))
+                            write_table_parquet, parses_bytes=True))

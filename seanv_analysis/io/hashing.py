@@ -28,12 +28,12 @@ _LOCK = threading.Lock()
 _CHUNK = 1 << 22
 
 
-def _key(path: Path) -> tuple[int, int, int, int, int]:
+def _key(path: Path, st: os.stat_result | None = None) -> tuple[int, int, int, int, int]:
     """(device, inode, size, mtime, ctime) of the file ``path`` leads to
-    (one ``stat``; every path of one file shares it): a same-size edit
-    whose mtime was put back still changes the ctime (which no user can
-    set), a file replaced by another the inode."""
-    st = os.stat(path)
+    (one ``stat``, or ``st`` when given; every path of one file shares it):
+    a same-size edit whose mtime was put back still changes the ctime
+    (which no user can set), a file replaced by another the inode."""
+    st = os.stat(path) if st is None else st
     return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
 
 
@@ -42,10 +42,14 @@ def sha256_bytes(data: bytes | memoryview) -> str:
     return hashlib.sha256(data).hexdigest()
 
 
-def remember_sha256(path: str | Path, digest: str) -> None:
-    """Record the digest of ``path`` (as it is now on disk) for later look-ups."""
+def remember_sha256(path: str | Path, digest: str, *, stat: os.stat_result | None = None) -> None:
+    """Record the digest of ``path`` (as it is now on disk) for later look-ups.
+
+    ``stat``: the file's ``os.stat``/``os.fstat`` result taken after the
+    bytes hashed were read (saves a ``stat`` of ``path``).
+    """
     try:
-        key = _key(Path(path))
+        key = _key(path, stat)
     except OSError:
         return
     with _LOCK:

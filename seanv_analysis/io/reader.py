@@ -7,10 +7,12 @@ of a data set, collecting bad runs instead of stopping at them.
 
 Tables are parsed by pyarrow (multi-threaded C++ CSV and Parquet readers);
 checks and calibration are vectorised numpy, so a run costs little more than
-parsing its files. Each file is read from disk once for its hash and once
-more, from the page cache, by the parser. Finding runs and the metadata
-phase live in :mod:`.dataset`, one table file in :mod:`.table_file`, file
-formats in :mod:`.formats`; their public names are re-exported here.
+parsing its files. Each file is read from disk once for its hash; a file
+of up to 4 MiB is parsed from those bytes, a larger one read once more,
+from the page cache, by the parser. A run folder is listed once to find its
+tables. Finding runs and the metadata phase live in :mod:`.dataset`, one
+table file in :mod:`.table_file`, file formats in :mod:`.formats`; their
+public names are re-exported here.
 """
 from __future__ import annotations
 
@@ -24,11 +26,11 @@ from ..errors import DataError, SeanvError
 from .contract import ColumnSpec, TableSpec, contract_columns, table_specs
 from .dataset import DatasetRead, RunError, dataset_plan, find_runs, is_run_dir
 from .formats import TableFormat
-from .hashing import remember_sha256, sha256_bytes
+from .hashing import remember_sha256
 from .run import Run, RunMeta
 from .run_tables import RunTables
-from .scan import file_size
-from .table_file import locate_table, read_table_columns
+from .scan import file_size, scan_file
+from .table_file import folder_listing, locate_table, read_table_columns
 from .validate import check_rig_overrides, max_pressure_mpag, one_line, read_run_json
 
 __all__ = ["find_runs", "is_run_dir", "read_run", "read_dataset", "iter_dataset",
@@ -116,14 +118,15 @@ def _read_tables(meta: RunMeta, base: RigConfig, *, hash_files: bool) -> Run:
     files: dict[str, Path] = {"run.json": run_json}
     hashes: dict[str, str] = {}
     if hash_files:
-        data = run_json.read_bytes()
-        hashes[str(run_json)] = digest = sha256_bytes(data)
-        remember_sha256(run_json, digest)
+        scan = scan_file(run_json, want_hash=True, find_nul=False)
+        hashes[str(run_json)] = scan.sha256
+        remember_sha256(run_json, scan.sha256, stat=scan.stat)
     todo: list[tuple[TableSpec, Path, TableFormat]] = []
+    listing = folder_listing(meta.path)
     for spec in table_specs().values():
         if meta.kind not in spec.kinds:
             continue
-        found = locate_table(meta.path, spec, meta.kind)
+        found = locate_table(meta.path, spec, meta.kind, listing=listing)
         if found is not None:
             files[spec.name] = found[0]
             todo.append((spec, *found))

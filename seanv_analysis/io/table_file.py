@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
@@ -26,6 +26,7 @@ from .hashing import remember_sha256
 from .scan import memory_pool, scan_file
 from .validate import (
     check_finite,
+    check_folder_link,
     check_increasing,
     check_link,
     check_pressure,
@@ -35,12 +36,42 @@ from .validate import (
     time_limits_s,
 )
 
-__all__ = ["locate_table", "read_table", "read_table_columns"]
+__all__ = ["folder_listing", "locate_table", "read_table", "read_table_columns"]
+
+#: a folder's entries by lower-cased name (:func:`folder_listing`)
+Listing = Mapping[str, Sequence[os.DirEntry]]
 
 
-def locate_table(run_dir: Path, spec: TableSpec, kind: str) -> tuple[Path, TableFormat] | None:
+def folder_listing(folder: Path) -> Listing | None:
+    """The entries of run folder ``folder`` by lower-cased name (one
+    directory read for every table of a run), None when it cannot be listed.
+
+    Raises
+    ------
+    DataError
+        ``folder`` is a symbolic link (:func:`~.validate.check_folder_link`).
+    """
+    check_folder_link(folder)
+    out: dict[str, list[os.DirEntry]] = {}
+    try:
+        with os.scandir(folder) as entries:
+            for entry in entries:
+                out.setdefault(entry.name.lower(), []).append(entry)
+    except OSError:
+        return None
+    return out
+
+
+def locate_table(run_dir: Path, spec: TableSpec, kind: str, *,
+                 listing: Listing | None = None) -> tuple[Path, TableFormat] | None:
     """The file of table ``spec`` in ``run_dir`` and its format; None when an
     optional table is absent.
+
+    ``listing``: :func:`folder_listing` of ``run_dir`` (which refused a
+    linked folder). When it shows the table as exactly one regular file (no
+    link, no other entry of a candidate's name in any case) that file is
+    taken without a ``stat`` per candidate; anything else is looked at file
+    by file, as without it.
 
     Raises
     ------
@@ -49,6 +80,12 @@ def locate_table(run_dir: Path, spec: TableSpec, kind: str) -> tuple[Path, Table
         entry of its name that is not a regular file.
     """
     formats = table_formats()
+    if listing is not None:
+        by_name = {f"{spec.name}{suffix}": fmt for fmt in formats for suffix in fmt.suffixes}
+        listed = [e for name in by_name for e in listing.get(name.lower(), ())]
+        if len(listed) == 1 and listed[0].name in by_name \
+                and listed[0].is_file(follow_symlinks=False):
+            return run_dir / listed[0].name, by_name[listed[0].name]
     by_path = {run_dir / f"{spec.name}{suffix}": fmt for fmt in formats for suffix in fmt.suffixes}
     candidates = list(by_path)
     found = [p for p in candidates if p.is_file()]
@@ -102,7 +139,7 @@ def read_table_columns(path: Path, fmt: TableFormat, spec: TableSpec, rig: RigCo
                         f"{spec.name} table", path=path) from None
     if hashes is not None:
         hashes[str(path)] = scan.sha256
-        remember_sha256(path, scan.sha256)
+        remember_sha256(path, scan.sha256, stat=scan.stat)
     if scan.blank:
         raise DataError(f"empty file; expected a header line ({', '.join(contract_columns(spec.name))}) "
                         "and data rows", path=path)
@@ -116,7 +153,10 @@ def read_table_columns(path: Path, fmt: TableFormat, spec: TableSpec, rig: RigCo
     # once converted, so Arrow's copy of a column is released as numpy's is
     # made (peak: one table in Arrow + numpy, not two).
     pool = memory_pool(size)
-    table = fmt.parse(path, spec, scan.head, pool)
+    if fmt.parses_bytes:
+        table = fmt.parse(path, spec, scan.head, pool, data=scan.data)
+    else:
+        table = fmt.parse(path, spec, scan.head, pool)
     names = table.column_names
     chosen, used = _choose_columns(names, spec, path)
     n = table.num_rows

@@ -169,6 +169,7 @@ def _align(streams, *, t_s, base, hold, time_column) -> tuple[dict[str, np.ndarr
             out.update((c, np.asarray(v, dtype=np.float64)[base_slice]) for c, v in cols.items())
             continue
         counts = idx = None
+        same = same_clock(t, tk)  # once for all the stream's columns
         for c, v in cols.items():
             v = np.asarray(v, dtype=np.float64)
             if v.size and v.strides[0] == 0:
@@ -176,7 +177,7 @@ def _align(streams, *, t_s, base, hold, time_column) -> tuple[dict[str, np.ndarr
                 # zero-stride view, as interpolation or hold would give
                 out[c] = np.broadcast_to(v[:1], t.shape)
             elif c not in hold:
-                out[c] = interp_sorted(t, tk, v)
+                out[c] = _interp_on(t, tk, v, same)
             elif t_sorted:
                 if counts is None:
                     # sample i holds over t in [t_i, t_{i+1}); t >= lo >= tk[0]
@@ -269,8 +270,15 @@ def interp_sorted(t: np.ndarray, tk: np.ndarray, v: np.ndarray, *,
     t = np.asarray(t, np.float64)
     tk = np.asarray(tk, np.float64)
     v = np.asarray(v, np.float64)
-    if t.ndim == 1 and tk.ndim == 1 and v.shape == tk.shape:
-        same = same_clock(t, tk)
-        if same is not None:
-            return np.array(v[same]) if copy else v[same]
+    one_d = t.ndim == 1 and tk.ndim == 1 and v.shape == tk.shape
+    return _interp_on(t, tk, v, same_clock(t, tk) if one_d else None, copy=copy)
+
+
+def _interp_on(t: np.ndarray, tk: np.ndarray, v: np.ndarray, same: slice | None, *,
+               copy: bool = True) -> np.ndarray:
+    """:func:`interp_sorted` of float64 arrays given ``same = same_clock(t,
+    tk)`` (None: interpolate), so the columns of one stream compare the
+    clocks once."""
+    if same is not None and v.shape == tk.shape:
+        return np.array(v[same]) if copy else v[same]
     return np.interp(t, tk, v)

@@ -35,6 +35,7 @@ from ..io.run_tables import table_columns
 from ..models import flow_from_velocity, side_pressures
 from .align import align_run, align_run_columns, interp_sorted
 from .savgol import moving_average, savgol_derivative
+from .stats import median, nanmean, nanmedian
 
 __all__ = [
     "FLOW_METHODS", "DEFAULT_MAX_JITTER", "DEFAULT_SETTLE_BAND",
@@ -207,6 +208,10 @@ def velocity_mm_s(t_s, position_mm, *, window_s: float, polyorder: int,
         raise DataError(f"t_s has {t.size} samples but position_mm {x.size}; expected equal "
                         "lengths")
     for name, a in (("t_s", t), ("position_mm", x)):
+        with np.errstate(over="ignore", invalid="ignore"):
+            total = np.add.reduce(a)
+        if np.isfinite(total):
+            continue  # one pass, no temporary: a NaN or inf would make the sum non-finite
         bad = np.flatnonzero(~np.isfinite(a))
         if bad.size:
             raise DataError(f"value {a[bad[0]]!r} at index {bad[0]}; expected a finite number",
@@ -214,13 +219,12 @@ def velocity_mm_s(t_s, position_mm, *, window_s: float, polyorder: int,
     if t.size < 2:
         raise DataError(f"{t.size} sample(s); expected at least two", column="position_mm")
     steps = np.diff(t)
-    bad = np.flatnonzero(steps <= 0)
-    if bad.size:
-        i = int(bad[0]) + 1
+    lo, hi = float(steps.min()), float(steps.max())
+    if lo <= 0:
+        i = int(np.flatnonzero(steps <= 0)[0]) + 1
         raise DataError(f"t_s[{i}] = {t[i]!r} after {t[i - 1]!r}; expected strictly increasing "
                         "timestamps", column="t_s")
-    lo, hi = float(steps.min()), float(steps.max())
-    dt = float(np.median(steps, overwrite_input=True))   # steps is ours: no copy
+    dt = median(steps)
     jitter = max(hi - dt, dt - lo) / dt                   # = max |step - dt| / dt
     del steps
     n = _window_samples(float(window_s), dt, polyorder)
@@ -487,7 +491,7 @@ def step_window(run: Run) -> StepWindow:
 
     hold_fb = fb[i0:i1 + 1]
     if np.isfinite(hold_fb).any():
-        measured = float(np.nanmedian(hold_fb))
+        measured = nanmedian(hold_fb)
         ok = np.abs(hold_fb - measured) <= 2.0 * res
         ok3 = ok.copy()
         ok3[:-2] &= ok[1:-1] & ok[2:]
@@ -584,7 +588,7 @@ def _peak(t, v, p1, dp, *, side, lo, hi, half, area) -> FlowEstimate:
     vk = float(v[k])
     which = "maximum" if side == "supply" else "minimum"
     return FlowEstimate("peak", float(flow_from_velocity(vk, area)), vk,
-                        float(np.nanmedian(dp[a:b])), float(np.nanmedian(p1[a:b])),
+                        nanmedian(dp[a:b]), nanmedian(p1[a:b]),
                         float(t[a]), float(t[b - 1]), b - a, True, False, True,
                         f"{which} velocity at {t[k]:.3f} s; dp, p1 medians over the "
                         f"{b - a}-sample derivative window around it")
@@ -596,7 +600,7 @@ def _steady(t, v, p1, dp, *, lo, hi, window_s, dt, v_stall, area, band,
         sl = slice(i0, i1 + 1)
         vm = float(np.mean(v[sl]))
         return FlowEstimate("steady", float(flow_from_velocity(vm, area)), vm,
-                            float(np.nanmean(dp[sl])), float(np.nanmean(p1[sl])),
+                            nanmean(dp[sl]), nanmean(p1[sl]),
                             float(t[i0]), float(t[i1]), i1 - i0 + 1, moving, steady, True,
                             message)
 
@@ -737,7 +741,7 @@ def _estimate(run: Run, method: str, derived, info: Mapping[str, Any] | None,
     window_s = float(info["window_s"]) if info else float(analysis["derivative_window_s"])
     t = _col(derived, "t_s")
     v = _col(derived, "velocity_mm_s")
-    dt = float(info["dt_s"]) if info else float(np.median(np.diff(t)))
+    dt = float(info["dt_s"]) if info else median(np.diff(t))
     edge_lo = float(info["valid_start_s"]) if info else t[0] + window_s / 2
     edge_hi = float(info["valid_end_s"]) if info else t[-1] - window_s / 2
     p1, dp = _side_arrays(derived, meta.side, run.rig)
@@ -764,7 +768,7 @@ def _sealed_dp(derived, est: FlowEstimate, side: str, rig) -> float:
     inside = (t >= est.t_start_s) & (t <= est.t_end_s)
     if not inside.any():
         return math.nan
-    return float(np.nanmean(dp[inside]) if est.method == "steady" else np.nanmedian(dp[inside]))
+    return nanmean(dp[inside]) if est.method == "steady" else nanmedian(dp[inside])
 
 
 def _started_at(meta) -> pd.Timestamp:
@@ -825,7 +829,7 @@ def summarize_run(run: Run, *, method: str = "steady",
         elif "pressure" in run.tables:
             pressure = table_columns(run.tables, "pressure")
             if "p_load_mpag" in pressure:
-                row["load_mpag"] = float(np.nanmedian(pressure["p_load_mpag"]))
+                row["load_mpag"] = nanmedian(_col(pressure, "p_load_mpag"))
         return row
     if derived is None:  # numpy arrays throughout: no DataFrame is built
         table, derivative = derive_columns(run)
@@ -842,7 +846,7 @@ def summarize_run(run: Run, *, method: str = "steady",
         t = _col(table, "t_s")
         inside = (t >= step.t_start_s) & (t <= step.t_end_s)
         p_load = _col(table, "p_load_mpag")
-        load = float(np.nanmedian(p_load[inside] if inside.any() else p_load))
+        load = nanmedian(p_load[inside] if inside.any() else p_load)
     row.update(load_mpag=load, cam_measured_deg=step.cam_measured_deg,
                cam_approach=step.cam_approach, q_mm3_s=chosen.q_mm3_s,
                q_peak_mm3_s=peak.q_mm3_s, q_steady_mm3_s=steady.q_mm3_s,

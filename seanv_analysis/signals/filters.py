@@ -25,7 +25,7 @@ Thresholds come from the rig config only.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import pandas as pd
@@ -55,15 +55,16 @@ def _thresholds(rig: Any) -> dict[str, float]:
     return out
 
 
-def _num(row: pd.Series, col: str) -> float:
+def _num(row: Mapping[str, Any], col: str) -> float:
     try:
         return float(row[col])
     except (KeyError, TypeError, ValueError):
         return math.nan
 
 
-def _reasons(row: pd.Series, th: dict[str, float]) -> list[tuple[str, str]]:
-    """Every reason that applies to one flow-step row, in precedence order."""
+def _reasons(row: Mapping[str, Any], th: dict[str, float]) -> list[tuple[str, str]]:
+    """Every reason that applies to one flow-step row ({column: value}), in
+    precedence order."""
     out: list[tuple[str, str]] = []
     q, cam, load = _num(row, "q_mm3_s"), _num(row, "cam_deg"), _num(row, "load_mpag")
     side = row.get("side", "")
@@ -141,8 +142,10 @@ def apply_filters(summary: pd.DataFrame, rig: Any) -> pd.DataFrame:
     out = summary.copy()
     excluded: list[str] = []
     detail: list[str] = []
-    for _, row in out.iterrows():
-        if "kind" in out.columns and row["kind"] != "flow_step":
+    # plain {column: value} rows of the columns judged (iterrows built a Series per row)
+    judged = [c for c in ("kind", *_NEEDED) if c in out.columns]
+    for row in out[judged].to_dict("records"):
+        if "kind" in row and row["kind"] != "flow_step":
             excluded.append("")
             detail.append("")
             continue

@@ -17,6 +17,7 @@ on a Dask cluster, with a per-run cache.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Protocol, Sequence
@@ -97,7 +98,7 @@ def serial_map(stage: str, func: Callable[..., Any], run_dirs: Sequence[Path], *
         if isinstance(run, SeanvError):
             out[key] = RunOutcome(key, False, error=with_path(path, one_line(run)))
             continue
-        hashes = {Path(p).name: h for p, h in run.file_sha256.items()}
+        hashes = {os.path.basename(p): h for p, h in run.file_sha256.items()}  # file paths
         try:
             out[key] = RunOutcome(key, True, func(run, **kwargs), hashes=hashes)
         except SeanvError as exc:

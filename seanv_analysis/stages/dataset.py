@@ -218,8 +218,9 @@ def collect(ctx: Context, options: Mapping[str, Any], *, func=None) -> DatasetRe
             failed.append(FailedRun(str(d), "ingest", with_path(d, r.error)))
             continue
         row = {**r.value["row"], "path": str(d), "dataset": ctx.dataset_of.get(str(d), 0)}
+        folder = Path(d)
         for name, sha in r.hashes.items():
-            hashes[str(Path(d) / name)] = sha
+            hashes[str(folder / name)] = sha
         rows.append((row, r.value.get("meta", {})))
     rows.sort(key=lambda rm: (pd.Timestamp(rm[0]["started_at"]), rm[0]["run_id"], rm[0]["path"]))
     kept, seen = [], {}
