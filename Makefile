@@ -22,7 +22,8 @@ $(STAMP): pyproject.toml constraints.txt
 demo: $(STAMP)
 	$(PY) -m seanv_analysis.demo
 
-# two pytest-xdist workers (the 2-core machine): 5 min -> about 3.3 min
+# two pytest-xdist workers (the 2-core machine): about 12 CPU-minutes of tests
+# (most of it closed-loop identification) in about 6 min
 TEST_WORKERS ?= 2
 
 # --dist loadfile: a test module's fixtures (foreign-rig data sets, identify
