@@ -79,10 +79,11 @@ def _widen_mathtext_cache() -> None:
 
     cached = getattr(mathtext.MathTextParser, "_parse_cached", None)
     parse = getattr(cached, "__wrapped__", None)
-    if parse is None or getattr(cached, "_seanv_shared", False) \
-            or not hasattr(mathtext.MathTextParser("agg"), "_output_type"):
+    if parse is None:       # no lru cache in this release, or replaced here already
         return
     parsers = {"vector": mathtext.MathTextParser("path"), "raster": mathtext.MathTextParser("agg")}
+    if not all(hasattr(p, "_output_type") for p in parsers.values()):
+        return
 
     @functools.lru_cache(MATHTEXT_CACHE)
     def by_output_type(output_type, s, dpi, prop, antialiased, load_glyph_flags):
@@ -91,7 +92,6 @@ def _widen_mathtext_cache() -> None:
     def shared(self, s, dpi, prop, antialiased, load_glyph_flags):
         return by_output_type(self._output_type, s, dpi, prop, antialiased, load_glyph_flags)
 
-    shared._seanv_shared = True
     shared.cache_info = by_output_type.cache_info
     mathtext.MathTextParser._parse_cached = shared
 
