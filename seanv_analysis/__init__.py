@@ -5,14 +5,6 @@ Paper: "Series Elastic Actuated Needle Valve (SEANV)" flow and sealing
 characteristics (see README). Units follow the paper: mm, MPa gauge, deg, s,
 mm^3/s, N.
 """
-from importlib.metadata import PackageNotFoundError
-from importlib.metadata import version as _version
-
-try:
-    __version__ = _version("seanv-analysis")
-except PackageNotFoundError:  # running from a source tree without install
-    __version__ = "0.0.0+unknown"
-
 from .config import RigConfig, load_rig
 from .errors import ConfigError, DataError, FitError, SeanvError
 
@@ -28,8 +20,18 @@ _LAZY = {"ValveModel": "seanv_analysis.models", "ValveSide": "seanv_analysis.mod
 
 
 def __getattr__(name):
-    """The valve model classes and the notebook API (:mod:`seanv_analysis.api`),
-    imported on first use so ``import seanv_analysis`` stays light."""
+    """The valve model classes, the notebook API (:mod:`seanv_analysis.api`)
+    and ``__version__``, made on first use so ``import seanv_analysis`` stays
+    light."""
+    if name == "__version__":  # importlib.metadata costs ~40 ms: only when asked
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            value = version("seanv-analysis")
+        except PackageNotFoundError:  # running from a source tree without install
+            value = "0.0.0+unknown"
+        globals()[name] = value
+        return value
     if name in _LAZY:
         import importlib  # by name: the root package stays below every layer
 

@@ -7,7 +7,6 @@ the batch worker processes; a notebook user may call it too.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import os
 import signal
 import sys
@@ -40,8 +39,9 @@ def return_large_blocks_to_os(threshold_bytes: int = 4 << 20) -> bool:
     if not sys.platform.startswith("linux"):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        mallopt = libc.mallopt
+        # the running process's own symbols (libc among them): no
+        # ctypes.util.find_library, which runs ldconfig (~15 ms a start)
+        mallopt = ctypes.CDLL(None).mallopt
     except (OSError, AttributeError):
         return False  # not glibc (e.g. musl has no mallopt)
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
@@ -66,7 +66,7 @@ def die_with_parent(parent_pid: int, sig: int = signal.SIGKILL) -> bool:
     if not sys.platform.startswith("linux"):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        libc = ctypes.CDLL(None, use_errno=True)  # the process's own symbols: libc
         prctl = libc.prctl
     except (OSError, AttributeError):
         return False

@@ -13,7 +13,6 @@ import sys
 
 import click
 
-from .. import __version__
 from ..errors import SeanvError, os_error_line
 
 __all__ = ["cli", "main"]
@@ -66,9 +65,20 @@ class _SeanvGroup(click.Group):
         return rv
 
 
+def _print_version(ctx: click.Context, _param, value: bool) -> None:
+    """``--version``: the package's version (looked up only when asked)."""
+    if not value or ctx.resilient_parsing:
+        return
+    from .. import __version__
+
+    click.echo(f"seanv-analyze, version {__version__}")
+    ctx.exit()
+
+
 @click.group(cls=_SeanvGroup,
              context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@click.version_option(__version__, prog_name="seanv-analyze")
+@click.option("--version", is_flag=True, expose_value=False, is_eager=True,
+              callback=_print_version, help="Show the version and exit.")
 def cli() -> None:
     """Analyse SEANV water-hydraulic valve rig logs.
 

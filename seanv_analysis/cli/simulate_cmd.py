@@ -1,6 +1,7 @@
 """``seanv-analyze simulate``: write a built-in scenario as a data set."""
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
@@ -59,8 +60,6 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
     only: nothing in run.json or the tables names them.
     Example: seanv-analyze simulate paper-flowsteps --out data/sim --effect drift:side=drain
     """
-    from tqdm import tqdm
-
     from ..config import load_rig
     from ..errors import ConfigError
     from ..models.effects import parse_effects
@@ -72,17 +71,22 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
         parsed = parse_effects(effects)
     except ValueError as exc:  # the CLI's one-line error
         raise ConfigError(str(exc)) from None
-    bar = tqdm(desc=scenario, unit="run", disable=True if quiet else None, leave=False)
+    bar = progress = None
+    if not quiet and sys.stderr.isatty():  # tqdm (and its ~40 ms import) only if seen
+        from tqdm import tqdm
 
-    def progress(done, total):
-        bar.total = total
-        bar.update(done - bar.n)
+        bar = tqdm(desc=scenario, unit="run", leave=False)
+
+        def progress(done, total):
+            bar.total = total
+            bar.update(done - bar.n)
 
     try:
         path = simulate_scenario(scenario, out_dir, seed=seed, effects=parsed, rig=rig,
                                  write_truth=write_truth, fmt=fmt, progress=progress)
     finally:
-        bar.close()
+        if bar is not None:
+            bar.close()
     n = sum(1 for _ in path.rglob("run.json"))
     click.echo(f"wrote {n} runs of {scenario} to {path}"
                + (f" with {', '.join(e.spec() for e in parsed)}" if parsed else ""))

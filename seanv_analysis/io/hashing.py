@@ -18,7 +18,6 @@ import threading
 from pathlib import Path, PurePath
 from typing import Any
 
-from .. import __version__
 from .run_tables import RunTables
 
 __all__ = ["file_sha256", "remember_sha256", "sha256_bytes", "code_version", "content_sha256"]
@@ -81,6 +80,8 @@ def code_version() -> str:
     """Package version plus a hash of every source file of the package
     (``0.1.0+1a2b3c4d5e6f``): an edited stage invalidates cached results
     even when the version number was not bumped."""
+    from .. import __version__
+
     pkg = Path(__file__).resolve().parents[1]  # the package
     h = hashlib.sha256()
     for path in sorted(pkg.rglob("*.py")):

@@ -1,4 +1,5 @@
-"""Layout of the packed plant parameter vector (units in the comments).
+"""Layout of the packed plant parameter vector (units in the comments), and
+of the kernel's outputs.
 
 One definition for the kernel (:mod:`.kernel`), the integrator step
 (:mod:`.rosenbrock`) and the packer (:meth:`.plant.Plant.packed_params`);
@@ -7,7 +8,7 @@ of this package import the ``_NAME = PP.NAME`` bindings below.
 """
 from __future__ import annotations
 
-__all__ = ["PP", "PP_SIZE"]  # and the _NAME bindings below
+__all__ = ["PP", "PP_SIZE", "MODE_SCHEDULE", "OUT_FAST", "OUT_SLOW"]  # and the _NAME bindings
 
 
 class PP:
@@ -56,6 +57,14 @@ class PP:
 
 
 PP_SIZE = 40
+
+#: controller kind of the kernel for an open-loop cam schedule (flow-step runs)
+MODE_SCHEDULE = 0
+#: columns of the kernel's 1 kHz sensor output
+OUT_FAST = ("t_s", "position_mm", "p_supply_mpag", "p_head_mpag", "p_load_mpag",
+            "x_true_mm", "q_true_mm3_s")
+#: columns of the kernel's 100 Hz output
+OUT_SLOW = ("t_s", "cam_cmd_deg", "cam_deg", "x_ref_mm", "q_ref_mm3_s", "cam_needle_deg")
 
 
 # module-level bindings of the indices, imported by the compiled modules

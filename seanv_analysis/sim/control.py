@@ -18,8 +18,8 @@ the supply sealing threshold (with the model) or the neutral angle
 The controllers are pure: ``step(state, ...)`` returns the output and the
 next state; they know nothing of the simulator, so ``validate`` can run the
 same code with an identified model. The step law is compiled with numba
-(:func:`controller_step`), and the simulator's kernel calls that same
-function.
+(:func:`.control_law.controller_step`), and the simulator's kernel calls
+that same function; this module itself does not import numba.
 
 Examples
 --------
@@ -38,25 +38,31 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numba import njit
 
 from ..errors import ConfigError
 from ..models import ValveModel
 from ..models.valve import MIN_DP_MPA
-from . import jit as J
+from . import packing as P
 from ._config_errors import config_errors
+from .packing import (
+    _CP_BAND,
+    _CP_CAM_MAX,
+    _CP_CAM_MIN,
+    _CP_HOLD,
+    _CP_KP,
+    _CP_MIN_DP,
+    _CP_RELEASE,
+    _ST_HELD,
+    _ST_HOLD_DEG,
+    _ST_XREF,
+    CP_SIZE,
+    KIND_CAM,
+    KIND_FLOW_MODEL,
+)
 
 __all__ = ["ControllerState", "ControllerOutput", "FlowModelController", "CamController",
-           "controller_step", "KIND_FLOW_MODEL", "KIND_CAM", "CP_SIZE"]
+           "KIND_FLOW_MODEL", "KIND_CAM", "CP_SIZE"]  # controller_step: .control_law
 
-KIND_FLOW_MODEL = 1
-KIND_CAM = 2
-
-# packed controller parameters
-_CP_KP, _CP_BAND, _CP_RELEASE, _CP_CAM_MIN, _CP_CAM_MAX, _CP_HOLD, _CP_MIN_DP = range(7)
-CP_SIZE = 7
-# packed state: held (0/1), hold angle [deg], previous reference [mm]
-_ST_HELD, _ST_HOLD_DEG, _ST_XREF = range(3)
 
 
 @dataclass(frozen=True)
@@ -84,46 +90,6 @@ class ControllerOutput:
     cam_cmd_deg: float
     q_ref_mm3_s: float
     held: bool
-
-
-@njit(cache=True, nogil=True)
-def controller_step(kind, cp, sup, sup_z, sup_th, dr, dr_z, dr_th, state,
-                    x_ref_mm, x_mm, p_supply_mpag, p_head_mpag, p_tank_mpag):
-    """One step of either controller; updates ``state`` in place.
-
-    Returns (cam command [deg], Q_ref [mm^3/s] or NaN, held 0/1).
-    """
-    e = x_ref_mm - x_mm
-    if not (x_ref_mm == state[_ST_XREF]):
-        state[_ST_HELD] = 0.0
-    state[_ST_XREF] = x_ref_mm
-    if state[_ST_HELD] > 0.5 and abs(e) > cp[_CP_RELEASE]:
-        state[_ST_HELD] = 0.0
-    if kind == KIND_FLOW_MODEL:
-        q_ref = cp[_CP_KP] * e
-        if state[_ST_HELD] < 0.5 and abs(e) <= cp[_CP_BAND]:
-            state[_ST_HELD] = 1.0
-            # 3 deg below the supply sealing threshold at the measured pressures
-            state[_ST_HOLD_DEG] = J.model_cam_for_flow(
-                0.0, p_supply_mpag, p_head_mpag, p_tank_mpag, sup, sup_z, sup_th, dr, dr_z, dr_th,
-                -np.inf, np.inf, cp[_CP_MIN_DP]) - cp[_CP_HOLD]
-        if state[_ST_HELD] > 0.5:
-            theta = state[_ST_HOLD_DEG]
-        else:
-            theta = J.model_cam_for_flow(q_ref, p_supply_mpag, p_head_mpag, p_tank_mpag,
-                                         sup, sup_z, sup_th, dr, dr_z, dr_th,
-                                         -np.inf, np.inf, cp[_CP_MIN_DP])
-    else:
-        q_ref = np.nan
-        if state[_ST_HELD] < 0.5 and abs(e) <= cp[_CP_BAND]:
-            state[_ST_HELD] = 1.0
-            state[_ST_HOLD_DEG] = cp[_CP_HOLD]
-        if state[_ST_HELD] > 0.5:
-            theta = state[_ST_HOLD_DEG]
-        else:
-            theta = cp[_CP_HOLD] + cp[_CP_KP] * e
-    theta = min(max(theta, cp[_CP_CAM_MIN]), cp[_CP_CAM_MAX])
-    return theta, q_ref, state[_ST_HELD]
 
 
 def _release(value: float | None) -> float:
@@ -170,6 +136,8 @@ class _PController:
         -------
         (ControllerOutput, next ControllerState)
         """
+        from .control_law import controller_step  # numba, on first use
+
         kind, cp, tables = self.jit_spec()
         st = state.packed()
         theta, q, held = controller_step(kind, cp, *tables, st, float(x_ref_mm), float(x_mm),
@@ -233,7 +201,7 @@ class FlowModelController(_PController):
             raise ConfigError(f"kp_mm3_s_per_mm: expected > 0, got {kp_mm3_s_per_mm}")
         self.__post_init__()
         with config_errors():  # e.g. a needle geometry without a monotonic eq. (4)
-            set_(self, "_packed", J.pack_model(model))
+            set_(self, "_packed", P.pack_model(model))
 
     @classmethod
     def from_rig(cls, rig: Any, model: ValveModel | None = None, **overrides) -> "FlowModelController":
@@ -312,7 +280,7 @@ class CamController(_PController):
 
     def jit_spec(self):
         """(kind, packed parameters, dummy tables) for compiled code."""
-        dummy = np.zeros(J.SP_SIZE)
+        dummy = np.zeros(P.SP_SIZE)
         grid = np.array([0.0, 1.0])
         return KIND_CAM, self._cp(self.kp_deg_per_mm, self.neutral_deg), \
             (dummy, grid, grid, dummy, grid, grid)
@@ -326,3 +294,11 @@ class CamController(_PController):
                 "convergence_band_mm": self.convergence_band_mm,
                 "release_band_mm": self.release_band_mm,
                 "cam_range_deg": [self.cam_min_deg, self.cam_max_deg]}
+
+
+def __getattr__(name: str):
+    if name == "controller_step":  # compiled (numba): imported on first use
+        from .control_law import controller_step
+
+        return controller_step
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

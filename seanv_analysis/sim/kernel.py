@@ -72,22 +72,16 @@ from ._pp import (
     _SUPPLY_DROOP,
     _X_STOP_HI,
     _X_STOP_LO,
+    MODE_SCHEDULE,
+    OUT_FAST,
+    OUT_SLOW,
     PP,
     PP_SIZE,
 )
-from .control import controller_step
+from .control_law import controller_step
 
-__all__ = ["simulate_kernel", "PP", "PP_SIZE", "MODE_SCHEDULE", "OUT_FAST", "OUT_SLOW"]
+__all__ = ["simulate_kernel", "servo_track", "PP", "PP_SIZE", "MODE_SCHEDULE", "OUT_FAST", "OUT_SLOW"]
 
-#: controller kind for an open-loop cam schedule (flow-step runs)
-MODE_SCHEDULE = 0
-
-
-#: columns of the 1 kHz sensor output
-OUT_FAST = ("t_s", "position_mm", "p_supply_mpag", "p_head_mpag", "p_load_mpag",
-            "x_true_mm", "q_true_mm3_s")
-#: columns of the 100 Hz output
-OUT_SLOW = ("t_s", "cam_cmd_deg", "cam_deg", "x_ref_mm", "q_ref_mm3_s", "cam_needle_deg")
 
 
 @njit(cache=True, nogil=True)
@@ -309,3 +303,24 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th, tw,
             sn, cn = sn1, cn1
             step += 1
     return fast, slow, t_release
+
+
+@njit(cache=True, nogil=True)
+def servo_track(t_cmd, cmd, t0, h, n, dead_s, pp, theta0):
+    """The servo alone on a logged command (:func:`.servo.servo_response`):
+    ``n`` steps of ``h`` [s] from ``t0`` [s], acting on the command of
+    ``dead_s`` earlier (held between its samples ``t_cmd``, ``cmd``), the
+    lag and rate limit of ``pp`` (``_SERVO_TAU``, ``_SERVO_RATE``); the
+    angle [deg] after each step."""
+    out = np.empty(n)
+    theta = theta0
+    j = 0
+    m = t_cmd.size
+    for i in range(n):
+        t_eff = t0 + i * h - dead_s
+        while j + 1 < m and t_cmd[j + 1] <= t_eff:
+            j += 1
+        target = cmd[j] if t_cmd[j] <= t_eff else cmd[0]
+        theta = RB.servo_step(theta, target, h, pp)
+        out[i] = theta
+    return out

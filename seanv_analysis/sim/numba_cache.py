@@ -23,6 +23,8 @@ import os
 import tempfile
 from pathlib import Path
 
+from ._sources import COMPILED_SOURCES, cache_base
+
 __all__ = ["configure_numba_cache", "PackageCacheLocator"]
 
 _PKG = Path(__file__).resolve().parents[1]
@@ -30,10 +32,6 @@ _PKG = Path(__file__).resolve().parents[1]
 _NUMBA_LOCATORS = ("UserProvidedCacheLocator", "InTreeCacheLocator", "UserWideCacheLocator",
                    "IPythonCacheLocator", "ZipCacheLocator")
 
-#: the package sources compiled code is built from (relative to the package)
-_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py", "models/expr.py",
-            "sim/jit.py",
-            "sim/control.py", "sim/_pp.py", "sim/kernel.py", "sim/rosenbrock.py")
 _DONE = False
 
 
@@ -52,15 +50,12 @@ def configure_numba_cache() -> Path | None:
         return Path(config.CACHE_DIR) if config.CACHE_DIR else None
     pkg = Path(__file__).resolve().parents[1]
     h = hashlib.sha256(numba.__version__.encode())
-    for rel in _SOURCES:
+    for rel in COMPILED_SOURCES:
         p = pkg / rel
         if p.is_file():
             h.update(rel.encode())
             h.update(p.read_bytes())
-    from ..config import user_cache_dir
-
-    base = os.environ.get("SEANV_NUMBA_CACHE") or str(user_cache_dir())
-    folder = Path(base) / f"numba-{h.hexdigest()[:16]}"
+    folder = cache_base() / f"numba-{h.hexdigest()[:16]}"
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:

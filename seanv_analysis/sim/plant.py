@@ -37,8 +37,8 @@ from ..config import RigConfig
 from ..errors import ConfigError
 from ..models import ValveModel
 from ..models.effects import Effect, PlantTerms, ValveTerms, parse_effects
-from . import jit as J
-from .kernel import PP, PP_SIZE
+from . import packing as P
+from ._pp import PP, PP_SIZE
 
 __all__ = ["Plant", "tube_constants"]
 
@@ -114,17 +114,17 @@ class Plant:
         packed = []
         for name in ("supply", "drain"):
             t = self.valve_terms(name, run_index)
-            packed += list(J.pack_side(self.valve.side(name), c_multiplier=t.c_multiplier,
+            packed += list(P.pack_side(self.valve.side(name), c_multiplier=t.c_multiplier,
                                        z0_offset_mm=t.z0_offset_mm, dp_exponent=t.dp_exponent,
                                        q_max_mm3_s=t.q_max_mm3_s, sharpness=t.sharpness))
         return tuple(packed)
 
     def term_at(self, run_index: int) -> np.ndarray:
         """The plant valve's closed-form terms at run ``run_index``, packed
-        for the kernel (``sim.jit.pack_terms``: both sides' programs, the
+        for the kernel (``sim.packing.pack_terms``: both sides' programs, the
         run index, room for the variables and the stack; a fresh array)."""
         terms = [self.valve_terms(name, run_index) for name in ("supply", "drain")]
-        return J.pack_terms(*((t.term_mode, t.term_program) if t.term_program is not None
+        return P.pack_terms(*((t.term_mode, t.term_program) if t.term_program is not None
                               else None for t in terms), run_index=float(run_index))
 
     @property

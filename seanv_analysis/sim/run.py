@@ -21,10 +21,11 @@ from ..errors import ConfigError
 from ..io.run import Run, RunMeta
 from ..models import ValveModel
 from ..models.effects import Effect
+from . import compiled
 from ._config_errors import config_errors
+from ._pp import MODE_SCHEDULE, OUT_FAST, OUT_SLOW
 from ._signals import Signals, contract_tables
 from .control import CamController, FlowModelController
-from .kernel import MODE_SCHEDULE, OUT_FAST, OUT_SLOW, simulate_kernel
 from .plant import Plant
 
 __all__ = ["simulate_flow_step", "simulate_position_control", "simulate_cam_replay", "SimTrace"]
@@ -89,7 +90,7 @@ def _run(plant: Plant, *, ctrl_kind: int, cp, ctrl_tables, ref, load, cmd, durat
     n_fast = int(round(duration_s * rate)) + 1
     sigma = float(rig["sensors"]["pressure_noise_mpa"])
     noise = _unit_noise(seed, run_index, n_fast) * sigma
-    fast, slow, t_release = simulate_kernel(
+    fast, slow, t_release = compiled.simulate_kernel()(
         pp, *valve, tw, ctrl_kind, cp, *ctrl_tables,
         ref[0], ref[1], load[0], load[1], cmd[0], cmd[1], noise, n_fast, float(x0_mm),
         float(cam0_deg), float(p0_mpag), float(hold0_deg))

@@ -4,36 +4,20 @@ The servo of the plant (:mod:`.kernel`) acts on the command of ``dead_time``
 earlier and follows it with a rate-limited first-order lag, solved exactly
 over each step by :func:`.rosenbrock.servo_step`. :func:`servo_response`
 runs that same compiled step on a recorded command (held between its
-samples), so identifying the servo from a log fits the simulator's own
-equations, not a copy of them.
+samples; :func:`.kernel.servo_track`, through :mod:`.compiled`), so
+identifying the servo from a log fits the simulator's own equations, not a
+copy of them.
 
 Units: s, deg, deg/s.
 """
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
+from . import compiled
 from ._pp import _SERVO_RATE, _SERVO_TAU, PP_SIZE
-from .rosenbrock import servo_step
 
 __all__ = ["servo_response"]
-
-
-@njit(cache=True, nogil=True)
-def _track(t_cmd, cmd, t0, h, n, dead_s, pp, theta0):
-    out = np.empty(n)
-    theta = theta0
-    j = 0
-    m = t_cmd.size
-    for i in range(n):
-        t_eff = t0 + i * h - dead_s
-        while j + 1 < m and t_cmd[j + 1] <= t_eff:
-            j += 1
-        target = cmd[j] if t_cmd[j] <= t_eff else cmd[0]
-        theta = servo_step(theta, target, h, pp)
-        out[i] = theta
-    return out
 
 
 def servo_response(t_cmd_s, cmd_deg, t_out_s, *, dead_time_s: float, time_constant_s: float,
@@ -59,6 +43,6 @@ def servo_response(t_cmd_s, cmd_deg, t_out_s, *, dead_time_s: float, time_consta
     pp[_SERVO_TAU] = max(float(time_constant_s), 1e-6)
     pp[_SERVO_RATE] = max(float(max_rate_deg_s), 1e-6)
     theta0 = float(cmd[0]) if theta0_deg is None else float(theta0_deg)
-    y = _track(t_cmd, cmd, t0, float(step_s), n, float(dead_time_s), pp, theta0)
+    y = compiled.servo_track()(t_cmd, cmd, t0, float(step_s), n, float(dead_time_s), pp, theta0)
     grid = t0 + step_s * np.arange(1, n + 1)
     return np.interp(t_out, grid, y)

@@ -1,0 +1,26 @@
+"""What the simulator's compiled code is built from, and where it is kept.
+
+One list for the two caches of compiled code: numba's own
+(:mod:`.numba_cache`) and the ahead-of-time module (:mod:`.compiled`), both
+keyed by a hash of these files. No numba here.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["COMPILED_SOURCES", "cache_base"]
+
+#: the package sources compiled code is built from (relative to the package):
+#: the key of numba's cache folder and of the ahead-of-time module
+COMPILED_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py",
+                    "models/expr.py", "sim/jit.py", "sim/packing.py", "sim/control.py",
+                    "sim/control_law.py", "sim/_pp.py", "sim/kernel.py", "sim/rosenbrock.py")
+
+
+def cache_base() -> Path:
+    """Folder of the compiled code's caches: ``$SEANV_NUMBA_CACHE``, else the
+    package's user cache folder."""
+    from ..config import user_cache_dir
+
+    return Path(os.environ.get("SEANV_NUMBA_CACHE") or user_cache_dir())

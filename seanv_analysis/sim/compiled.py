@@ -1,0 +1,299 @@
+"""The simulator's compiled entry points, compiled ahead of time where possible.
+
+numba compiles the plant kernel and the servo track (:mod:`.kernel`) from
+the package's Python source. Even from numba's on-disk cache a process pays
+about 1.4 s before its first call: numba's import (0.5 s) and its compiler's
+set-up while loading the cache (0.9 s). The kernel simulates the 190 s of
+``simulate paper-position`` in 0.07 s, so that set-up was most of the command,
+and of every pool worker's start.
+
+So the same two functions are also compiled ahead of time (``numba.pycc``:
+the same source through the same LLVM, for this processor; equal to the JIT
+bit for bit, ``tests/test_compiled.py``) into an extension module in the
+user cache folder, which loads in a millisecond without importing numba. It
+is built on the first call, in place of numba's first compile (about 20 s,
+once per version of the compiled sources, numba, Python and processor);
+concurrent first calls wait for one build. Where it cannot be built (no C
+compiler or Python headers, a numba without ``pycc``) numba's JIT serves,
+as before, and the reason is logged once (``-v``) and kept beside the
+module's place (``build-failed.txt``: delete it to try again).
+
+``SEANV_AOT=0`` turns it off (numba's JIT only), and so does
+``NUMBA_DISABLE_JIT=1`` (numba's debugging mode runs the Python source).
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import importlib.util
+import logging
+import os
+import platform
+import sys
+import sysconfig
+import tempfile
+import time
+from pathlib import Path
+from typing import Callable
+
+from ._sources import COMPILED_SOURCES, cache_base
+
+__all__ = ["simulate_kernel", "servo_track", "aot_module_path", "aot_status", "build_aot"]
+
+log = logging.getLogger(__name__)
+
+#: the extension module's name (its ``PyInit_`` symbol)
+_MODULE = "_seanv_sim_aot"
+_F8 = "f8[::1]"
+#: the exported functions of :mod:`.kernel` and their numba signatures (all
+#: arrays C-contiguous float64; :func:`_contiguous` makes them so)
+SIGNATURES = {
+    "simulate_kernel": ("Tuple((f8[:,::1], f8[:,::1], f8))("
+                        + ", ".join([_F8] * 8 + ["i8"] + [_F8] * 13
+                                    + ["f8[:,::1]", "i8", "f8", "f8", "f8", "f8"]) + ")"),
+    "servo_track": f"{_F8}({_F8}, {_F8}, f8, f8, i8, f8, {_F8}, f8)",
+}
+
+_loaded: dict[str, Callable] = {}
+_status: str | None = None
+
+
+def simulate_kernel() -> Callable:
+    """:func:`.kernel.simulate_kernel`: ahead-of-time compiled, else numba's JIT."""
+    return _function("simulate_kernel")
+
+
+def servo_track() -> Callable:
+    """:func:`.kernel.servo_track`: ahead-of-time compiled, else numba's JIT."""
+    return _function("servo_track")
+
+
+def aot_status() -> str | None:
+    """Why this process runs numba's JIT (None: the ahead-of-time module, or
+    nothing called yet)."""
+    return _status
+
+
+def aot_module_path() -> Path:
+    """Where the ahead-of-time module of these sources, numba, Python and
+    processor lies (built or not)."""
+    return cache_base() / f"aot-{_key()[:16]}" / (_MODULE + sysconfig.get_config_var("EXT_SUFFIX"))
+
+
+def build_aot(path: Path | None = None) -> Path:
+    """Compile the exported functions ahead of time into ``path`` (default:
+    :func:`aot_module_path`), atomically; returns the path. Raises
+    ``RuntimeError`` with the compiler's last words when it cannot."""
+    path = Path(path) if path is not None else aot_module_path()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pycc is pending deprecation (numba 0.57+)
+        try:
+            from numba.pycc import CC
+        except ImportError as exc:  # a numba without pycc
+            raise RuntimeError(f"numba.pycc is not available ({exc})") from None
+    from . import kernel
+
+    with tempfile.TemporaryDirectory(dir=path.parent, prefix=".build-") as tmp:
+        cc = CC(_MODULE)
+        cc.output_dir = tmp
+        cc.target_cpu = "host"  # as numba's JIT: the same machine code, bit for bit
+        for name, sig in SIGNATURES.items():
+            cc.export(name, sig)(getattr(kernel, name).py_func)
+        with _output_to(Path(tmp) / "compiler.log") as said, _releasing_the_gil():
+            try:
+                cc.compile()
+            except Exception as exc:  # distutils' CompileError, LinkError, OSError ...
+                last = said().strip().splitlines()[-3:]
+                raise RuntimeError("; ".join([f"{type(exc).__name__}: {exc}"] + last)) from None
+        built = Path(tmp) / (_MODULE + sysconfig.get_config_var("EXT_SUFFIX"))
+        if not built.is_file():
+            built = next(Path(tmp).glob(_MODULE + "*"))
+        os.replace(built, path)
+    return path
+
+
+def _function(name: str) -> Callable:
+    fn = _loaded.get(name)
+    if fn is None:
+        module = _aot_module()
+        if module is not None:
+            fn = _contiguous(getattr(module, name))
+        else:
+            from . import kernel  # numba: compiles or loads numba's cache
+
+            fn = getattr(kernel, name)
+        _loaded[name] = fn
+    return fn
+
+
+def _aot_module():
+    """The ahead-of-time module, built first if need be; None: use the JIT."""
+    global _status
+    if _status is not None:
+        return None
+    if os.environ.get("SEANV_AOT", "1").strip() in ("0", "no", "off", "false") or \
+            os.environ.get("NUMBA_DISABLE_JIT", "0").strip() not in ("", "0"):
+        _status = "turned off (SEANV_AOT=0 or NUMBA_DISABLE_JIT=1)"
+        return None
+    try:
+        path = aot_module_path()
+        if not path.is_file():
+            _build_once(path)
+        return _load(path)
+    except Exception as exc:  # never fatal: the JIT computes the same numbers
+        _status = f"the simulator runs on numba's JIT: {exc}"
+        log.debug(_status)
+        return None
+
+
+def _build_once(path: Path) -> None:
+    failed = path.parent / "build-failed.txt"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with _lock(path.parent / ".build.lock"):
+        if path.is_file():  # another process built it while we waited
+            return
+        if failed.is_file():
+            raise RuntimeError(f"an earlier build failed ({failed}: "
+                               f"{failed.read_text(errors='replace').strip()[:300]}; "
+                               "delete that file to try again)")
+        log.info("compiling the simulator ahead of time, once for this version "
+                 "(about 20 s) ...")
+        t0 = time.perf_counter()
+        try:
+            build_aot(path)
+        except RuntimeError as exc:
+            failed.write_text(f"{exc}\n")
+            raise
+        log.info("compiled the simulator in %.0f s: %s", time.perf_counter() - t0, path)
+
+
+def _load(path: Path):
+    spec = importlib.util.spec_from_file_location(_MODULE, path)
+    if spec is None or spec.loader is None:
+        raise RuntimeError(f"{path}: not an extension module")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _contiguous(fn: Callable) -> Callable:
+    """The AOT function takes C-contiguous float64 arrays only (one signature);
+    numba's JIT would compile another specialisation. Arrays that already are
+    pass through as they are (the kernel writes into some of them)."""
+    import numpy as np
+
+    def call(*args):
+        return fn(*(np.ascontiguousarray(a, dtype=np.float64) if isinstance(a, np.ndarray)
+                    else a for a in args))
+
+    call.__name__ = call.__qualname__ = fn.__name__
+    call.__doc__ = f"{fn.__name__}, compiled ahead of time (:mod:`{__name__}`)"
+    return call
+
+
+def _key() -> str:
+    """Hash of what the machine code depends on: the compiled sources, the
+    exported signatures, numba and llvmlite, the Python ABI and the processor."""
+    h = hashlib.sha256()
+    for dist in ("numba", "llvmlite"):
+        h.update(_version_stamp(dist))
+    h.update(repr(sorted(SIGNATURES.items())).encode())
+    h.update(f"{sys.implementation.cache_tag};{sysconfig.get_config_var('EXT_SUFFIX')};".encode())
+    h.update(_processor().encode())
+    pkg = Path(__file__).resolve().parents[1]
+    for rel in COMPILED_SOURCES:
+        p = pkg / rel
+        h.update(rel.encode())
+        if p.is_file():
+            h.update(p.read_bytes())
+    return h.hexdigest()
+
+
+def _version_stamp(package: str) -> bytes:
+    """The installed ``package``'s version file (its version, found without
+    importing the package or importlib.metadata: ~40 ms of a short command)."""
+    spec = importlib.util.find_spec(package)
+    if spec is not None and spec.origin:
+        stamp = Path(spec.origin).with_name("_version.py")
+        if stamp.is_file():
+            return package.encode() + stamp.read_bytes()
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"{package}={version(package)};".encode()
+    except PackageNotFoundError:
+        return f"{package}=?;".encode()
+
+
+def _processor() -> str:
+    """The processor's model and features (the module is compiled for them)."""
+    try:
+        block = Path("/proc/cpuinfo").read_text(errors="replace").split("\n\n", 1)[0]
+    except OSError:
+        block = ""
+    keep = [line for line in block.splitlines()
+            if line.split(":", 1)[0].strip() in ("vendor_id", "model name", "flags",
+                                                  "CPU implementer", "CPU part", "Features")]
+    return "\n".join(keep) or f"{platform.machine()};{platform.processor()};{platform.platform()}"
+
+
+@contextlib.contextmanager
+def _releasing_the_gil():
+    """pycc's exported wrappers keep the GIL; the JIT's (``nogil=True``) let it
+    go, so a reader or writer thread runs beside the kernel. The wrappers are
+    made from the compile flags, which pycc builds with their defaults: make
+    ``release_gil`` one of them for this build."""
+    from numba.pycc import compiler as pycc_compiler
+
+    base = pycc_compiler.Flags
+
+    class Flags(base):
+        def __init__(self, *args, **kwargs):
+            super().__init__(*args, **kwargs)
+            self.release_gil = True
+
+    pycc_compiler.Flags = Flags
+    try:
+        yield
+    finally:
+        pycc_compiler.Flags = base
+
+
+@contextlib.contextmanager
+def _lock(path: Path):
+    """An exclusive lock on ``path`` (POSIX ``flock``; elsewhere none)."""
+    try:
+        import fcntl
+    except ImportError:  # Windows: concurrent first builds replace each other atomically
+        yield
+        return
+    with open(path, "a+b") as fh:
+        fcntl.flock(fh.fileno(), fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
+
+
+@contextlib.contextmanager
+def _output_to(path: Path):
+    """Send this process's stdout and stderr (file descriptors 1 and 2: the C
+    compiler's too) to ``path``; yields a function reading what was said."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    saved = [os.dup(1), os.dup(2)]
+    with open(path, "w+b") as out:
+        try:
+            os.dup2(out.fileno(), 1)
+            os.dup2(out.fileno(), 2)
+            yield lambda: path.read_text(errors="replace")
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            for fd in saved:
+                os.close(fd)

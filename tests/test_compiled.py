@@ -1,0 +1,152 @@
+"""The simulator's ahead-of-time compiled kernel (sim/compiled.py).
+
+What must hold: it gives what numba's JIT gives, bit for bit (flow steps with
+effects and closed-form terms, position control with either controller, a
+cam replay, the servo alone); it takes any float array (strided, other
+dtypes) as the JIT does; importing the simulator does not import numba; when
+it cannot be built or is turned off, the JIT serves and says why.
+"""
+from __future__ import annotations
+
+import shutil
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from seanv_analysis import load_rig
+from seanv_analysis.sim import (
+    compiled,
+    simulate_cam_replay,
+    simulate_flow_step,
+    simulate_position_control,
+)
+from seanv_analysis.sim._pp import PP, PP_SIZE
+from seanv_analysis.sim.control import CamController, FlowModelController
+from seanv_analysis.sim.servo import servo_response
+
+RIG = load_rig()
+HAVE_CC = any(shutil.which(c) for c in ("cc", "gcc", "clang"))
+
+
+@pytest.fixture(scope="module")
+def aot():
+    """The AOT functions (built on first use, about 20 s once per machine)."""
+    if not HAVE_CC:
+        pytest.skip("no C compiler: the simulator runs on numba's JIT here")
+    fn = compiled.simulate_kernel()
+    assert compiled.aot_status() is None, compiled.aot_status()
+    return fn
+
+
+def _record(monkeypatch, aot_fn):
+    """Run the simulator through the AOT kernel, keeping each call's inputs
+    (copied before the call: the kernel writes into the packed terms)."""
+    calls = []
+
+    def rec(*args):
+        calls.append(tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args))
+        return aot_fn(*args)
+
+    monkeypatch.setitem(compiled._loaded, "simulate_kernel", rec)
+    return calls
+
+
+def _same(a, b):
+    return all(np.array_equal(x, y, equal_nan=True) for x, y in zip(a, b))
+
+
+def test_aot_kernel_equals_the_jit_bit_for_bit(aot, monkeypatch):
+    from seanv_analysis.sim.kernel import simulate_kernel as jit_kernel
+
+    calls = _record(monkeypatch, aot)
+    simulate_flow_step(RIG, side="supply", cam_deg=2.0, load_mpag=0.4, hold_max_s=0.6,
+                       effects=["backlash", "delay", "term:side=supply,mode=mul,"
+                                "expr=-0.2*tanh(dp/0.5) + 0.01*approach"])
+    simulate_flow_step(RIG, side="drain", cam_deg=-35.0, load_mpag=0.2, hold_max_s=0.6,
+                       approach=-1, effects=["drift:side=drain", "saturation"])
+    ref = (np.array([0.0, 1.0, 2.5]), np.array([20.0, 60.0, 40.0]))
+    simulate_position_control(RIG, controller=FlowModelController.from_rig(RIG), x_ref=ref,
+                              load=0.3, duration_s=4.0, x0_mm=20.0)
+    simulate_position_control(RIG, controller=CamController.from_rig(RIG), x_ref=ref,
+                              load=(np.array([0.0, 2.0]), np.array([0.3, 0.5])),
+                              duration_s=4.0, x0_mm=20.0)
+    simulate_cam_replay(RIG, cam_cmd=(np.array([0.0, 0.5, 1.5]), np.array([-15.0, 3.0, -30.0])),
+                        load=0.3, duration_s=2.5, x0_mm=30.0)
+    assert len(calls) == 5
+    for args in calls:
+        got = aot(*args)
+        want = jit_kernel(*args)
+        assert _same(got, want)
+        assert np.isfinite(got[0]).all()
+
+
+def test_aot_servo_equals_the_jit_and_takes_any_float_array(aot):
+    from seanv_analysis.sim.kernel import servo_track as jit_track
+
+    t = np.arange(0.0, 2.0, 0.01)
+    cmd = np.where(t < 0.5, -15.0, 5.0) + np.sin(7 * t)
+    pp = np.zeros(PP_SIZE)
+    pp[PP.SERVO_TAU], pp[PP.SERVO_RATE] = 0.03, 400.0  # [s], [deg/s]
+    args = (t, cmd, 0.0, 5e-4, 4000, 0.02, pp, -15.0)
+    got = compiled.servo_track()(*args)
+    assert np.array_equal(got, jit_track(*args))
+    # strided and float32 arrays: converted, not refused or misread
+    t2 = np.repeat(t, 2)[::2]
+    assert not t2.flags.c_contiguous
+    assert np.array_equal(compiled.servo_track()(t2, *args[1:]), got)
+    c32 = cmd.astype(np.float32)
+    assert np.array_equal(compiled.servo_track()(t, c32, *args[2:]),
+                          jit_track(t, c32.astype(np.float64), *args[2:]))
+    y = servo_response(t, cmd, t[::3], dead_time_s=0.02, time_constant_s=0.03,
+                       max_rate_deg_s=400.0)
+    assert y.shape == t[::3].shape and np.isfinite(y).all()
+
+
+def test_importing_the_simulator_does_not_import_numba():
+    code = ("import sys; import seanv_analysis.sim, seanv_analysis.sim.scenarios, "
+            "seanv_analysis.sim.servo, seanv_analysis.sim.control; "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'llvmlite')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "[]"
+
+
+def _fresh(monkeypatch, tmp_path):
+    monkeypatch.setenv("SEANV_NUMBA_CACHE", str(tmp_path))
+    monkeypatch.setattr(compiled, "_loaded", {})
+    monkeypatch.setattr(compiled, "_status", None)
+
+
+def test_turned_off_runs_the_jit(monkeypatch, tmp_path):
+    from seanv_analysis.sim import kernel
+
+    _fresh(monkeypatch, tmp_path)
+    monkeypatch.setenv("SEANV_AOT", "0")
+    assert compiled.simulate_kernel() is kernel.simulate_kernel
+    assert "turned off" in compiled.aot_status()
+    assert not compiled.aot_module_path().exists()
+
+
+def test_a_failed_build_is_not_retried_and_the_jit_serves(monkeypatch, tmp_path):
+    from seanv_analysis.sim import kernel
+
+    _fresh(monkeypatch, tmp_path)
+    monkeypatch.delenv("SEANV_AOT", raising=False)
+    path = compiled.aot_module_path()
+    assert path.is_relative_to(tmp_path)
+    path.parent.mkdir(parents=True)
+    (path.parent / "build-failed.txt").write_text("CompileError: no Python.h\n")
+    assert compiled.servo_track() is kernel.servo_track
+    status = compiled.aot_status()
+    assert "no Python.h" in status and "delete that file to try again" in status
+    assert not path.exists()
+
+
+def test_the_key_follows_the_compiled_sources(monkeypatch):
+    before = compiled._key()
+    monkeypatch.setattr(compiled, "COMPILED_SOURCES", compiled.COMPILED_SOURCES[:-1])
+    assert compiled._key() != before
+    monkeypatch.setattr(compiled, "SIGNATURES", {"servo_track": "f8(f8)"})
+    assert compiled._key() != before
