@@ -17,6 +17,7 @@ $(STAMP): pyproject.toml constraints.txt
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -c constraints.txt -e ".[test,dask]"
+	$(PY) -c "from seanv_analysis.sim.compiled import main; main()"  # the simulator, compiled once (10-30 s)
 	touch $(STAMP)
 
 demo: $(STAMP)

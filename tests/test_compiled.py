@@ -150,3 +150,13 @@ def test_the_key_follows_the_compiled_sources(monkeypatch):
     assert compiled._key() != before
     monkeypatch.setattr(compiled, "SIGNATURES", {"servo_track": "f8(f8)"})
     assert compiled._key() != before
+
+
+def test_main_builds_or_reports_and_leaves_the_log_level(aot, capsys):
+    import logging
+
+    level = logging.getLogger("seanv_analysis.sim.compiled").level
+    assert compiled.main() == 0
+    assert capsys.readouterr().out.strip() == \
+        f"simulator compiled ahead of time: {compiled.aot_module_path()}"
+    assert logging.getLogger("seanv_analysis.sim.compiled").level == level

@@ -11,7 +11,7 @@ So the same two functions are also compiled ahead of time (``numba.pycc``:
 the same source through the same LLVM, for this processor; equal to the JIT
 bit for bit, ``tests/test_compiled.py``) into an extension module in the
 user cache folder, which loads in a millisecond without importing numba. It
-is built on the first call, in place of numba's first compile (about 20 s,
+is built on the first call, in place of numba's first compile (10-30 s,
 once per version of the compiled sources, numba, Python and processor);
 concurrent first calls wait for one build. Where it cannot be built (no C
 compiler or Python headers, a numba without ``pycc``) numba's JIT serves,
@@ -97,13 +97,13 @@ def build_aot(path: Path | None = None) -> Path:
     from . import kernel
 
     with tempfile.TemporaryDirectory(dir=path.parent, prefix=".build-") as tmp:
-        cc = CC(_MODULE)
-        cc.output_dir = tmp
-        cc.target_cpu = "host"  # as numba's JIT: the same machine code, bit for bit
-        for name, sig in SIGNATURES.items():
-            cc.export(name, sig)(getattr(kernel, name).py_func)
         with _output_to(Path(tmp) / "compiler.log") as said, _releasing_the_gil():
             try:
+                cc = CC(_MODULE)  # (probes the C compiler)
+                cc.output_dir = tmp
+                cc.target_cpu = "host"  # as numba's JIT: the same machine code, bit for bit
+                for name, sig in SIGNATURES.items():
+                    cc.export(name, sig)(getattr(kernel, name).py_func)
                 cc.compile()
             except Exception as exc:  # distutils' CompileError, LinkError, OSError ...
                 last = said().strip().splitlines()[-3:]
@@ -160,7 +160,7 @@ def _build_once(path: Path) -> None:
                                f"{failed.read_text(errors='replace').strip()[:300]}; "
                                "delete that file to try again)")
         log.info("compiling the simulator ahead of time, once for this version "
-                 "(about 20 s) ...")
+                 "(10-30 s) ...")
         t0 = time.perf_counter()
         try:
             build_aot(path)
@@ -297,3 +297,24 @@ def _output_to(path: Path):
             os.dup2(saved[1], 2)
             for fd in saved:
                 os.close(fd)
+
+
+def main() -> int:
+    """Build the ahead-of-time module now, as the first simulation would
+    (``make venv`` does, so the first command does not wait); prints where
+    it is, or why numba's JIT serves. Returns 0 either way: the JIT
+    computes the same numbers."""
+    handler = logging.StreamHandler(sys.stderr)
+    level = log.level
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    try:
+        simulate_kernel()
+        servo_track()
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(level)
+    status = aot_status()
+    print(f"simulator compiled ahead of time: {aot_module_path()}" if status is None
+          else f"simulator: {status}")
+    return 0
