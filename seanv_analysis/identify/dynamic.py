@@ -56,8 +56,11 @@ are given too.
 from __future__ import annotations
 
 import math
+import os
+import threading
+from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from scipy import optimize, stats
@@ -122,6 +125,46 @@ class DynamicFinding:
                 "replay_heldout_after": self.replay_after}
 
 
+class _Stopped(Exception):
+    """A twin search's thread gives up: the caller was interrupted or failed."""
+
+
+def _threads() -> int:
+    """Threads for the twin's independent replays: the processors this
+    process may use, at most 4 (the kernel runs without the GIL; the rest of
+    a replay, about a third, holds it)."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        n = os.cpu_count() or 1
+    return max(1, min(n, 4))
+
+
+def _map(fn: Callable, items: Sequence, stop: threading.Event) -> list:
+    """``[fn(x) for x in items]``, the items on threads, the results in
+    order (the same numbers as the loop: each is computed alone). On an
+    error or Ctrl-C in the caller, ``stop`` is set, so the threads' next
+    replay raises :class:`_Stopped` and the call returns within one replay."""
+    items = list(items)
+    n = min(len(items), _threads())
+    if n < 2:
+        return [fn(x) for x in items]
+    pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="seanv-twin")
+    futures = [pool.submit(fn, x) for x in items]
+    try:
+        wait(futures, return_when=FIRST_EXCEPTION)
+        failed = [f.exception() for f in futures if f.done() and not f.cancelled()
+                  and f.exception() is not None and not isinstance(f.exception(), _Stopped)]
+        if failed:
+            raise failed[0]
+        return [f.result() for f in futures]
+    except BaseException:
+        stop.set()
+        raise
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def _drop(before: dict[str, float], after: dict[str, float]) -> float:
     b, a = before.get("rmse_flow_mm3_s"), after.get("rmse_flow_mm3_s")
     return 1.0 - a / b if b and a is not None and math.isfinite(b) and b > 0 else math.nan
@@ -163,20 +206,30 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
 
     seen: dict[tuple[str, float], float] = {}
     profiles: dict[str, tuple[Any, float, Sequence[float]]] = {}
+    stop = threading.Event()    # set: the threads' searches give up
 
     def cost(spec: str | None, bulk: float) -> float:
         """Training flow SSE with the effect ``spec`` (None: none) at bulk
-        modulus ``bulk`` (each pair simulated once: the search revisits points)."""
+        modulus ``bulk`` (each pair simulated once: the search revisits points;
+        two threads may both simulate a pair, to the same number)."""
         if (spec, bulk) not in seen:
+            if stop.is_set():
+                raise _Stopped
             twin = with_bulk(rig, bulk, where="discover")
             seen[(spec, bulk)] = flow_sse(
                 replay_on_twin(train, valve, twin, [spec] if spec else []), effective=False)[0]
         return seen[(spec, bulk)]
 
+    def costs_of(pairs) -> list[float]:
+        """:func:`cost` of each (spec, bulk), the new ones on threads."""
+        _map(lambda sb: cost(*sb), [sb for sb in dict.fromkeys(pairs) if sb not in seen], stop)
+        return [cost(*sb) for sb in pairs]
+
     # the base twin with its line free as well: a candidate must beat the line
     # refitted alone, not the line as identified (which may sit at the edge
     # of its range and keep the rig file's value)
-    sse0, base_bulk = min((cost(None, b0 * k), b0 * k) for k in _BULK_FACTORS)
+    base_costs = costs_of([(None, b0 * k) for k in _BULK_FACTORS])
+    sse0, base_bulk = min(zip(base_costs, (b0 * k for k in _BULK_FACTORS)))
     r0 = optimize.minimize_scalar(lambda lb: cost(None, float(f"{math.exp(lb):.5g}")),
                                   bounds=(math.log(base_bulk / 1.25), math.log(base_bulk * 1.25)),
                                   method="bounded", options={"xatol": 0.01, "maxiter": 12})
@@ -184,15 +237,18 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         sse0, base_bulk = float(r0.fun), float(f"{math.exp(r0.x):.5g}")
     base_twin = with_bulk(rig, base_bulk, where="discover")
 
-    for name in candidates:
+    def search(name: str) -> tuple[DynamicFinding, tuple[Any, float, Sequence[float]]]:
+        """One candidate's joint search over its value and the bulk modulus,
+        its grid on threads (the candidates run on threads too)."""
         param, grid = DYNAMIC_CANDIDATES[name]
         # joint search over the effect's value and the line's bulk modulus
         # (identified without the effect, it may have taken part of it: a
         # softer line mimics a delay, so the two lie along one valley): the
         # grid of both, then Nelder-Mead on (value, log B) from its best point
-        costs = [(cost(f"{name}:{param}={v:g}", b0 * k), v, b0 * k)
-                 for v in grid for k in _BULK_FACTORS]
-        sse1, best, bulk = min(costs)
+        points = [(v, b0 * k) for v in grid for k in _BULK_FACTORS]
+        sse1, best, bulk = min(
+            (c, v, b) for c, (v, b) in zip(costs_of([(f"{name}:{param}={v:g}", b)
+                                                     for v, b in points]), points))
 
         def joint(z, name=name, param=param) -> float:
             return cost(f"{name}:{param}={max(z[0], 0.0):.4g}", float(f"{math.exp(z[1]):.5g}"))
@@ -214,7 +270,7 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
                 options={"xatol": 0.02, "maxiter": 8})
             return min(float(r.fun), cost(f"{name}:{param}={v:.4g}", bulk))
 
-        costs = [(cost(f"{name}:{param}={v:.4g}", bulk), v) for v in grid]
+        costs = list(zip(costs_of([(f"{name}:{param}={v:.4g}", bulk) for v in grid]), grid))
         s2 = sse1 / max(n_eff - 1.0, 1.0)
         stat = (sse0 - sse1) / s2 if s2 > 0 else 0.0
         p = float(stats.chi2.sf(max(stat, 0.0), 1))
@@ -223,15 +279,18 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         f = DynamicFinding(name, param, float(best), (min(inside), max(inside)), p,
                            (sse0 - sse1) / sse0 if sse0 > 0 else 0.0)
         f.bulk_mpa = float(bulk)
-        profiles[name] = (at, lim, grid)
+        return f, (at, lim, grid)
+
+    for name, (f, profile) in zip(candidates, _map(search, candidates, stop)):
+        profiles[name] = profile
         findings.append(f)
     findings.sort(key=lambda f: f.p_value)
     for f in findings[:1]:
         if f.p_value >= alpha / m:
             break
-        prof = _profile_interval(*profiles[f.name], f.value)
+        prof = _profile_interval(*profiles[f.name], f.value, stop=stop)
         boot = _segment_bootstrap(train, valve, rig, f.name, f.param, f.value, f.bulk_mpa,
-                                  seed=seed)
+                                  seed=seed, stop=stop)
         lo, hi = min(prof[0], boot[0]), max(prof[1], boot[1])
         if f.name == "delay":
             # the simulator's delay line holds whole time steps: values within a
@@ -311,7 +370,8 @@ _BOOT_BULK = (0.7, 0.85, 1.0, 1.2, 1.4)
 
 
 def _segment_bootstrap(targets, valve, rig, name: str, param: str, value: float, bulk: float,
-                       *, seed: int = 0) -> tuple[float, float]:
+                       *, seed: int = 0, stop: threading.Event | None = None
+                       ) -> tuple[float, float]:
     """95 % percentile interval of the effect's value under resampling of the
     training runs' segments (a reference step each, with replacement).
 
@@ -322,14 +382,19 @@ def _segment_bootstrap(targets, valve, rig, name: str, param: str, value: float,
     minimum (parabolic interpolation along the value), so the spread of the
     estimate over resamples shows how much it rests on a few steps."""
     values = value * _BOOT_VALUE if value > 0 else np.linspace(0.0, 1.0, _BOOT_VALUE.size)
-    per = []                        # [value][bulk] -> per-segment SSE over all targets
-    for v in values:
-        row = []
-        for k in _BOOT_BULK:
-            twin = with_bulk(rig, float(f"{bulk * k:.5g}"), where="discover")
-            reps = replay_on_twin(targets, valve, twin, [f"{name}:{param}={max(v, 0.0):.4g}"])
-            row.append(np.concatenate([r.segment_sse() for r in reps]) if reps else np.zeros(0))
-        per.append(row)
+    stop = stop or threading.Event()
+
+    def segment_sse(vk: tuple[float, float]) -> np.ndarray:
+        v, k = vk
+        if stop.is_set():
+            raise _Stopped
+        twin = with_bulk(rig, float(f"{bulk * k:.5g}"), where="discover")
+        reps = replay_on_twin(targets, valve, twin, [f"{name}:{param}={max(v, 0.0):.4g}"])
+        return np.concatenate([r.segment_sse() for r in reps]) if reps else np.zeros(0)
+
+    # [value][bulk] -> per-segment SSE over all targets (the grid on threads)
+    flat = _map(segment_sse, [(v, k) for v in values for k in _BOOT_BULK], stop)
+    per = [flat[i:i + len(_BOOT_BULK)] for i in range(0, len(flat), len(_BOOT_BULK))]
     n_seg = min(a.size for row in per for a in row)
     if n_seg < 3:
         return (math.nan, math.nan)
@@ -358,14 +423,16 @@ def _bracket(grid: Sequence[float], best: float) -> tuple[float, float]:
     return float(lo), float(hi)
 
 
-def _profile_interval(cost, lim: float, grid: Sequence[float], best: float
-                      ) -> tuple[float, float]:
+def _profile_interval(cost, lim: float, grid: Sequence[float], best: float, *,
+                      stop: threading.Event | None = None) -> tuple[float, float]:
     """Where ``cost`` (the training SSE at a value) crosses ``lim`` on each
     side of ``best``, searched over [0, 1.5 x the grid's last point]; an edge
-    where it never crosses is the interval's end (the data cannot exclude it)."""
+    where it never crosses is the interval's end (the data cannot exclude it).
+    The two sides are searched on threads."""
     def side(edge: float) -> float:
         if edge == best or cost(edge) <= lim:
             return edge
         return float(optimize.brentq(lambda v: cost(v) - lim, min(edge, best), max(edge, best),
                                      xtol=0.002 * grid[-1]))
-    return side(0.0), side(1.5 * float(grid[-1]))
+    lo, hi = _map(side, [0.0, 1.5 * float(grid[-1])], stop or threading.Event())
+    return lo, hi
