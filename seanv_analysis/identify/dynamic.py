@@ -56,15 +56,15 @@ are given too.
 from __future__ import annotations
 
 import math
-import os
 import threading
-from concurrent.futures import FIRST_EXCEPTION, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field
-from typing import Any, Callable, Sequence
+from typing import Any, Sequence
 
 import numpy as np
 from scipy import optimize, stats
 
+from ._threads import Stopped as _Stopped
+from ._threads import map_on_threads as _map
 from .closedloop import fit_summary, flow_sse, replay_on_twin, replay_targets, validate_on_twin, with_bulk
 
 __all__ = ["DYNAMIC_CANDIDATES", "DynamicFinding", "closed_loop_effects"]
@@ -123,46 +123,6 @@ class DynamicFinding:
                 "heldout_before": self.heldout_before, "heldout_after": self.heldout_after,
                 "replay_heldout_before": self.replay_before,
                 "replay_heldout_after": self.replay_after}
-
-
-class _Stopped(Exception):
-    """A twin search's thread gives up: the caller was interrupted or failed."""
-
-
-def _threads() -> int:
-    """Threads for the twin's independent replays: the processors this
-    process may use, at most 4 (the kernel runs without the GIL; the rest of
-    a replay, about a third, holds it)."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        n = os.cpu_count() or 1
-    return max(1, min(n, 4))
-
-
-def _map(fn: Callable, items: Sequence, stop: threading.Event) -> list:
-    """``[fn(x) for x in items]``, the items on threads, the results in
-    order (the same numbers as the loop: each is computed alone). On an
-    error or Ctrl-C in the caller, ``stop`` is set, so the threads' next
-    replay raises :class:`_Stopped` and the call returns within one replay."""
-    items = list(items)
-    n = min(len(items), _threads())
-    if n < 2:
-        return [fn(x) for x in items]
-    pool = ThreadPoolExecutor(max_workers=n, thread_name_prefix="seanv-twin")
-    futures = [pool.submit(fn, x) for x in items]
-    try:
-        wait(futures, return_when=FIRST_EXCEPTION)
-        failed = [f.exception() for f in futures if f.done() and not f.cancelled()
-                  and f.exception() is not None and not isinstance(f.exception(), _Stopped)]
-        if failed:
-            raise failed[0]
-        return [f.result() for f in futures]
-    except BaseException:
-        stop.set()
-        raise
-    finally:
-        pool.shutdown(wait=True, cancel_futures=True)
 
 
 def _drop(before: dict[str, float], after: dict[str, float]) -> float:

@@ -24,6 +24,7 @@ and the measured vs simulated actuator flow error is minimised over log B.
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -31,6 +32,7 @@ import numpy as np
 from scipy.optimize import least_squares
 from scipy.signal import lfilter
 
+from ._threads import Stopped, map_on_threads
 from .closedloop import (
     ReplayTarget,
     fit_summary,
@@ -173,13 +175,16 @@ def fit_line(runs, valve, rig, *, alpha: float = 1e-3) -> dict[str, Any]:
     f0 = float(rig["tube"]["inertance_factor"])
     targets = replay_targets(runs, rig)
     caches: dict[float, dict] = {f: {} for f in (f0, *INERTANCE_FACTORS)}   # replays per factor
+    stop = threading.Event()
     fits = {f0: fit_bulk_modulus(targets, valve, with_inertance(rig, f0), interval=False,
-                                 cache=caches[f0])}
-    for f in INERTANCE_FACTORS:        # the bulk modulus near the rig file line's
-        if f not in fits and math.isfinite(fits[f0]["sse"]):
-            fits[f] = fit_bulk_modulus(targets, valve, with_inertance(rig, f),
-                                       around=fits[f0]["bulk_mpa"], interval=False,
-                                       cache=caches[f])
+                                 cache=caches[f0], stop=stop)}
+    others = [f for f in dict.fromkeys(INERTANCE_FACTORS) if f not in fits] \
+        if math.isfinite(fits[f0]["sse"]) else []
+    # the bulk modulus near the rig file line's, each factor on a thread
+    fits.update(zip(others, map_on_threads(
+        lambda f: fit_bulk_modulus(targets, valve, with_inertance(rig, f),
+                                   around=fits[f0]["bulk_mpa"], interval=False,
+                                   cache=caches[f], stop=stop), others, stop)))
     ok = {f: r for f, r in fits.items() if math.isfinite(r["sse"]) and not r["at_edge"]}
     if f0 not in ok or len(ok) < 2:
         out = fit_bulk_modulus(targets, valve, with_inertance(rig, f0), cache=caches[f0])
@@ -203,7 +208,8 @@ def fit_line(runs, valve, rig, *, alpha: float = 1e-3) -> dict[str, Any]:
 
 def fit_bulk_modulus(runs, valve, rig, *, around: float | None = None,
                      interval: bool = True,
-                     cache: dict[float, tuple[float, float]] | None = None) -> dict[str, Any]:
+                     cache: dict[float, tuple[float, float]] | None = None,
+                     stop: threading.Event | None = None) -> dict[str, Any]:
     """The line's effective bulk modulus [MPa] that makes the twin move like
     the measured runs when it is driven by their logged cam commands (open
     loop, :func:`~.closedloop.replay_on_twin`): the flow error minimised over
@@ -213,23 +219,28 @@ def fit_bulk_modulus(runs, valve, rig, *, around: float | None = None,
     the chi-square(1) quantile of the residual variance, with the residuals'
     effective sample size), unless not ``interval`` (NaN then). ``cache``
     {log B: (SSE, effective n)}: the replays of an earlier call on the same
-    runs and rig, reused (and added to)."""
+    runs and rig, reused (and added to). The grid's points and the interval's two
+    edges are replayed on threads (:mod:`._threads`; ``stop``: set, they give
+    up)."""
     from scipy.optimize import brentq, minimize_scalar
 
     b0 = float(rig["tube"]["effective_bulk_modulus_mpa"])
     cache = {} if cache is None else cache
+    stop = stop or threading.Event()
     runs = replay_targets(runs, rig) if runs and not isinstance(runs[0], ReplayTarget) else runs
 
     def cost(logb: float) -> float:
         key = round(float(logb), 9)
         if key not in cache:
+            if stop.is_set():
+                raise Stopped
             cache[key] = flow_sse(replay_on_twin(runs, valve, with_bulk(rig, math.exp(key))))[:2]
         return cache[key][0]
 
     lo_edge, hi_edge = math.log(b0 / 10.0), math.log(b0 * 10.0)
     grid = np.linspace(lo_edge, hi_edge, 13) if around is None else \
         np.linspace(math.log(around / 2.0), math.log(around * 2.0), 3)
-    costs = [cost(g) for g in grid]
+    costs = map_on_threads(cost, grid, stop)
     k = int(np.argmin(costs))
     if not math.isfinite(costs[k]) or costs[k] <= 0:
         return {"bulk_mpa": b0, "ci95": (math.nan, math.nan), "sse": math.nan, "n_eff": 0.0,
@@ -253,7 +264,7 @@ def fit_bulk_modulus(runs, valve, rig, *, around: float | None = None,
         return float(brentq(lambda v: cost(v) - lim, min(edge, best), max(edge, best),
                             xtol=0.002))
 
-    ci = (math.exp(side(lo_edge)), math.exp(side(hi_edge)))
+    ci = tuple(math.exp(e) for e in map_on_threads(side, [lo_edge, hi_edge], stop))
     return {"bulk_mpa": math.exp(best), "ci95": ci, "sse": sse_min, "n_eff": n_eff,
             "evaluations": len(cache), "at_edge": at_edge}
 
