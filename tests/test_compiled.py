@@ -117,6 +117,7 @@ def _fresh(monkeypatch, tmp_path):
     monkeypatch.setenv("SEANV_NUMBA_CACHE", str(tmp_path))
     monkeypatch.setattr(compiled, "_loaded", {})
     monkeypatch.setattr(compiled, "_status", None)
+    monkeypatch.setattr(compiled, "_module", None)
 
 
 def test_turned_off_runs_the_jit(monkeypatch, tmp_path):
@@ -160,3 +161,28 @@ def test_main_builds_or_reports_and_leaves_the_log_level(aot, capsys):
     assert capsys.readouterr().out.strip() == \
         f"simulator compiled ahead of time: {compiled.aot_module_path()}"
     assert logging.getLogger("seanv_analysis.sim.compiled").level == level
+
+
+def test_threads_first_calls_load_the_module_once(aot, monkeypatch):
+    import threading
+
+    monkeypatch.setattr(compiled, "_loaded", {})
+    monkeypatch.setattr(compiled, "_module", None)
+    loads = []
+    real = compiled._load
+
+    def counted(path):
+        loads.append(path)
+        return real(path)
+
+    monkeypatch.setattr(compiled, "_load", counted)
+    got = []
+    threads = [threading.Thread(target=lambda: got.append(compiled.simulate_kernel()))
+               for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert len(got) == 4 and len({id(f) for f in got}) == 1
+    compiled.servo_track()
+    assert len(loads) == 1

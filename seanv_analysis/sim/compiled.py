@@ -32,6 +32,7 @@ import platform
 import sys
 import sysconfig
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import Callable
@@ -56,6 +57,8 @@ SIGNATURES = {
 
 _loaded: dict[str, Callable] = {}
 _status: str | None = None
+_module = None
+_LOCK = threading.Lock()
 
 
 def simulate_kernel() -> Callable:
@@ -118,20 +121,26 @@ def build_aot(path: Path | None = None) -> Path:
 def _function(name: str) -> Callable:
     fn = _loaded.get(name)
     if fn is None:
-        module = _aot_module()
-        if module is not None:
-            fn = _contiguous(getattr(module, name))
-        else:
-            from . import kernel  # numba: compiles or loads numba's cache
+        with _LOCK:  # threads' first calls (scenarios simulate runs side by side): one build
+            fn = _loaded.get(name)
+            if fn is None:
+                module = _aot_module()
+                if module is not None:
+                    fn = _contiguous(getattr(module, name))
+                else:
+                    from . import kernel  # numba: compiles or loads numba's cache
 
-            fn = getattr(kernel, name)
-        _loaded[name] = fn
+                    fn = getattr(kernel, name)
+                _loaded[name] = fn
     return fn
 
 
 def _aot_module():
-    """The ahead-of-time module, built first if need be; None: use the JIT."""
-    global _status
+    """The ahead-of-time module, built first if need be (loaded once per
+    process); None: use the JIT."""
+    global _status, _module
+    if _module is not None:
+        return _module
     if _status is not None:
         return None
     if os.environ.get("SEANV_AOT", "1").strip() in ("0", "no", "off", "false") or \
@@ -142,7 +151,8 @@ def _aot_module():
         path = aot_module_path()
         if not path.is_file():
             _build_once(path)
-        return _load(path)
+        _module = _load(path)
+        return _module
     except Exception as exc:  # never fatal: the JIT computes the same numbers
         _status = f"the simulator runs on numba's JIT: {exc}"
         log.debug(_status)
