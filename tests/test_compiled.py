@@ -186,3 +186,31 @@ def test_threads_first_calls_load_the_module_once(aot, monkeypatch):
     assert len(got) == 4 and len({id(f) for f in got}) == 1
     compiled.servo_track()
     assert len(loads) == 1
+
+
+def test_every_source_of_the_compiled_code_keys_the_caches():
+    """The caches are keyed by ``COMPILED_SOURCES``: each module of ``sim`` that
+    the kernel reaches through its imports, and each file with an ``njit``,
+    must be in it (else an edit there would reuse stale machine code)."""
+    import ast
+    from pathlib import Path
+
+    from seanv_analysis.sim._sources import COMPILED_SOURCES
+
+    pkg = Path(compiled.__file__).resolve().parents[1]
+    bookkeeping = {"sim/numba_cache.py", "sim/_sources.py", "sim/compiled.py"}
+    reached, todo = set(), ["sim/kernel.py"]
+    while todo:
+        rel = todo.pop()
+        if rel in reached:
+            continue
+        reached.add(rel)
+        for node in ast.walk(ast.parse((pkg / rel).read_text())):
+            if isinstance(node, ast.ImportFrom) and node.level == 1:    # from .x import / from . import x
+                names = [node.module] if node.module else [a.name for a in node.names]
+                todo += [f"sim/{n}.py" for n in names if (pkg / "sim" / f"{n}.py").is_file()]
+    assert reached - bookkeeping <= set(COMPILED_SOURCES), reached - bookkeeping - set(COMPILED_SOURCES)
+    with_njit = {p.relative_to(pkg).as_posix() for p in pkg.rglob("*.py")
+                 if "njit" in p.read_text() and p.parent.name in ("sim", "models")}
+    assert with_njit - bookkeeping <= set(COMPILED_SOURCES), with_njit - set(COMPILED_SOURCES)
+    assert all((pkg / rel).is_file() for rel in COMPILED_SOURCES)

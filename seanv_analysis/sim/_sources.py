@@ -14,8 +14,8 @@ __all__ = ["COMPILED_SOURCES", "cache_base"]
 #: the package sources compiled code is built from (relative to the package):
 #: the key of numba's cache folder and of the ahead-of-time module
 COMPILED_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py",
-                    "models/expr.py", "sim/jit.py", "sim/packing.py", "sim/control.py",
-                    "sim/control_law.py", "sim/_pp.py", "sim/kernel.py", "sim/rosenbrock.py")
+                    "models/expr.py", "sim/jit.py", "sim/packing.py", "sim/control_law.py",
+                    "sim/_pp.py", "sim/kernel.py", "sim/rosenbrock.py")
 
 
 def cache_base() -> Path:

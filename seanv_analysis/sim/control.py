@@ -64,7 +64,6 @@ __all__ = ["ControllerState", "ControllerOutput", "FlowModelController", "CamCon
            "KIND_FLOW_MODEL", "KIND_CAM", "CP_SIZE"]  # controller_step: .control_law
 
 
-
 @dataclass(frozen=True)
 class ControllerState:
     """State carried between steps: whether the cam is held, at which angle
