@@ -355,9 +355,8 @@ def _jacobian_structure(data: FlowData, present: list[str], with_geom: list[str]
     """Which runs each fitted parameter moves (runs x parameters, bool), where
     the model's form says so: a side's z0, C and y_c and a one-sided effect's
     parameters move that side's runs only (the effects' static forms change
-    their ``rows`` only). None when every parameter may move every run: a
-    closed-form term (an 'add' term moves the other side's sealed valve), or
-    nothing to gain (no two parameters touch disjoint runs)."""
+    their ``rows`` only). None when every parameter may move every run: with
+    a closed-form term (an 'add' term moves the other side's sealed valve)."""
     if any(spec.effect.name == "term" for spec in effects):
         return None
     cols = []
