@@ -147,7 +147,9 @@ def test_a_failed_build_is_not_retried_and_the_jit_serves(monkeypatch, tmp_path)
 
 def test_the_key_follows_the_compiled_sources(monkeypatch):
     before = compiled._key()
-    monkeypatch.setattr(compiled, "COMPILED_SOURCES", compiled.COMPILED_SOURCES[:-1])
+    from seanv_analysis.sim import _sources
+
+    monkeypatch.setattr(_sources, "COMPILED_SOURCES", _sources.COMPILED_SOURCES[:-1])
     assert compiled._key() != before
     monkeypatch.setattr(compiled, "SIGNATURES", {"servo_track": "f8(f8)"})
     assert compiled._key() != before

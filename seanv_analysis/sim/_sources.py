@@ -9,13 +9,24 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["COMPILED_SOURCES", "cache_base"]
+__all__ = ["COMPILED_SOURCES", "cache_base", "hash_compiled_sources"]
 
 #: the package sources compiled code is built from (relative to the package):
 #: the key of numba's cache folder and of the ahead-of-time module
 COMPILED_SOURCES = ("models/sealing.py", "models/valve.py", "models/effects.py",
                     "models/expr.py", "sim/jit.py", "sim/packing.py", "sim/control_law.py",
                     "sim/_pp.py", "sim/kernel.py", "sim/rosenbrock.py")
+
+
+def hash_compiled_sources(h) -> None:
+    """Feed each compiled source's path and content to the hash ``h``
+    (a missing file adds nothing)."""
+    pkg = Path(__file__).resolve().parents[1]
+    for rel in COMPILED_SOURCES:
+        p = pkg / rel
+        if p.is_file():
+            h.update(rel.encode())
+            h.update(p.read_bytes())
 
 
 def cache_base() -> Path:

@@ -37,7 +37,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from ._sources import COMPILED_SOURCES, cache_base
+from ._sources import cache_base, hash_compiled_sources
 
 __all__ = ["simulate_kernel", "servo_track", "aot_module_path", "aot_status", "build_aot"]
 
@@ -213,12 +213,7 @@ def _key() -> str:
     h.update(repr(sorted(SIGNATURES.items())).encode())
     h.update(f"{sys.implementation.cache_tag};{sysconfig.get_config_var('EXT_SUFFIX')};".encode())
     h.update(_processor().encode())
-    pkg = Path(__file__).resolve().parents[1]
-    for rel in COMPILED_SOURCES:
-        p = pkg / rel
-        h.update(rel.encode())
-        if p.is_file():
-            h.update(p.read_bytes())
+    hash_compiled_sources(h)
     return h.hexdigest()
 
 

@@ -42,7 +42,6 @@ import numpy as np
 from ..errors import ConfigError
 from ..models import ValveModel
 from ..models.valve import MIN_DP_MPA
-from . import packing as P
 from ._config_errors import config_errors
 from .packing import (
     _CP_BAND,
@@ -58,6 +57,8 @@ from .packing import (
     CP_SIZE,
     KIND_CAM,
     KIND_FLOW_MODEL,
+    SP_SIZE,
+    pack_model,
 )
 
 __all__ = ["ControllerState", "ControllerOutput", "FlowModelController", "CamController",
@@ -200,7 +201,7 @@ class FlowModelController(_PController):
             raise ConfigError(f"kp_mm3_s_per_mm: expected > 0, got {kp_mm3_s_per_mm}")
         self.__post_init__()
         with config_errors():  # e.g. a needle geometry without a monotonic eq. (4)
-            set_(self, "_packed", P.pack_model(model))
+            set_(self, "_packed", pack_model(model))
 
     @classmethod
     def from_rig(cls, rig: Any, model: ValveModel | None = None, **overrides) -> "FlowModelController":
@@ -279,7 +280,7 @@ class CamController(_PController):
 
     def jit_spec(self):
         """(kind, packed parameters, dummy tables) for compiled code."""
-        dummy = np.zeros(P.SP_SIZE)
+        dummy = np.zeros(SP_SIZE)
         grid = np.array([0.0, 1.0])
         return KIND_CAM, self._cp(self.kp_deg_per_mm, self.neutral_deg), \
             (dummy, grid, grid, dummy, grid, grid)

@@ -83,7 +83,6 @@ from .control_law import controller_step
 __all__ = ["simulate_kernel", "servo_track", "PP", "PP_SIZE", "MODE_SCHEDULE", "OUT_FAST", "OUT_SLOW"]
 
 
-
 @njit(cache=True, nogil=True)
 def _step_value(t_breaks, values, t):
     """Value of a step sequence at time t (holds from each break) [-]."""

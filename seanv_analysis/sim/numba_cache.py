@@ -23,7 +23,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from ._sources import COMPILED_SOURCES, cache_base
+from ._sources import cache_base, hash_compiled_sources
 
 __all__ = ["configure_numba_cache", "PackageCacheLocator"]
 
@@ -48,13 +48,8 @@ def configure_numba_cache() -> Path | None:
     if _DONE or os.environ.get("NUMBA_CACHE_DIR"):
         _DONE = True
         return Path(config.CACHE_DIR) if config.CACHE_DIR else None
-    pkg = Path(__file__).resolve().parents[1]
     h = hashlib.sha256(numba.__version__.encode())
-    for rel in COMPILED_SOURCES:
-        p = pkg / rel
-        if p.is_file():
-            h.update(rel.encode())
-            h.update(p.read_bytes())
+    hash_compiled_sources(h)
     folder = cache_base() / f"numba-{h.hexdigest()[:16]}"
     try:
         folder.mkdir(parents=True, exist_ok=True)
