@@ -15,6 +15,7 @@ from click.testing import CliRunner
 from conftest import write_synthetic_dataset, write_synthetic_run
 
 from seanv_analysis.batch import run_pipeline
+from seanv_analysis.io.atomic import OWNER_MARKER
 
 #: position-control runs: per-run tables (tracking/) and per-run figures (figures/fig6/)
 POSITION = {"pipeline": {"name": "pos"},
@@ -70,7 +71,9 @@ def test_second_dataset_leaves_no_file_of_the_first(two_datasets, tmp_path):
     # the manifest lists every file of the folder but itself and result.json, hashes matching
     manifest = json.loads((out / "manifest.json").read_text())
     listed = {e["path"]: e for e in manifest["outputs"]}
-    assert set(listed) == files - {"manifest.json", "result.json"}
+    markers = {f for f in files if Path(f).name == OWNER_MARKER}   # bookkeeping, not outputs
+    assert {"figures/" + OWNER_MARKER, "tracking/" + OWNER_MARKER} <= markers
+    assert set(listed) == files - {"manifest.json", "result.json"} - markers
     for rel, entry in listed.items():
         assert entry["sha256"] == _sha256(out / rel), rel
         assert entry["size"] == (out / rel).stat().st_size, rel
@@ -97,10 +100,13 @@ def test_temp_files_of_a_killed_run_are_removed(tmp_path):
                  out / ".flowfit.tmp-q8w7e6r5" / "flowfit.json",
                  out / ".figures.old-1a2b3c4d" / "fig4.png"]
     kept = [out / "notes.txt", out / ".notes.tmp", out / "mine" / ".a.b.tmp",
-            out / ".mine.tmp-1" / "x.txt", out / "figures.tmp"]
+            out / ".mine.tmp-1" / "x.txt", out / "figures.tmp",
+            out / ".tracking.tmp-u7y6t5r4" / "x.txt"]     # named like ours, but no marker
     for p in leftovers + kept:
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_bytes(b"partial")
+    for folder in ("figures", ".flowfit.tmp-q8w7e6r5", ".figures.old-1a2b3c4d"):
+        (out / folder / OWNER_MARKER).write_text("")  # what a killed run's folders hold
     res = run_pipeline(INGEST_ONLY, data, out_dir=out, workers=1, quiet=True)
     for p in leftovers:
         assert not p.exists(), p

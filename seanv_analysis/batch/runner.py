@@ -22,7 +22,8 @@ import pandas as pd
 from .. import __version__
 from ..config import RigConfig
 from ..errors import ConfigError, DataError, SeanvError
-from ..io.atomic import atomic_folder, remove_stale_temps, retire_folder
+from ..io.atomic import atomic_folder, check_not_foreign, remove_stale_temps, retire_folder
+from ..io.outdir import check_out_dir
 from ..jsonable import JsonResult
 from ..stages import STAGES, Context, FailedRun, RunOutcome, one_blas_thread
 from ..stages.pipeline import Pipeline, load_pipeline
@@ -31,13 +32,26 @@ from .executor import Executor, TaskResult, make_executor, one_line_error
 from .memo import forget_run, pipeline_key, record_run, recorded_run
 from .tasks import cached_run_task
 
-__all__ = ["PipelineResult", "FailedRun", "run_pipeline", "CachedMapper"]
+__all__ = ["PipelineResult", "FailedRun", "run_pipeline", "CachedMapper", "owned_outputs"]
 
 #: where each stage writes, under the output folder; a stage with a folder of
 #: its own owns it: the folder is written anew and swapped in whole
 #: (:func:`_write_stage_folder`), "." means files directly in the output folder
 STAGE_FOLDERS = {"ingest": ".", "flowfit": "flowfit", "identify": "identify", "tracking": "tracking",
                  "validate": "validate", "discover": "discover", "figures": "figures", "report": "."}
+#: the files a run writes directly into the output folder (besides the report)
+TOP_LEVEL_FILES = ("summary.parquet", "manifest.json", "result.json")
+
+
+def owned_outputs(pipe: Pipeline) -> list[str]:
+    """Names under the output folder that a run of ``pipe`` replaces,
+    deletes or writes over: every stage folder (a stage's folder of an
+    earlier pipeline may be retired), the per-run cache and the top-level
+    files. No input may be or lie inside one of them
+    (:func:`~seanv_analysis.io.outdir.check_out_dir`)."""
+    report = [s.options.get("filename", "report.html") for s in pipe.stages if s.name == "report"]
+    folders = sorted({f for f in STAGE_FOLDERS.values() if f != "."})
+    return [*folders, CACHE_DIRNAME, *TOP_LEVEL_FILES, *report]
 
 
 @dataclass
@@ -316,6 +330,12 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     t_start = time.perf_counter()
     pipe = load_pipeline(pipeline)
     say = log or (lambda msg: None)
+    datas = [data] if isinstance(data, (str, Path)) else list(data)
+    check_out_dir(out_dir, data=datas, owned=owned_outputs(pipe), label="out_dir",
+                  files=[pipe.source, rig if isinstance(rig, (str, Path)) else None])
+    for stage in pipe.stages:   # a folder of the user's where a stage folder goes: refused now
+        if STAGE_FOLDERS[stage.name] != ".":
+            check_not_foreign(Path(out_dir) / STAGE_FOLDERS[stage.name])
     ctx = Context.for_data(data, rig=rig, out_dir=out_dir, quiet=quiet, log=say)
     from ..models import ValveModel
 

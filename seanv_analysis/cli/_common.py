@@ -8,13 +8,31 @@ import inspect
 import json
 from contextlib import contextmanager
 from pathlib import Path
+from typing import Sequence
 
 import click
 
 __all__ = ["verbosity", "default_out_dir", "check_out_dir", "probe_writable", "echo_bad_runs", "unusable", "stage_context",
-           "sim_default_dataset", "write_command_manifest", "OUTPUTS_ROOT"]
+           "sim_default_dataset", "write_command_manifest", "OUTPUTS_ROOT", "OUT_FOLDER"]
 
 OUTPUTS_ROOT = Path("outputs")
+
+
+class OutFolder(click.Path):
+    """The type of every ``--out``: a folder path, never empty (``--out ""``
+    would mean the current folder, which holds the user's files)."""
+
+    def __init__(self) -> None:
+        super().__init__(file_okay=False, path_type=Path)
+
+    def convert(self, value, param, ctx):
+        if isinstance(value, str) and not value.strip():
+            self.fail("empty; expected a folder to write the outputs into", param, ctx)
+        return super().convert(value, param, ctx)
+
+
+#: the ``type=`` of every ``--out`` option
+OUT_FOLDER = OutFolder()
 
 
 def verbosity(command):
@@ -75,25 +93,25 @@ def default_out_dir(data: str | Path, command: str) -> Path:
     return OUTPUTS_ROOT / name / command
 
 
-def check_out_dir(data: str | Path | None, out: str | Path) -> None:
-    """Refuse an output folder inside (or equal to) the data folder, or one
+def check_out_dir(data: str | Path | Sequence[str | Path] | None, out: str | Path, *,
+                  files: Sequence[str | Path | None] = (), owned: Sequence[str] = ()) -> None:
+    """Refuse an output folder that would write over an input
+    (:func:`seanv_analysis.io.outdir.check_out_dir`: inside a data folder,
+    or an ``owned`` entry that is or holds DATA or one of ``files``), or one
     that cannot be written (:func:`probe_writable`).
 
     Raises
     ------
     DataError
-        ``out`` is ``data`` or lies under it (symbolic links resolved).
+        ``out`` would write over an input (symbolic links resolved, inodes
+        compared).
     OutputError
-        ``out`` cannot be written.
+        ``out`` is empty or cannot be written.
     """
-    from ..errors import DataError
+    from ..io.outdir import check_out_dir as check
 
-    if data is not None and Path(data).is_dir():
-        d, o = Path(data).resolve(), Path(out).resolve()
-        if o == d or d in o.parents:
-            raise DataError(f"--out: {out} is inside the data folder; outputs never go into raw "
-                            "data: choose another --out (default: outputs/<dataset>/<command>/ "
-                            "under the current folder)", path=data)
+    datas = [] if data is None else [data] if isinstance(data, (str, Path)) else list(data)
+    check(out, data=datas, files=files, owned=owned)
     probe_writable(out)
 
 

@@ -7,6 +7,7 @@ import click
 
 from . import cli
 from ._common import (
+    OUT_FOLDER,
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
@@ -33,7 +34,7 @@ __all__ = ["discover_cmd"]
 @click.option("--holdout", type=click.Choice(["chrono", "kfold"]), default="chrono", show_default=True,
               help="chrono: the last 30 % of each side's runs (time order) are held out; "
                    "kfold: 5 folds by run.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset>/discover/.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the permutation check.")
 @click.option("--identify", "identify_first", is_flag=True,

@@ -9,6 +9,7 @@ import click
 
 from . import cli
 from ._common import (
+    OUT_FOLDER,
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
@@ -32,7 +33,7 @@ BUILTIN_SCENARIO = "paper-flowsteps"
 @click.argument("data", required=False, type=click.Path(path_type=Path))
 @click.option("--rig", "rig_file", type=click.Path(dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change. Default: the shipped rig.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset-name>/flowfit/.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print only the result JSON (stable contract) on stdout.")

@@ -7,6 +7,7 @@ import click
 
 from . import cli
 from ._common import (
+    OUT_FOLDER,
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
@@ -34,7 +35,7 @@ _PARTS = ("geometry", "servo", "friction", "load", "flow_path")
               help="Identify only this part (repeatable). Default: all.")
 @click.option("--n-boot", type=click.IntRange(min=0), default=100, show_default=True,
               help="Bootstrap resamples of the z0/C refit with the identified geometry.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset>/identify/.")
 @click.option("--json", "as_json", is_flag=True, help="Print identify.json on stdout.")
 def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):

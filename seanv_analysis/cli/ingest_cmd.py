@@ -12,7 +12,7 @@ from typing import Any
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, echo_bad_runs, verbosity
+from ._common import OUT_FOLDER, check_out_dir, default_out_dir, echo_bad_runs, verbosity
 
 __all__ = ["ingest_cmd", "ingest"]
 
@@ -150,7 +150,7 @@ def _result(root, out_dir, by_kind, ds, tables, summary_path, *, excluded):
 @cli.command("ingest")
 @verbosity
 @click.argument("data", type=click.Path(path_type=Path))
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset-name>/ingest/ under the current "
                    "folder (never inside DATA).")
 @click.option("--rig", "rig_file", type=click.Path(dir_okay=False, path_type=Path),

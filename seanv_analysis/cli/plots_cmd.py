@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, formats_option, unusable, verbosity
+from ._common import OUT_FOLDER, check_out_dir, default_out_dir, formats_option, unusable, verbosity
 
 __all__ = ["plots_cmd", "plots_pipeline"]
 
@@ -62,7 +62,7 @@ class _FigureChoice(click.Choice):
                    "characterisation of the data set (fit + threshold), 6 one per "
                    "position-control run, 7 flow tracking (data set + one per run), others by "
                    "name; 'all' for every one. Repeat for several.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset-name>/plots/.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Worker processes for the per-run work (1: serial). Default: the CPU count.")

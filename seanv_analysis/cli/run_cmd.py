@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import check_out_dir, default_out_dir, figure_options, unusable, verbosity
+from ._common import OUT_FOLDER, check_out_dir, default_out_dir, figure_options, unusable, verbosity
 
 __all__ = ["run_cmd"]
 
@@ -17,7 +17,7 @@ __all__ = ["run_cmd"]
 @verbosity
 @click.argument("pipeline", required=False)
 @click.argument("data", required=False, type=click.Path(path_type=Path))
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset-name>/run-<pipeline>/.")
 @click.option("--workers", type=click.IntRange(min=1), default=None,
               help="Local worker processes for the per-run work (1: serial, in this process). "
@@ -76,6 +76,7 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
       seanv-analyze run --list-stages
     """
     from ..batch import load_pipeline, run_pipeline
+    from ..batch.runner import owned_outputs
     from ..errors import DataError
 
     if list_stages:
@@ -93,11 +94,10 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
         click.echo("no DATA given: using the built-in simulated paper data sets "
                    f"({', '.join(map(str, datas))})", err=True)
         out = Path(out_dir) if out_dir else Path("outputs") / "demo" / f"run-{pipe.name}"
-        check_out_dir(None, out)
     else:
         datas = [data]
         out = Path(out_dir) if out_dir else default_out_dir(data, f"run-{pipe.name}")
-        check_out_dir(data, out)
+    check_out_dir(datas, out, files=[pipe.source, rig_file], owned=owned_outputs(pipe))
     interactive = sys.stderr.isatty() and not os.environ.get("CI")
     # a line per stage where no progress bar is drawn (-q: none)
     log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))

@@ -7,7 +7,7 @@ from pathlib import Path
 import click
 
 from . import cli
-from ._common import probe_writable, verbosity
+from ._common import OUT_FOLDER, probe_writable, verbosity
 
 __all__ = ["simulate_cmd"]
 
@@ -16,7 +16,7 @@ __all__ = ["simulate_cmd"]
 @verbosity
 @click.argument("scenario", type=click.Choice(["paper-flowsteps", "paper-flowsteps-small",
                                                "paper-position", "paper-position-model"]))
-@click.option("--out", "out_dir", required=True, type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", required=True, type=OUT_FOLDER,
               help="Data set folder to create (must not hold runs yet).")
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Noise seed; the same seed writes the same files bit for bit.")

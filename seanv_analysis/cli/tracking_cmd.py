@@ -8,6 +8,7 @@ import click
 
 from . import cli
 from ._common import (
+    OUT_FOLDER,
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
@@ -36,7 +37,7 @@ __all__ = ["tracking_cmd"]
                    "q_ref and without flow model.")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML. Default: the shipped one.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset>/tracking/.")
 @figure_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document on stdout.")

@@ -9,6 +9,7 @@ import click
 
 from . import cli
 from ._common import (
+    OUT_FOLDER,
     check_out_dir,
     default_out_dir,
     echo_bad_runs,
@@ -38,7 +39,7 @@ __all__ = ["validate_cmd"]
               show_default=True,
               help="Valve model inside the flow-model controller: the rig config's (what the "
                    "rig ran) or the --model (plant) one.")
-@click.option("--out", "out_dir", type=click.Path(file_okay=False, path_type=Path),
+@click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset>/validate/.")
 @figure_options
 @click.option("--json", "as_json", is_flag=True, help="Print the result as one JSON document on stdout.")

@@ -4,6 +4,11 @@ A reader (or a resumed run) never sees a half-written output. Files and
 folders written here follow the process umask (like ``open`` and ``mkdir``),
 not the private 0600 / 0700 of :mod:`tempfile`. :func:`atomic_folder` swaps a
 whole folder in; :func:`remove_stale_temps` removes what a killed run left.
+
+Only a folder this package made is ever replaced or deleted: every folder it
+makes carries the marker file :data:`OWNER_MARKER`, and :func:`swap_in`,
+:func:`retire_folder` and :func:`remove_stale_temps` refuse (or skip) a folder
+without it (:class:`~seanv_analysis.errors.OutputError` naming the folder).
 """
 from __future__ import annotations
 
@@ -21,14 +26,67 @@ from typing import Any, Iterable, Iterator
 
 __all__ = ["atomic_path", "atomic_folder", "write_text_atomic", "write_json_atomic",
            "write_bytes_atomic", "current_umask", "swap_in", "retire_folder",
-           "remove_stale_temps", "TEMP_FILE", "TEMP_FOLDER"]
+           "remove_stale_temps", "TEMP_FILE", "TEMP_FOLDER", "OWNER_MARKER", "is_owned",
+           "claim_folder", "check_not_foreign"]
 
 #: a temp file of :func:`atomic_path`: ``.<name>.<random>.tmp``
 TEMP_FILE = re.compile(r"\..+\.[a-z0-9_]+\.tmp")
 #: a temp or retired folder of :func:`atomic_folder`: ``.<name>.tmp-<random>`` / ``.<name>.old-<random>``
 TEMP_FOLDER = re.compile(r"\.(?P<name>[^/]+)\.(?:tmp|old)-[A-Za-z0-9_]+")
 
+#: the file in every folder this package made (stage folders, their temp and
+#: retired copies): a folder without it is the user's and is never replaced
+OWNER_MARKER = ".seanv-output"
+_MARKER_TEXT = ("This folder was written by seanv-analysis; a later run may replace "
+                "or delete it whole.\n")
+
 _UMASK_LOCK = threading.Lock()
+
+
+def is_owned(path: str | Path) -> bool:
+    """``path`` is a folder (not a link) that this package made: it holds
+    :data:`OWNER_MARKER` as a regular file."""
+    try:
+        return (stat.S_ISDIR(os.lstat(path).st_mode)
+                and stat.S_ISREG(os.lstat(Path(path) / OWNER_MARKER).st_mode))
+    except OSError:
+        return False
+
+
+def _mark_owned(folder: Path) -> None:
+    (folder / OWNER_MARKER).write_text(_MARKER_TEXT)
+
+
+def check_not_foreign(path: str | Path) -> None:
+    """Raise unless ``path`` is absent or a folder this package made.
+
+    Raises
+    ------
+    OutputError
+        something else stands at ``path`` (a data folder, a file, a link, a
+        folder of an older version): it is never replaced or deleted.
+    """
+    path = Path(path)
+    if os.path.lexists(path) and not is_owned(path):
+        from ..errors import OutputError
+
+        what = ("a link" if path.is_symlink() else "a folder" if path.is_dir()
+                else "a file")
+        raise OutputError(f"{path}: {what} this package did not write (no {OWNER_MARKER} "
+                          "marker) stands where an output folder goes; it is never replaced "
+                          "or deleted: move it away or choose another --out")
+
+
+def claim_folder(path: str | Path) -> Path:
+    """Make ``path`` a folder this package owns (created with its marker),
+    or check that the one there is (:func:`check_not_foreign`)."""
+    path = Path(path)
+    check_not_foreign(path)
+    if not os.path.lexists(path):
+        path.mkdir(parents=True, exist_ok=True)
+        _follow_umask(path, folder=True)
+        _mark_owned(path)
+    return path
 
 
 def current_umask() -> int:
@@ -80,17 +138,26 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
 @contextmanager
 def atomic_folder(path: str | Path) -> Iterator[Path]:
-    """Yield a fresh empty folder beside ``path`` (``.<name>.tmp-<random>``);
-    on success swap it in whole: the old ``path`` is renamed away, the new
-    one renamed in, the old one deleted. Nothing of the old folder remains.
+    """Yield a fresh folder beside ``path`` (``.<name>.tmp-<random>``, holding
+    only :data:`OWNER_MARKER`); on success swap it in whole: the old ``path``
+    is renamed away, the new one renamed in, the old one deleted. Nothing of
+    the old folder remains.
 
     On an exception the temp folder is removed and ``path`` is untouched.
+
+    Raises
+    ------
+    OutputError
+        a folder this package did not make stands at ``path`` (checked
+        before anything is written).
     """
     path = Path(path)
+    check_not_foreign(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.tmp-", dir=path.parent))
     try:
         _follow_umask(tmp, folder=True)
+        _mark_owned(tmp)
         yield tmp
         swap_in(tmp, path)
     except BaseException:
@@ -99,7 +166,9 @@ def atomic_folder(path: str | Path) -> Iterator[Path]:
 
 
 def swap_in(new: Path, path: Path) -> None:
-    """Put folder ``new`` at ``path``, replacing whatever is there."""
+    """Put folder ``new`` at ``path``, replacing the folder of this package
+    there (:func:`check_not_foreign`: anything else is refused)."""
+    check_not_foreign(path)
     old = _rename_away(path)
     os.rename(new, path)
     if old is not None:
@@ -107,9 +176,11 @@ def swap_in(new: Path, path: Path) -> None:
 
 
 def retire_folder(path: str | Path) -> None:
-    """Remove ``path`` (a folder, file or link) if it exists: renamed away
+    """Remove the folder ``path`` of this package if it exists: renamed away
     first (``.<name>.old-<random>``, which :func:`remove_stale_temps` removes
-    should a kill come between), then deleted."""
+    should a kill come between), then deleted. Anything else at ``path`` is
+    refused (:func:`check_not_foreign`)."""
+    check_not_foreign(path)
     old = _rename_away(Path(path))
     if old is not None:
         _remove(old)
@@ -137,7 +208,8 @@ def remove_stale_temps(out: str | Path, folders: Iterable[str]) -> int:
     :func:`atomic_path` (``.<name>.<random>.tmp``) directly in ``out`` and
     anywhere under its ``folders``, and temp / retired folders of
     :func:`atomic_folder` (``.<folder>.tmp-*``, ``.<folder>.old-*``) of those
-    ``folders``. Nothing else is touched; links are not followed.
+    ``folders``. Only folders with :data:`OWNER_MARKER` are touched; nothing
+    else is; links are not followed.
     Returns how many entries were removed."""
     out = Path(out)
     names = {f for f in folders if f not in (".", "")}
@@ -146,13 +218,13 @@ def remove_stale_temps(out: str | Path, folders: Iterable[str]) -> int:
     n = 0
     for entry in list(out.iterdir()):
         m = TEMP_FOLDER.fullmatch(entry.name)
-        if m and m["name"] in names and entry.is_dir() and not entry.is_symlink():
+        if m and m["name"] in names and is_owned(entry):
             _remove(entry)
             n += 1
     n += _remove_temp_files(out, recurse=False)
     for name in sorted(names):
         sub = out / name
-        if sub.is_dir() and not sub.is_symlink():
+        if is_owned(sub):
             n += _remove_temp_files(sub, recurse=True)
     return n
 

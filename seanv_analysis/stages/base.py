@@ -24,6 +24,7 @@ from typing import Any, Callable, Mapping, Protocol, Sequence
 
 from ..config import RigConfig, load_rig
 from ..errors import DataError, SeanvError
+from ..io.outdir import check_out_dir
 from ..io.validate import one_line
 from ..models import ValveModel
 
@@ -209,11 +210,7 @@ class Context:
         datas = [Path(data)] if isinstance(data, (str, Path)) else [Path(d) for d in data]
         out = Path(out_dir) if out_dir is not None else None
         if out is not None:
-            for d in datas:
-                d_res, o_res = d.resolve(), out.resolve()
-                if o_res == d_res or d_res in o_res.parents:
-                    raise DataError(f"out_dir: {out} is inside the data folder; outputs never go "
-                                    "into raw data: choose another output folder", path=d)
+            check_out_dir(out, data=datas, label="out_dir")
         run_dirs, dataset_of = find_run_dirs(datas)
         source = model_source or ("given model" if model is not None
                                   else "rig config (paper's z0, C)")

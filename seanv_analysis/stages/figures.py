@@ -118,9 +118,11 @@ def run(ctx: Context, options: Mapping[str, Any]) -> FiguresResult:
     Figures are files by nature: this stage writes while it runs, and
     :func:`write` has nothing left to do.
     """
+    from ..io.atomic import claim_folder
+
     opts = {**OPTIONS, **options}
-    return draw_figures(ctx, opts["figs"], Path(ctx.out_dir) / "figures",
-                        formats=tuple(opts["formats"]))
+    folder = claim_folder(Path(ctx.out_dir) / "figures")  # the pipeline's folder, swapped in whole
+    return draw_figures(ctx, opts["figs"], folder, formats=tuple(opts["formats"]))
 
 
 def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, ...] = ("png", "svg"),
