@@ -40,3 +40,42 @@ def test_extra_delay_named_on_the_identified_twin(delayed_position):
     assert kept["heldout_before"]["fit_position_pct"] > 0 and kept["heldout_after"]
     # the closed-loop check runs the twin with the line refitted with the effect
     assert d.twin_overrides["tube"]["effective_bulk_modulus_mpa"] > 0
+
+
+def test_closed_loop_check_survives_effects_that_cannot_be_simulated(monkeypatch):
+    """An effect the simulator refuses (field data: discover picked a negative
+    delay, the effect's own range check refused it) leaves the closed-loop
+    check with the base model and a note, not an UnboundLocalError."""
+    from types import SimpleNamespace
+
+    from seanv_analysis.errors import ConfigError
+    from seanv_analysis.stages import discover as stage
+
+    seen = {}
+
+    class Disc:
+        effects = [SimpleNamespace(name="delay")]
+        proposed_term = None
+        model = "base model"
+        twin_overrides = {"tube": {"effective_bulk_modulus_mpa": 120.0}}
+
+        def augmented_model_and_effects(self, rig):
+            raise ConfigError("effect 'delay': delay_s = -0.038 s; expected >= 0")
+
+        def with_closed_loop(self, before, after):
+            seen["checked"] = (before, after)
+            return self
+
+    def fake_validate(ctx, model, specs=(), *, stage="validate", plant_overrides=None):
+        seen[stage] = (model, list(specs), plant_overrides)
+        return SimpleNamespace(validation=stage, failed=())
+
+    monkeypatch.setattr(stage, "position_paths", lambda ctx: ["run"])
+    monkeypatch.setattr(stage, "validate_model", fake_validate)
+    monkeypatch.setattr(stage, "controller_numbers", lambda v: v)
+    ctx = SimpleNamespace(plant_rig=None, valve="valve", result=lambda name: None)
+    res = stage.closed_loop(ctx, Disc())
+    assert "effects not simulated in the closed-loop check" in res.note
+    assert "-0.038" in res.note
+    assert seen["validate_augmented"] == ("base model", [], Disc.twin_overrides)
+    assert seen["checked"] == ("validate", "validate_augmented")

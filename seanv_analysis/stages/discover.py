@@ -202,9 +202,9 @@ def closed_loop(ctx: Context, discovery) -> DiscoverResult:
     if not position_paths(ctx) or not (discovery.effects or discovery.proposed_term):
         return DiscoverResult(discovery)
     note = ""
+    twin = getattr(discovery, "twin_overrides", None)
     try:
         augmented, specs = discovery.augmented_model_and_effects(ctx.plant_rig)
-        twin = getattr(discovery, "twin_overrides", None)
     except SeanvError as exc:
         note = f"effects not simulated in the closed-loop check: {one_line(exc)}"
         augmented, specs = discovery.model, []
