@@ -129,3 +129,49 @@ def test_geometry_not_identified_from_one_load():
                      z0_start_mm=base.z0_mm, c_start=base.c_flow)
     assert not g.identified and "load level" in g.note
     assert math.isfinite(g.z0_mm)
+
+
+def test_geometry_fit_ending_where_eq4_cannot_be_inverted(monkeypatch):
+    """A fit that stops where eq. (4) is not monotonic (every residual at its
+    sentinel, a flat cost: another rig's data gave a traceback here) keeps
+    the rig file's centre and says why; the fit summary still forms."""
+    import pandas as pd
+
+    from seanv_analysis.identify import geometry
+
+    base = ValveModel.from_rig(RIG).side("supply")
+    bad_y = -4.5     # the rig's x_c with this y_c: eq. (4) turns over inside the cam range
+    assert not geometry._valid(base, bad_y)
+    theta, p1, dp, q, load = _flow_steps(base, (0.1, 0.3, 0.5))
+
+    def stuck(side, theta, p1, dp, q, sigma, x0, lo, hi, f_scale, free_y):
+        sol = type("Sol", (), {"fun": np.ones(q.size), "jac": np.ones((q.size, 3))})()
+        return np.array([x0[0], x0[1], bad_y if free_y else x0[2]]), sol
+
+    monkeypatch.setattr(geometry, "_fit", stuck)
+    g = fit_geometry(base, theta, p1, dp, q, 0.02 * np.abs(q) + 5.0, load,
+                     z0_start_mm=base.z0_mm, c_start=base.c_flow)
+    assert not g.identified and "not monotonic" in g.note
+    model = ValveModel.from_rig(RIG)
+    per_run = pd.DataFrame({"side": "supply", "used": True, "run_index": np.arange(q.size),
+                            "theta_deg": theta, "p1_mpa": p1, "dp_mpa": dp, "q_mm3_s": q,
+                            "sigma_mm3_s": 0.02 * np.abs(q) + 5.0, "load_level_mpag": load})
+    consts, fits, notes = geometry.geometry_constants(per_run, model, RIG)
+    yc = [c for c in consts if c.key == "valve.supply.needle_y_c_mm"][0]
+    assert not yc.identified and yc.value == yc.default
+    assert any("not monotonic" in n for n in notes)
+
+
+def test_lag_fit_on_saturated_flow_gives_no_interval_rather_than_overflow():
+    """The actuator's flow pinned at a limit while the valve's steps: the lag's
+    time constant cannot be told. No overflow, no (0, 1e97) interval: none."""
+    from seanv_analysis.identify.flowpath import FlowPathData, fit_lag
+
+    t = np.arange(0.0, 10.0, 0.002)
+    rng = np.random.default_rng(0)
+    q_valve = np.where(t > 1.0, 8000.0, 0.0)
+    q = np.clip(np.interp(t - 0.2, t, q_valve), 0.0, 3000.0) + rng.normal(0, 20, t.size)
+    fit = fit_lag([FlowPathData("r", t, q_valve, q, np.zeros_like(t))])
+    lo, hi = fit["tau_ci95"]
+    assert math.isnan(lo) and math.isnan(hi)
+    assert math.isfinite(fit["tau_s"]) and math.isfinite(fit["rmse_mm3_s"])

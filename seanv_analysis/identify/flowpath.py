@@ -109,6 +109,12 @@ def _residual(data, tau, dead, scale):
     return np.concatenate([(_simulate(d, tau, dead) - d.q) / scale for d in data])
 
 
+#: a half-width of log(tau) above this (a factor e^20 either way) says the data
+#: cannot tell the lag's time constant: no interval, rather than one of
+#: (0, inf) or an overflow
+_MAX_LOG_HALF_WIDTH = 20.0
+
+
 def fit_lag(data: Sequence[FlowPathData], *, start=(0.15, 0.0)) -> dict[str, Any]:
     """(tau [s], d [s]) of the first-order lag with dead time; 95 % intervals."""
     q_all = np.concatenate([d.q for d in data])
@@ -134,8 +140,10 @@ def fit_lag(data: Sequence[FlowPathData], *, start=(0.15, 0.0)) -> dict[str, Any
     try:
         cov = np.linalg.inv(best.jac.T @ best.jac) * s2 * (r.size / n_eff)
         h0, h1 = 1.96 * math.sqrt(max(cov[0, 0], 0)), 1.96 * math.sqrt(max(cov[1, 1], 0))
-        ci_tau = (tau * math.exp(-h0), tau * math.exp(h0))
-        ci_dead = (max(dead - h1, 0.0), dead + h1)
+        if h0 < _MAX_LOG_HALF_WIDTH:   # else the data cannot tell tau: no interval
+            ci_tau = (tau * math.exp(-h0), tau * math.exp(h0))
+        if math.isfinite(h1):
+            ci_dead = (max(dead - h1, 0.0), dead + h1)
     except np.linalg.LinAlgError:
         pass
     rmse = float(np.sqrt(np.mean(_residual(data, tau, dead, 1.0) ** 2)))

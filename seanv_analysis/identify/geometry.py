@@ -60,6 +60,16 @@ def _with(side: ValveSide, z0, c, y_c) -> ValveSide:
     return replace(side, z0_mm=float(z0), c_flow=float(c), geometry=geom)
 
 
+def _valid(side: ValveSide, y_c) -> bool:
+    """Eq. (4) with this y_c is monotonic over the model's cam range (it can
+    be inverted: a geometry the valve model can use)."""
+    try:
+        z, _ = _with(side, side.z0_mm, side.c_flow, y_c).geometry.height_table
+    except ValueError:
+        return False
+    return z.size > 0
+
+
 def _predict(side: ValveSide, x, theta, p1, dp):
     try:
         return _with(side, *x).flow(theta, p1, dp)
@@ -128,10 +138,15 @@ def fit_geometry(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_mm3_
 
     def rmse(xx):
         r = hq - _predict(side, xx, th, hp1, hdp)
-        return float(np.sqrt(np.nanmean(r ** 2))) if r.size else math.nan
+        return float(np.sqrt(np.nanmean(r ** 2))) if np.isfinite(r).any() else math.nan
 
     note, ok = "", True
-    if levels.size < 2:
+    if not _valid(side, x[2]):
+        # the fit ended where eq. (4) cannot be inverted (every residual at
+        # its sentinel, a flat cost): no centre of a valve
+        ok, note = False, (f"the fit ended at y_c = {x[2]:.1f} mm, where eq. (4) is not "
+                           "monotonic over the cam range")
+    elif levels.size < 2:
         ok, note = False, (f"{levels.size} load level(s): the threshold's dependence on the "
                            "pressures needs >= 2")
     elif not all(math.isfinite(v) for v in ci) or (ci[1] - ci[0]) / 2 > 0.5 * abs(x[2]):
@@ -184,7 +199,7 @@ def geometry_constants(per_run, model, rig) -> tuple[list[Constant], dict[str, A
                                g.y_c_ci95 if g.identified else (math.nan, math.nan), note=g.note))
         thr_default = threshold_span(side, rows["p1_mpa"], rows["dp_mpa"])
         thr_new = threshold_span(_with(side, g.z0_mm, g.c_flow, g.y_c_mm), rows["p1_mpa"],
-                                 rows["dp_mpa"])
+                                 rows["dp_mpa"]) if _valid(side, g.y_c_mm) else thr_default
         part = "heldout" if n_held else "train"
         fits[name] = {"metric": "flow-step RMSE [mm^3/s], y_c of the rig file vs identified "
                                 "(z0, C refitted for each)",
