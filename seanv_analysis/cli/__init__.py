@@ -3,7 +3,9 @@
 Each subcommand lives in its own module (``*_cmd.py``) and only parses
 options, calls library functions and formats their results. Library errors
 (:class:`~seanv_analysis.errors.SeanvError`) become one line on stderr and
-exit code 2, with no traceback. A command may return an int exit code
+exit code 2, with no traceback; any other exception (a bug) one line naming
+the command, the stage and the data, exit code 3, its traceback only with
+``-v``. A command may return an int exit code
 (e.g. 1 when a batch had bad runs). Ctrl-C exits 130 and SIGTERM 143 (queued
 per-run work cancelled, worker processes killed; what was done is cached).
 """
@@ -31,6 +33,10 @@ def _on_sigterm(signum, frame):  # pragma: no cover - exercised through a subpro
 class _SeanvGroup(click.Group):
     """Group that turns SeanvError into 'error: ...' + exit 2, Ctrl-C into
     exit 130, SIGTERM into exit 143, and int returns into exit codes."""
+
+    def parse_args(self, ctx: click.Context, args: list[str]) -> list[str]:
+        ctx.meta["seanv.args"] = list(args)   # the command line, for an internal error's line
+        return super().parse_args(ctx, args)
 
     def invoke(self, ctx: click.Context):
         try:
@@ -60,9 +66,46 @@ class _SeanvGroup(click.Group):
             # line like the data errors, not click's usage block
             click.echo(f"error: {' '.join(exc.format_message().split())}", err=True)
             ctx.exit(2)
+        except (click.exceptions.Exit, click.ClickException, click.Abort):
+            raise
+        except Exception as exc:   # a bug: one line, exit 3; the traceback with -v
+            click.echo(internal_error_line(exc, ctx), err=True)
+            if _verbose():
+                import traceback
+
+                traceback.print_exception(exc, file=sys.stderr)
+            ctx.exit(3)
         if isinstance(rv, int) and rv:
             ctx.exit(rv)
         return rv
+
+
+def internal_error_line(exc: BaseException, ctx: click.Context) -> str:
+    """One line for an exception that is not the package's own: the command,
+    its arguments, the stage it happened in (the innermost frame under
+    ``seanv_analysis/stages/``) and where, and what to do."""
+    import traceback
+    from pathlib import Path
+
+    frames = traceback.extract_tb(exc.__traceback__)
+    stage = next((Path(f.filename).stem for f in reversed(frames)
+                  if Path(f.filename).parent.name == "stages"), None)
+    where = f" at {Path(frames[-1].filename).name}:{frames[-1].lineno}" if frames else ""
+    import shlex
+
+    args = shlex.join(ctx.meta.get("seanv.args", []))
+    message = " ".join(str(exc).split()) or "(no message)"
+    return (f"internal error in 'seanv-analyze {args}'"
+            + (f", stage {stage}" if stage else "")
+            + f": {type(exc).__name__}: {message}{where}. This is a bug of seanv-analysis, "
+            "not of your data: run again with -v for the traceback and report it")
+
+
+def _verbose() -> bool:
+    """-v was given: the package's logger shows details."""
+    import logging
+
+    return logging.getLogger("seanv_analysis").isEnabledFor(logging.DEBUG)
 
 
 def _print_version(ctx: click.Context, _param, value: bool) -> None:
@@ -97,6 +140,11 @@ def cli() -> None:
       seanv-analyze run paper data                             # all of it + report.html
     Without DATA, flowfit/tracking/validate/discover use a built-in simulated set.
     Every command writes under outputs/<dataset>/ and prints JSON with --json.
+
+    \b
+    Exit codes: 0 done; 1 some runs or stages failed (listed, the rest done);
+    2 bad input, one line naming the file; 3 a bug of the package, one line
+    (-v for the traceback); 130 Ctrl-C; 143 SIGTERM.
     """
 
 
