@@ -332,3 +332,29 @@ def dask_cluster():
                                        dashboard_address=None)
     yield cluster
     cluster.close()
+
+
+@pytest.fixture(scope="session")
+def hostile_data(tmp_path_factory):
+    """tests/hostile: 8 synthetic flow steps (4 a side), made once per test run."""
+    with _shared_once(tmp_path_factory, "hostile-data") as (folder, done):
+        if not done:
+            write_synthetic_dataset(folder / "data", n_flow=8)
+    return folder / "data"
+
+
+@pytest.fixture(scope="session")
+def flowfit_out(hostile_data, tmp_path_factory):
+    """tests/hostile: the output folder of `run flowfit` on :func:`hostile_data`
+    (ingest, flow fit, Fig. 4 as PNG and SVG, report, the memo), made once per
+    test run and never changed: a test that plants files copies it first."""
+    from click.testing import CliRunner
+
+    from seanv_analysis.cli import cli
+
+    with _shared_once(tmp_path_factory, "hostile-flowfit") as (folder, done):
+        if not done:
+            res = CliRunner().invoke(cli, ["run", "flowfit", str(hostile_data), "--out",
+                                           str(folder / "out"), "-q", "--workers", "1"])
+            assert res.exit_code == 0, res.output
+    return folder / "out"

@@ -43,6 +43,7 @@ from typing import Any, Mapping
 from .. import __version__
 from ..io.atomic import atomic_path, write_json_atomic
 from ..io.hashing import code_version, file_sha256
+from ..io.readback import read_back
 from .codec import CodecError, decode, encode
 
 __all__ = ["RunCache", "run_key", "code_version", "folder_listing", "CACHE_DIRNAME"]
@@ -126,6 +127,8 @@ class RunCache:
         self.enabled = enabled
         self.entries = self.root / "runs"
         self.entries.mkdir(parents=True, exist_ok=True)
+        #: one line per entry found malformed (removed, recomputed)
+        self.rejected: list[str] = []
         self.removed_partial = self.clean_partial()
         self._lock = threading.Lock()
         self._index: dict[str, Any] = self._load_index()
@@ -203,33 +206,48 @@ class RunCache:
         """The stored result for ``key``, or None (missing, unreadable or disabled)."""
         if not self.enabled:
             return None
-        return read_entry(self.entries, key)
+        return read_entry(self.entries, key, rejected=self.rejected)
+
+    def reject(self, key: str, why: str) -> None:
+        """Remove the entry ``key`` (read, but not what its stage stores) and say why."""
+        self.rejected.append(f"{key}.json: {why}")
+        try:
+            (self.entries / f"{key}.json").unlink()
+        except OSError:
+            pass
 
     def put(self, key: str, value: Any) -> None:
         write_entry(self.entries, key, value)
 
 
 _ENTRY_SCHEMA = b"seanv-cache-entry/2"
+#: the largest entry read back (a long run's validation overlay is a few hundred MB)
+MAX_ENTRY_BYTES = 2 << 30
 
 
-def read_entry(entries: str | Path, key: str) -> Any | None:
+def read_entry(entries: str | Path, key: str, *, rejected: list[str] | None = None) -> Any | None:
     """Load one entry; None when missing, damaged (its SHA-256 does not match
-    its payload) or not a plain-data entry (:mod:`.codec`): such a file is
-    removed and the result recomputed. Nothing in the file can run code."""
+    its payload), not a plain-data entry (:mod:`.codec`) or not a regular
+    file of the folder (a link, a FIFO, larger than :data:`MAX_ENTRY_BYTES`):
+    such a file is removed, one line saying why is appended to ``rejected``,
+    and the result recomputed. Nothing in the file can run code."""
     path = Path(entries) / f"{key}.json"
-    try:
-        data = path.read_bytes()
-    except OSError:
+    if not os.path.lexists(path):
         return None
-    head, _, payload = data.partition(b"\n")
-    try:
-        schema, digest = head.split(b" ")
-        if schema != _ENTRY_SCHEMA or not hmac.compare_digest(
-                digest, hashlib.sha256(payload).hexdigest().encode()):
-            raise CodecError("damaged entry")
-        return decode(json.loads(payload))
-    except (ValueError, RecursionError):   # CodecError, JSON, a bad split: a miss
-        pass
+    data = read_back(path, root=entries, max_bytes=MAX_ENTRY_BYTES)
+    why = "not a regular file of the cache, or too large"
+    if data is not None:
+        head, _, payload = data.partition(b"\n")
+        try:
+            schema, digest = head.split(b" ")
+            if schema != _ENTRY_SCHEMA or not hmac.compare_digest(
+                    digest, hashlib.sha256(payload).hexdigest().encode()):
+                raise CodecError("damaged entry (its SHA-256 does not match)")
+            return decode(json.loads(payload))
+        except (ValueError, RecursionError) as exc:   # CodecError, JSON, a bad split: a miss
+            why = str(exc) if isinstance(exc, CodecError) else f"not an entry ({type(exc).__name__})"
+    if rejected is not None:
+        rejected.append(f"{path.name}: {why}")
     try:
         path.unlink()
     except OSError:

@@ -99,7 +99,19 @@ def _encode_index(index: pd.Index) -> dict[str, Any]:
 
 
 def decode(doc: Any) -> Any:
-    """The value :func:`encode` stored; :class:`CodecError` for anything else."""
+    """The value :func:`encode` stored; :class:`CodecError` for anything else
+    (a missing field, a wrong type, an array whose size does not match its
+    shape, nesting too deep: whatever the file holds, never another error)."""
+    try:
+        return _decode(doc)
+    except CodecError:
+        raise
+    except (KeyError, IndexError, TypeError, ValueError, AttributeError, OverflowError,
+            RecursionError, MemoryError) as exc:
+        raise CodecError(f"malformed entry ({type(exc).__name__}: {exc})") from None
+
+
+def _decode(doc: Any) -> Any:
     if doc is None or isinstance(doc, (bool, str, int, float)):
         return doc
     if not isinstance(doc, dict) or "t" not in doc:
@@ -108,18 +120,18 @@ def decode(doc: Any) -> Any:
     if tag == "float":
         return float(doc["v"])
     if tag == "dict":
-        return {k: decode(v) for k, v in _mapping(doc["v"]).items()}
+        return {k: _decode(v) for k, v in _mapping(doc["v"]).items()}
     if tag == "kvdict":
-        return {_hashable(decode(k)): decode(v) for k, v in doc["v"]}
+        return {_hashable(_decode(k)): _decode(v) for k, v in doc["v"]}
     if tag in ("list", "tuple"):
-        items = [decode(v) for v in _sequence(doc["v"])]
+        items = [_decode(v) for v in _sequence(doc["v"])]
         return items if tag == "list" else tuple(items)
     if tag == "ndarray":
         return _decode_array(doc)
     if tag == "objarray":
-        return np.array([decode(v) for v in doc["v"]], dtype=object).reshape(doc["shape"])
+        return np.array([_decode(v) for v in doc["v"]], dtype=object).reshape(doc["shape"])
     if tag == "frame":
-        cols = [_hashable(decode(c)) for c in _sequence(doc["columns"])]
+        cols = [_hashable(_decode(c)) for c in _sequence(doc["columns"])]
         data = [_decode_column(d) for d in _sequence(doc["data"])]
         if len(cols) != len(data):
             raise CodecError("frame: columns and data differ in length")
@@ -129,7 +141,7 @@ def decode(doc: Any) -> Any:
         return frame
     if tag == "series":
         return pd.Series(_decode_column(doc["data"]), index=_decode_index(doc["index"]),
-                         name=_hashable(decode(doc["name"])))
+                         name=_hashable(_decode(doc["name"])))
     if tag == "timestamp":
         return pd.Timestamp(str(doc["v"]))
     if tag == "path":
@@ -139,7 +151,7 @@ def decode(doc: Any) -> Any:
         if cls is None:
             raise CodecError(f"dataclass {doc.get('name')!r} is not on the allow-list")
         fields = {f.name for f in dataclasses.fields(cls)}
-        values = {k: decode(v) for k, v in _mapping(doc["v"]).items()}
+        values = {k: _decode(v) for k, v in _mapping(doc["v"]).items()}
         if set(values) != fields:
             raise CodecError(f"{cls.__name__}: fields {sorted(values)} != {sorted(fields)}")
         return cls(**values)
@@ -163,7 +175,7 @@ def _decode_column(doc: dict):
     if doc.get("t") == "ndarray":
         return _decode_array(doc)
     if doc.get("t") == "values":
-        values = [decode(v) for v in _sequence(doc["v"])]
+        values = [_decode(v) for v in _sequence(doc["v"])]
         dtype = str(doc.get("dtype", "object"))
         try:
             return pd.array(values, dtype=dtype if dtype in ("string", "str", "object",

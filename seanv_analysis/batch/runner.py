@@ -247,14 +247,18 @@ class CachedMapper:
         for d in run_dirs:
             hashes = None if self.force or self.cache is None else self.cache.known_hashes(d)
             if hashes is not None:
-                hit = self.cache.get(run_key(hashes, stage=stage, params=dict(params), rig=rig_dict))
+                key = run_key(hashes, stage=stage, params=dict(params), rig=rig_dict)
+                hit = self.cache.get(key)
                 if hit is not None and (valid is None or valid(hit)):
                     done[str(d)] = RunOutcome(str(d), True, hit, hashes=hashes, computed=False)
                     continue
+                if hit is not None:
+                    self.cache.reject(key, f"not what stage '{stage}' stores")
             todo.append(str(d))
 
         def on_result(res: TaskResult) -> None:
             if res.ok and self.cache is not None:
+                self.cache.rejected += res.value.get("rejected", [])
                 self.cache.remember(res.item, res.value["hashes"], res.value["stats"])
                 self.cache.save_index()
 
@@ -370,6 +374,11 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
                 _run_stages(pipe, ctx, result, say)
             result.computed, result.cached = mapper.computed, mapper.cached
             cache.save_index(force=True)
+            if cache.rejected:
+                n = len(cache.rejected)
+                result.stage_notes["cache"] = (
+                    f"{n} malformed cache {'entry' if n == 1 else 'entries'} removed and "
+                    f"recomputed (first: {cache.rejected[0]})")
         result.warnings += [f"{w.category.__name__}: {w.message}" for w in caught
                             if not issubclass(w.category, (DeprecationWarning, ResourceWarning))]
     result.model = ctx.model
@@ -397,6 +406,9 @@ def _run_stage(ctx: Context, name: str, options: Mapping[str, Any], result: Pipe
     if name == "report":
         _write_manifest(result, ctx)
     if name != "ingest" and ctx.result("ingest") is None:
+        if "ingest" in result.stage_errors:   # listed, and failed: said once, not blamed on the file
+            result.stage_notes[name] = "skipped: stage ingest failed"
+            return
         raise ConfigError(f"pipeline {result.pipeline.source or result.pipeline.name}: stage "
                           f"'{name}' needs the per-run summary; add an 'ingest' stage first")
     try:

@@ -38,7 +38,8 @@ def cached_run_task(run_dir: str, *, func: Callable[..., Any], func_kwargs: Mapp
     when an entry for the same files, stage, parameters and rig exists
     (``entries`` None: no cache).
 
-    Returns {'value', 'hashes', 'stats', 'computed': bool}.
+    Returns {'value', 'hashes', 'stats', 'computed': bool} and, when computed,
+    'rejected': one line per cache entry found malformed (removed).
     """
     from ..io.reader import read_run
 
@@ -48,9 +49,13 @@ def cached_run_task(run_dir: str, *, func: Callable[..., Any], func_kwargs: Mapp
         return {"value": func(run, **func_kwargs), "hashes": hashes, "stats": stats,
                 "computed": True}
     key = run_key(hashes, stage=stage, params=dict(params), rig=rig.to_dict())
-    hit = read_entry(entries, key) if use_cache else None
-    if hit is not None and (valid is None or valid(hit)):
-        return {"value": hit, "hashes": hashes, "stats": stats, "computed": False}
+    rejected: list[str] = []
+    hit = read_entry(entries, key, rejected=rejected) if use_cache else None
+    if hit is not None:
+        if valid is None or valid(hit):
+            return {"value": hit, "hashes": hashes, "stats": stats, "computed": False}
+        rejected.append(f"{key}.json: not what stage '{stage}' stores")
     value = func(run, **func_kwargs)
     write_entry(entries, key, value)
-    return {"value": value, "hashes": hashes, "stats": stats, "computed": True}
+    return {"value": value, "hashes": hashes, "stats": stats, "computed": True,
+            "rejected": rejected}

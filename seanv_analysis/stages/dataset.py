@@ -158,6 +158,21 @@ def summarize(run, *, method: str) -> dict[str, Any]:
                      "controller": dict(meta.controller or {})}}
 
 
+def is_summary_entry(value: Any) -> bool:
+    """A cached result of :func:`summarize` has its shape: the summary row
+    with every column :func:`summarize_run` gives, typed, and the run's
+    metadata (a malformed cache entry is recomputed, never used)."""
+    from ..io.readback import conforms
+    from ..io.run import SUMMARY_COLUMNS
+
+    types = {"str": str, "bool": bool, "float64": (float, int),
+             "datetime64[ns, UTC]": pd.Timestamp}
+    row = {col: types[dtype] for col, dtype in SUMMARY_COLUMNS.items()
+           if col not in ("run_index", "excluded", "excluded_detail")}
+    return conforms(value, {"row": row, "meta": {"path": str, "run_id": str, "kind": str,
+                                                 "controller": (dict, type(None))}})
+
+
 def summarize_derived(run, *, method: str) -> dict[str, Any]:
     """:func:`summarize` of a run whose samples are derived first, position-control
     runs too (their summary does not need it), so a run whose streams cannot
@@ -208,7 +223,8 @@ def collect(ctx: Context, options: Mapping[str, Any], *, func=None) -> DatasetRe
     method = options.get("method", OPTIONS["method"])
     ctx.log(f"ingest: reading, checking and summarising {len(ctx.run_dirs)} run folder(s)")
     res = ctx.map_runs("ingest", func or summarize, ctx.run_dirs, rig=ctx.rig,
-                       params={"method": method}, kwargs={"method": method})
+                       params={"method": method}, kwargs={"method": method},
+                       valid=is_summary_entry)
     failed: list[FailedRun] = []
     hashes: dict[str, str] = {}
     rows = []

@@ -90,6 +90,35 @@ def validate_one(run, *, rig, model: Mapping[str, Any], effects: Sequence[str], 
         return {"skipped": one_line(exc), "run_id": run.run_id}
 
 
+#: the metrics of a run's validation row (:func:`~seanv_analysis.analysis.validate.validate_run`)
+_ROW_NUMBERS = ("kp_mm3_s_per_mm", "kp_deg_per_mm", "fit_position_pct", "rmse_position_mm",
+                "fit_flow_pct", "rmse_flow_mm3_s", "fit_cam_pct", "rmse_cam_deg",
+                "fit_position_segments_pct", "rmse_position_segments_mm", "fit_flow_segments_pct",
+                "rmse_flow_segments_mm3_s", "n_segments", "steps", "converged_measured_frac",
+                "converged_simulated_frac", "convergence_time_measured_s",
+                "convergence_time_simulated_s", "overshoot_measured_mm", "overshoot_simulated_mm",
+                "settling_measured_s", "settling_simulated_s")
+
+
+def is_validation_entry(value: Any) -> bool:
+    """A cached result of :func:`validate_one` has its shape (a malformed
+    cache entry is recomputed, never used)."""
+    import pandas as pd
+
+    from ..analysis.validate import RunValidation
+    from ..io.readback import conforms
+
+    if conforms(value, {"skipped": str, "run_id": str}):
+        return True
+    row = {"run_id": str, "controller": ("flow_model", "cam").__contains__, "flagged": bool,
+           **{k: (float, int) for k in _ROW_NUMBERS}}
+    return conforms(value, {"validation": lambda v: (
+        isinstance(v, RunValidation) and isinstance(v.run_id, str) and conforms(v.row, row)
+        and all(isinstance(f, pd.DataFrame)
+                for f in (v.steps_measured, v.steps_simulated, v.overlay))),
+        "notes": [str]})
+
+
 def position_paths(ctx: Context) -> list[Path]:
     ds = ctx.result("ingest")
     if ds is None:
@@ -133,7 +162,8 @@ def validate_model(ctx: Context, model, effects: Sequence[str] = (), *, seed: in
                        kwargs={"rig": plant, "model": model.to_dict(),
                                "effects": tuple(effects),
                                "seed": seed, "threshold_pct": opts["threshold_pct"],
-                               "controller_model": opts["controller_model"]})
+                               "controller_model": opts["controller_model"]},
+                       valid=is_validation_entry)
     results, skipped, notes, failed = [], {}, [], []
     for p in paths:
         r = res[str(p)]
