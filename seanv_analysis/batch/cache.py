@@ -43,13 +43,44 @@ from typing import Any, Mapping
 from .. import __version__
 from ..io.atomic import atomic_path, write_json_atomic
 from ..io.hashing import code_version, file_sha256
-from ..io.readback import read_back
+from ..io.readback import load_json_back, read_back
 from .codec import CodecError, decode, encode
 
 __all__ = ["RunCache", "run_key", "code_version", "folder_listing", "CACHE_DIRNAME"]
 
 CACHE_DIRNAME = ".cache"
 _INDEX_SCHEMA = "seanv-batch-index/1"
+
+
+#: one run folder's record in ``index.json``: its file names and, per file
+#: read, [size, mtime_ns, SHA-256]
+_RUN_RECORD = {"listing": [str], "files": {str: lambda v: (
+    isinstance(v, list) and len(v) == 3 and all(type(n) is int for n in v[:2])
+    and isinstance(v[2], str))}}
+
+
+def _own_folder(folder: Path) -> None:
+    """Make ``folder`` (a folder of the cache) or check the one there: a
+    link or anything but a folder is refused, never followed.
+
+    Raises
+    ------
+    OutputError
+        naming the path.
+    """
+    import stat
+
+    from ..errors import OutputError
+
+    try:
+        mode = os.lstat(folder).st_mode
+    except FileNotFoundError:
+        folder.mkdir(parents=True, exist_ok=True)
+        mode = os.lstat(folder).st_mode
+    if not stat.S_ISDIR(mode):
+        what = "a link" if stat.S_ISLNK(mode) else "not a folder"
+        raise OutputError(f"{folder}: {what}; expected the per-run cache folder this package "
+                          "makes (links are not followed): remove it or choose another --out")
 
 
 def _canonical(obj: Any) -> str:
@@ -126,7 +157,8 @@ class RunCache:
         self.root = Path(root)
         self.enabled = enabled
         self.entries = self.root / "runs"
-        self.entries.mkdir(parents=True, exist_ok=True)
+        for folder in (self.root, self.entries):
+            _own_folder(folder)
         #: one line per entry found malformed (removed, recomputed)
         self.rejected: list[str] = []
         self.removed_partial = self.clean_partial()
@@ -154,14 +186,9 @@ class RunCache:
         return n
 
     def _load_index(self) -> dict[str, Any]:
-        path = self.root / "index.json"
-        try:
-            doc = json.loads(path.read_text())
-            if doc.get("schema") == _INDEX_SCHEMA and isinstance(doc.get("runs"), dict):
-                return doc["runs"]
-        except (OSError, ValueError, AttributeError):
-            pass
-        return {}
+        doc = load_json_back(self.root / "index.json", root=self.root,
+                             shape={"schema": _INDEX_SCHEMA.__eq__, "runs": {str: _RUN_RECORD}})
+        return {} if doc is None else doc["runs"]
 
     def save_index(self, *, force: bool = False, every_s: float = 2.0) -> None:
         """Write ``index.json`` atomically (at most every ``every_s`` unless ``force``)."""
@@ -184,8 +211,8 @@ class RunCache:
         if not rec:
             return None
         listing = folder_listing(run_dir)
-        if sorted(listing) != rec.get("listing"):
-            return None
+        if sorted(listing) != rec["listing"] or not set(rec["files"]) <= set(listing):
+            return None   # only the folder's own regular files are ever hashed
         try:
             return {name: file_sha256(Path(run_dir) / name) for name in rec["files"]}
         except OSError:

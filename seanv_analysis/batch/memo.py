@@ -74,8 +74,11 @@ def record_run(out_dir: Path, key: str, outputs: Iterable[Path]) -> None:
 
 
 def forget_run(out_dir: Path) -> None:
-    """Drop the memo (a run is about to rewrite the outputs it describes)."""
-    (Path(out_dir) / ".cache" / MEMO_NAME).unlink(missing_ok=True)
+    """Drop the memo (a run is about to rewrite the outputs it describes);
+    a ``.cache`` that is a link is not followed."""
+    cache = Path(out_dir) / ".cache"
+    if cache.is_dir() and not cache.is_symlink():
+        (cache / MEMO_NAME).unlink(missing_ok=True)
 
 
 def recorded_run(out_dir: Path, key: str) -> dict | None:

@@ -10,10 +10,12 @@ from __future__ import annotations
 import dataclasses
 import datetime
 import enum
+import errno
 import functools
 import hashlib
 import math
 import os
+import stat
 import threading
 from pathlib import Path, PurePath
 from typing import Any
@@ -58,15 +60,27 @@ def remember_sha256(path: str | Path, digest: str, *, stat: os.stat_result | Non
 def file_sha256(path: str | Path) -> str:
     """Hex SHA-256 of a file's content; reuses a digest already computed in
     this process while the file's size, modification and change times and
-    inode are unchanged."""
+    inode are unchanged.
+
+    Raises
+    ------
+    OSError
+        the file cannot be read, or is not a regular file (a FIFO or a
+        device is never read: it could block or never end)."""
     path = Path(path)
-    key = _key(path)
+    st = os.stat(path)
+    if not stat.S_ISREG(st.st_mode):   # a FIFO, a device (/dev/zero): never read
+        raise OSError(errno.EINVAL, "not a regular file", str(path))
+    key = _key(path, st)
     with _LOCK:
         hit = _CACHE.get(key)
     if hit is not None:
         return hit
     h = hashlib.sha256()
-    with open(path, "rb") as fh:
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    with open(fd, "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):   # replaced since the stat
+            raise OSError(errno.EINVAL, "not a regular file", str(path))
         while chunk := fh.read(_CHUNK):
             h.update(chunk)
     digest = h.hexdigest()
