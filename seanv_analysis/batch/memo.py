@@ -21,6 +21,7 @@ from typing import Any, Iterable
 
 from ..io.atomic import write_json_atomic
 from ..io.hashing import file_sha256
+from ..io.readback import load_json_back, regular_file_inside
 from .cache import code_version, folder_listing
 
 __all__ = ["pipeline_key", "recorded_run", "record_run", "forget_run", "MEMO_NAME"]
@@ -81,16 +82,51 @@ def forget_run(out_dir: Path) -> None:
         (cache / MEMO_NAME).unlink(missing_ok=True)
 
 
+def _is_failed_run(f: Any) -> bool:
+    return (isinstance(f, dict) and set(f) == {"path", "stage", "message"}
+            and all(isinstance(v, str) for v in f.values()))
+
+
+def _is_stat(st: Any) -> bool:
+    return isinstance(st, list) and len(st) == 2 and all(type(n) is int for n in st)
+
+
+#: what :func:`recorded_run` needs of the memo and of ``result.json``
+#: (:meth:`~seanv_analysis.batch.runner.PipelineResult.from_recorded` reads these)
+_MEMO_SHAPE = {"schema": _SCHEMA.__eq__, "key": str, "outputs": {str: _is_stat}}
+_RESULT_SHAPE = {"schema": "seanv-pipeline-result/2".__eq__, "runs_found": int, "runs_read": int,
+                 "failed": [_is_failed_run], "excluded": {str: int}, "figures": {str: [str]},
+                 "stage_errors": {str: str}, "stage_notes": {str: str}, "outputs": [str],
+                 "report": (str, type(None))}
+
+
 def recorded_run(out_dir: Path, key: str) -> dict | None:
     """The last run's ``result.json`` document when it had ``key`` and every
-    output it wrote is unchanged; else None."""
+    output it wrote is unchanged; else None.
+
+    Both files are read as untrusted input (:mod:`seanv_analysis.io.readback`):
+    a memo or a ``result.json`` that is malformed, a link, not a regular
+    file, or that names a file outside ``out_dir`` (or one the memo did not
+    record) is a miss, and the pipeline runs."""
     out_dir = Path(out_dir)
-    try:
-        memo = json.loads((out_dir / ".cache" / MEMO_NAME).read_text())
-        if memo.get("schema") != _SCHEMA or memo.get("key") != key:
-            return None
-        if any(_stat(Path(p)) != st for p, st in memo["outputs"].items()):
-            return None
-        return json.loads((out_dir / "result.json").read_text())
-    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+    memo = load_json_back(out_dir / ".cache" / MEMO_NAME, root=out_dir, shape=_MEMO_SHAPE)
+    if memo is None or memo["key"] != key:
         return None
+    outputs = memo["outputs"]
+    for p, st in outputs.items():
+        if not regular_file_inside(p, out_dir) or _stat(Path(p)) != st:
+            return None
+    result = out_dir / "result.json"
+    if str(result.resolve()) not in outputs:
+        return None
+    doc = load_json_back(result, root=out_dir, shape=_RESULT_SHAPE)
+    if doc is None:
+        return None
+    named = [*doc["outputs"], *(p for ps in doc["figures"].values() for p in ps),
+             *([doc["report"]] if doc["report"] else [])]
+    try:
+        if any(str(Path(p).resolve()) not in outputs for p in named):
+            return None
+    except (OSError, RuntimeError, ValueError):
+        return None
+    return doc

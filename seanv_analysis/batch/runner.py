@@ -114,9 +114,10 @@ class PipelineResult(JsonResult):
 
     @classmethod
     def from_recorded(cls, pipe: Pipeline, ctx: Context, out: Path, doc: dict,
-                      command: list[str]) -> "PipelineResult":
+                      command: list[str]) -> "PipelineResult | None":
         """The result of a run that reused the last one (:mod:`.memo`): its
-        numbers and paths from ``result.json``, no stage result objects."""
+        numbers and paths from ``result.json``, no stage result objects;
+        None when its ``summary.parquet`` cannot be read (the run then runs)."""
         r = cls(pipe, ctx.data, out, rig=ctx.rig, command=command, recorded=doc)
         r.executor = "none: nothing changed since the last run"
         r.runs_found, r.runs_read = int(doc["runs_found"]), int(doc["runs_read"])
@@ -129,8 +130,16 @@ class PipelineResult(JsonResult):
                          **doc.get("stage_notes", {})}
         r.outputs = [Path(p) for p in doc.get("outputs", [])]
         r.report_path = Path(doc["report"]) if doc.get("report") else None
-        if (out / "summary.parquet").is_file():
-            r.summary = pd.read_parquet(out / "summary.parquet")
+        summary = out / "summary.parquet"
+        if summary.is_file():
+            from ..io.readback import regular_file_inside
+
+            try:
+                if not regular_file_inside(summary, out):
+                    raise ValueError(f"{summary}: not a regular file")
+                r.summary = pd.read_parquet(summary)
+            except Exception:  # unreadable: the run is not reused, it runs
+                return None
         return r
 
     @property
@@ -354,9 +363,11 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     if reuse:
         key = pipeline_key(pipe.to_dict(), ctx.rig.to_dict(), ctx.data, ctx.run_dirs)
         doc = None if force else recorded_run(out, key)
-        if doc is not None:
+        reused = None if doc is None else PipelineResult.from_recorded(pipe, ctx, out, doc,
+                                                                       result.command)
+        if reused is not None:
             say(f"[{pipe.name}] nothing changed since the last run: reusing {out / 'result.json'}")
-            return PipelineResult.from_recorded(pipe, ctx, out, doc, result.command)
+            return reused
     forget_run(out)  # this run replaces the outputs the memo describes
     cache = RunCache(out / CACHE_DIRNAME)
     removed = cache.removed_partial + remove_stale_temps(out, set(STAGE_FOLDERS.values()))
