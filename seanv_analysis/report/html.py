@@ -203,31 +203,52 @@ def _table(df: pd.DataFrame, *, left: Iterable[str] = (), wrap: Iterable[str] = 
     return f"<table><tr>{head}</tr>{''.join(rows)}</table>{more}"
 
 
-def _figure(path: Path, caption: str = "") -> str:
-    """A figure embedded in the page: PNG as base64, SVG inline."""
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: what an SVG of matplotlib never holds and an embedded one must not:
+#: scripts, event handlers, foreign HTML, links other than to itself or data images
+_SVG_ACTIVE = re.compile(r"<\s*(script|foreignobject|iframe|object|embed)\b|javascript:"
+                         r"|\son[a-z]+\s*=|href\s*=\s*[\"'](?!#|data:image/)", re.IGNORECASE)
+
+
+def _figure_bytes(path: Path, root: Path | None) -> bytes | None:
+    """The bytes of a figure file to embed: a regular file (not a link)
+    inside the output folder ``root`` (when given); else None."""
+    from ..io.readback import read_back
+
+    return read_back(path, root=root if root is not None else path.parent,
+                     max_bytes=64 << 20)
+
+
+def _figure(path: Path, caption: str = "", root: Path | None = None) -> str:
+    """A figure embedded in the page: PNG as base64, SVG inline. Only the
+    output folder's own files are embedded (``root``: regular files, not
+    links, inside it): a PNG that is a PNG, an SVG without script, event
+    handlers or outside links."""
     path = Path(path)
     png = path.with_suffix(".png")
     cap = f"<figcaption>{_e(caption or path.stem)}</figcaption>"
-    if png.is_file():
-        data = base64.b64encode(png.read_bytes()).decode("ascii")
+    raw = _figure_bytes(png, root)
+    if raw is not None and raw.startswith(_PNG_SIGNATURE):
+        data = base64.b64encode(raw).decode("ascii")
         return (f"<figure><img alt='{_e(path.stem)}' src='data:image/png;base64,{data}'>"
                 f"{cap}</figure>")
-    svg = path.with_suffix(".svg")
-    if svg.is_file():
-        text = svg.read_text(encoding="utf-8", errors="replace")
+    raw = _figure_bytes(path.with_suffix(".svg"), root)
+    if raw is not None:
+        text = raw.decode("utf-8", errors="replace")
         start = text.find("<svg")
-        return f"<figure>{text[start:] if start >= 0 else text}{cap}</figure>"
+        if start >= 0 and not _SVG_ACTIVE.search(text):
+            return f"<figure>{text[start:]}{cap}</figure>"
     return ""
 
 
-def _figures(paths: Iterable[Path], caption: str = "") -> str:
+def _figures(paths: Iterable[Path], caption: str = "", root: Path | None = None) -> str:
     seen, out = set(), []
     for p in paths:
         stem = Path(p).with_suffix("")
         if stem in seen or Path(p).suffix not in (".png", ".svg"):
             continue
         seen.add(stem)
-        out.append(_figure(Path(p), caption or Path(p).stem))
+        out.append(_figure(Path(p), caption or Path(p).stem, root))
     return "".join(out)
 
 
@@ -242,22 +263,22 @@ def _drawn(r) -> list[tuple[Figure, list[Path]]]:
     return out
 
 
-def _figure_block(fig: Figure, paths: list[Path]) -> str:
+def _figure_block(fig: Figure, paths: list[Path], root: Path | None = None) -> str:
     """One registered figure: its title as heading and caption. A data-set
     figure's main file is ``<name>.<format>``; its other files (one per run,
     as Fig. 7 writes) are folded away. A per-run figure is a grid, each file
-    captioned with its name."""
+    captioned with its name. ``root``: the output folder (only its files are embedded)."""
     head = f"<h3 id='fig-{_e(fig.name)}'>{_e(fig.title)}</h3>"
     if fig.per_run:
-        return head + f"<div class='grid'>{_figures(paths)}</div>"
+        return head + f"<div class='grid'>{_figures(paths, root=root)}</div>"
     main = [p for p in paths if p.stem == fig.name]
     if not main:
-        return head + _figures(paths, fig.title)
+        return head + _figures(paths, fig.title, root)
     rest = [p for p in paths if p.stem != fig.name]
-    out = head + _figures(main, fig.title)
+    out = head + _figures(main, fig.title, root)
     if rest:
         out += (f"<details><summary>{_e(fig.title)}: one figure per run</summary>"
-                f"<div class='grid'>{_figures(rest)}</div></details>")
+                f"<div class='grid'>{_figures(rest, root=root)}</div></details>")
     return out
 
 
@@ -621,7 +642,9 @@ def _figures_section(r) -> str:
     if not drawn:
         why = r.stage_notes.get("figures") or r.stage_errors.get("figures") or "none drawn"
         return f"<p>No figure ({_e(why)}).</p>"
-    return "".join(_figure_block(fig, paths) for fig, paths in drawn)
+    root = getattr(r, "out_dir", None)
+    root = Path(root) if root is not None else None
+    return "".join(_figure_block(fig, paths, root) for fig, paths in drawn)
 
 
 def _closed_loop_before_after(validation: dict) -> str:

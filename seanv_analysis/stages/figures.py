@@ -16,6 +16,7 @@ files untouched reuses them (inputs that cannot be hashed are simply drawn).
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -82,10 +83,17 @@ def results_for_figures(ctx: Context) -> dict[str, Any]:
     return {k: v for k, v in out.items() if v is not None}
 
 
-def figure_files_exist(value: Mapping[str, Any]) -> bool:
-    """A cached per-run figure is still valid: every file it wrote exists
-    (module level, so the mapper can send it to worker processes)."""
-    return all(Path(p).is_file() for p in value["paths"])
+def figure_files_exist(value: Mapping[str, Any], folder: str | None = None) -> bool:
+    """A cached per-run figure is still valid: it names the files it wrote,
+    each a regular file (not a link) inside ``folder`` where given, and they
+    all exist (module level, so the mapper can send it to worker processes)."""
+    from ..io.readback import conforms, regular_file_inside
+
+    if not conforms(value, {"paths": [str], "run_id": str}):
+        return False
+    if folder is None:
+        return all(Path(p).is_file() for p in value["paths"])
+    return all(regular_file_inside(p, folder) for p in value["paths"])
 
 
 def selected_figures(figs: Any) -> list:
@@ -148,7 +156,7 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
                                params={"out_dir": str(out), "formats": list(formats)},
                                kwargs={"name": fig.name, "folder": str(out), "formats": formats,
                                        "rig": ctx.rig},
-                               valid=figure_files_exist)
+                               valid=partial(figure_files_exist, folder=str(out)))
             got: list[Path] = []
             for d in runs:
                 r = res[str(d)]
@@ -168,7 +176,7 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
             continue
         inputs = {n: have[n] for n in fig.needs}
         key = figure_key(fig.name, inputs, formats, getattr(ctx, "rig", None))
-        reused = keys.reuse(fig.name, key)
+        reused = keys.reuse(fig.name, key, formats)
         if reused is not None:
             paths[fig.name] = reused
             continue
@@ -203,30 +211,40 @@ def figure_key(name: str, inputs: Mapping[str, Any], formats: tuple[str, ...],
 
 
 class _FigureKeys:
-    """``<folder>/.figure-keys.json``: {figure: {key, files: {path: [size, mtime_ns]}}}."""
+    """``<folder>/.figure-keys.json``: {figure: {key, files: {path: [size, mtime_ns]}}}.
+
+    Read back as untrusted input (:mod:`seanv_analysis.io.readback`): a
+    malformed file counts as empty, and a figure is reused only when every
+    file it names is a regular file (not a link) directly in ``folder``, of
+    one of the formats asked for, unchanged; anything else is drawn again."""
 
     NAME = ".figure-keys.json"
 
     def __init__(self, folder: Path):
-        import json
+        from ..io.readback import load_json_back
 
-        self.path = Path(folder) / self.NAME
-        try:
-            self.doc = json.loads(self.path.read_text())
-        except (OSError, ValueError):
-            self.doc = {}
+        self.folder = Path(folder)
+        self.path = self.folder / self.NAME
+        self.doc = load_json_back(self.path, root=self.folder, shape={str: {
+            "key": str, "files": {str: lambda st: (isinstance(st, list) and len(st) == 2
+                                                    and all(type(n) is int for n in st))}}}) or {}
         self.changed = False
 
-    def reuse(self, name: str, key: str | None) -> tuple[Path, ...] | None:
+    def reuse(self, name: str, key: str | None, formats: tuple[str, ...] = ("png", "svg")
+              ) -> tuple[Path, ...] | None:
+        from ..io.readback import regular_file_inside
+
         rec = self.doc.get(name)
         if key is None or not isinstance(rec, dict) or rec.get("key") != key:
             return None
         files = rec.get("files") or {}
         for p, st in files.items():
-            try:
-                s = Path(p).stat()
-            except OSError:
-                return None
+            f = Path(p)
+            if (f.suffix[1:] not in formats or f.name.startswith(".")
+                    or not regular_file_inside(f, self.folder)
+                    or f.resolve().parent != self.folder.resolve()):
+                return None   # only this folder's own figure files are ever reused
+            s = f.lstat()
             if [s.st_size, s.st_mtime_ns] != st:
                 return None
         return tuple(Path(p) for p in files) or None
