@@ -16,7 +16,7 @@ from typing import Any, Mapping
 from .errors import ConfigError
 
 __all__ = ["RigConfig", "load_rig", "default_rig_path", "schema_dir", "load_contract",
-           "user_cache_dir", "BLAS_THREAD_VARIABLES", "default_one_blas_thread"]
+           "user_cache_dir", "private_folder", "BLAS_THREAD_VARIABLES", "default_one_blas_thread"]
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
@@ -58,6 +58,64 @@ def user_cache_dir() -> Path:
         return Path(env)
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
     return Path(base) / "seanv-analysis"
+
+
+def private_folder(path: str | Path) -> bool:
+    """Make ``path`` a folder only this user can enter (mode 0700), or check it.
+
+    Compiled code is loaded from such folders only (the simulator's module,
+    numba's cache): a folder another user can write to could hold code of
+    theirs. A missing folder is made (and its missing parents, 0700); one of
+    this user's with a looser mode is made 0700; a link is followed to its
+    target, which is checked.
+
+    Returns
+    -------
+    bool
+        True when the folder existed and others could write to it (made 0700
+        now): what it holds may have been put there by someone else and must
+        not be trusted (the caller empties it).
+
+    Raises
+    ------
+    ConfigError
+        the path is not a folder, is another user's, or cannot be made or
+        changed (the message names it, its owner and mode).
+    """
+    import stat
+
+    path = Path(path)
+    try:
+        existed = path.exists()
+        path.mkdir(mode=0o700, parents=True, exist_ok=True)
+        st = os.stat(path)
+    except FileExistsError:
+        raise ConfigError(f"{path}: not a folder; expected a folder for the compiled code") \
+            from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot make the folder ({exc.strerror or exc})") from None
+    if not stat.S_ISDIR(st.st_mode):
+        raise ConfigError(f"{path}: not a folder; expected a folder for the compiled code")
+    uid = _uid()
+    if uid is not None and st.st_uid != uid:
+        raise ConfigError(f"{path}: owned by user id {st.st_uid}, not by you (id {uid}), mode "
+                          f"{stat.S_IMODE(st.st_mode):04o}; compiled code is loaded only from "
+                          "a folder of yours that no one else can write to (delete it or set "
+                          "SEANV_CACHE_DIR to a folder of yours)")
+    mode = stat.S_IMODE(st.st_mode)
+    if mode & 0o077:
+        try:
+            os.chmod(path, 0o700)
+        except OSError as exc:
+            raise ConfigError(f"{path}: mode {mode:04o} and it cannot be made 0700 "
+                              f"({exc.strerror or exc})") from None
+    return existed and bool(mode & 0o022)
+
+
+def _uid() -> int | None:
+    """This process's user id (None where the system has none)."""
+    getuid = getattr(os, "getuid", None)
+    return getuid() if getuid is not None else None
 
 
 def default_rig_path() -> Path:

@@ -20,11 +20,23 @@ module's place (``build-failed.txt``: delete it to try again).
 
 ``SEANV_AOT=0`` turns it off (numba's JIT only), and so does
 ``NUMBA_DISABLE_JIT=1`` (numba's debugging mode runs the Python source).
+
+Loading a module runs its code, so it is loaded only from a folder no one
+else can write to: the cache folder and the module's folder must be this
+user's, mode 0700 (made so, :func:`seanv_analysis.config.private_folder`;
+another user's folder is refused with a warning and the JIT serves; a
+folder that was open to others is emptied first), and only when the module's
+SHA-256 matches the one recorded beside it at its build
+(``<module>.sha256``). A module without a matching record (corrupt,
+truncated, planted, or built by an older version) is built again before
+anything loads it; one that loads without its functions is removed (the
+next process builds it) and the JIT serves.
 """
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import hmac
 import importlib.util
 import logging
 import os
@@ -37,7 +49,7 @@ import time
 from pathlib import Path
 from typing import Callable
 
-from ._sources import cache_base, hash_compiled_sources
+from ._sources import cache_base, hash_compiled_sources, private_cache_folder
 
 __all__ = ["simulate_kernel", "servo_track", "aot_module_path", "aot_status", "build_aot"]
 
@@ -114,8 +126,52 @@ def build_aot(path: Path | None = None) -> Path:
         built = Path(tmp) / (_MODULE + sysconfig.get_config_var("EXT_SUFFIX"))
         if not built.is_file():
             built = next(Path(tmp).glob(_MODULE + "*"))
-        os.replace(built, path)
+        record = Path(tmp) / "record"
+        record.write_text(_sha256(built) + "\n")
+        os.replace(record, _record_path(path))   # the record first: a reader sees a mismatch,
+        os.replace(built, path)                  # never an unrecorded module
     return path
+
+
+def _record_path(path: Path) -> Path:
+    """Where the SHA-256 of the module ``path`` is recorded at its build."""
+    return path.with_name(path.name + ".sha256")
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        while chunk := fh.read(1 << 20):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _verified(path: Path) -> bool:
+    """The module at ``path`` is a regular file of this user's that no one
+    else can write, and its SHA-256 is the one recorded at its build."""
+    record = _record_path(path)
+    if not (_own_file(path) and _own_file(record)):
+        return False
+    try:
+        if record.stat().st_size > 200:
+            return False
+        want = record.read_text(encoding="ascii", errors="replace").strip()
+        return hmac.compare_digest(want, _sha256(path))
+    except OSError:
+        return False
+
+
+def _own_file(path: Path) -> bool:
+    """``path`` is a regular file (not a link) of this user's that no one else can write."""
+    import stat
+
+    try:
+        st = os.lstat(path)
+    except OSError:
+        return False
+    uid = os.getuid() if hasattr(os, "getuid") else None
+    return (stat.S_ISREG(st.st_mode) and not st.st_mode & 0o022
+            and (uid is None or st.st_uid == uid))
 
 
 def _function(name: str) -> Callable:
@@ -147,11 +203,26 @@ def _aot_module():
             os.environ.get("NUMBA_DISABLE_JIT", "0").strip() not in ("", "0"):
         _status = "turned off (SEANV_AOT=0 or NUMBA_DISABLE_JIT=1)"
         return None
+    from ..errors import ConfigError
+
     try:
         path = aot_module_path()
-        if not path.is_file():
+        try:
+            private_cache_folder(path.parent)
+        except ConfigError as exc:   # another user's folder: nothing loaded from it, said once
+            _status = f"the simulator runs on numba's JIT: {exc}"
+            log.warning("%s", _status)
+            return None
+        if not _verified(path):
             _build_once(path)
-        _module = _load(path)
+        module = _load(path)
+        missing = [name for name in SIGNATURES if not callable(getattr(module, name, None))]
+        if missing:
+            for p in (path, _record_path(path)):
+                p.unlink(missing_ok=True)   # the next process builds it again
+            raise RuntimeError(f"{path}: lacks {', '.join(missing)} (removed: built again "
+                               "by the next command)")
+        _module = module
         return _module
     except Exception as exc:  # never fatal: the JIT computes the same numbers
         _status = f"the simulator runs on numba's JIT: {exc}"
@@ -163,8 +234,11 @@ def _build_once(path: Path) -> None:
     failed = path.parent / "build-failed.txt"
     path.parent.mkdir(parents=True, exist_ok=True)
     with _lock(path.parent / ".build.lock"):
-        if path.is_file():  # another process built it while we waited
+        if _verified(path):  # another process built it while we waited
             return
+        if os.path.lexists(path):
+            log.info("%s: its SHA-256 is not the one recorded at its build (corrupt, or not "
+                     "built here): building it again", path)
         if failed.is_file():
             raise RuntimeError(f"an earlier build failed ({failed}: "
                                f"{failed.read_text(errors='replace').strip()[:300]}; "

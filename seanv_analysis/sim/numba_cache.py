@@ -15,15 +15,26 @@ from a wheel would compile everything again (20-30 s). The package's own
 functions are located by :class:`PackageCacheLocator` instead: under their
 folder inside the package (``sim/``, ``models/``); numba stamps entries by
 the source's content hash, so any copy of the same sources reuses them.
+
+numba's index files are pickles, loaded with the cache: the cache lives
+only in a folder no one else can write to (this user's, mode 0700:
+:func:`seanv_analysis.config.private_folder`; one that was open to others
+is emptied first). Where the cache folder is another user's, a warning says
+so and numba caches into a fresh private temporary folder for this process
+instead (it compiles again, 10-30 s).
 """
 from __future__ import annotations
 
+import atexit
 import hashlib
+import logging
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
-from ._sources import cache_base, hash_compiled_sources
+from ..errors import ConfigError
+from ._sources import cache_base, hash_compiled_sources, private_cache_folder
 
 __all__ = ["configure_numba_cache", "PackageCacheLocator"]
 
@@ -52,10 +63,12 @@ def configure_numba_cache() -> Path | None:
     hash_compiled_sources(h)
     folder = cache_base() / f"numba-{h.hexdigest()[:16]}"
     try:
-        folder.mkdir(parents=True, exist_ok=True)
-    except OSError:
-        folder = Path(tempfile.gettempdir()) / "seanv-analysis" / folder.name
-        folder.mkdir(parents=True, exist_ok=True)
+        private_cache_folder(folder)
+    except ConfigError as exc:
+        folder = Path(tempfile.mkdtemp(prefix="seanv-numba-"))   # 0700, this process's own
+        atexit.register(shutil.rmtree, folder, ignore_errors=True)
+        logging.getLogger(__name__).warning(
+            "%s; numba's cache for this process: %s (compiled again)", exc, folder)
     config.CACHE_DIR = str(folder)
     if not os.environ.get("NUMBA_CACHE_LOCATOR_CLASSES"):  # a user's choice wins
         config.CACHE_LOCATOR_CLASSES = ",".join((f"{__name__}.PackageCacheLocator",
