@@ -6,6 +6,7 @@ from there and never writes a rig number twice.
 from __future__ import annotations
 
 import copy
+import functools
 import math
 import os
 import tomllib
@@ -16,7 +17,9 @@ from typing import Any, Mapping
 from .errors import ConfigError
 
 __all__ = ["RigConfig", "load_rig", "default_rig_path", "schema_dir", "load_contract",
-           "user_cache_dir", "private_folder", "BLAS_THREAD_VARIABLES", "default_one_blas_thread"]
+           "user_cache_dir", "private_folder", "BLAS_THREAD_VARIABLES", "default_one_blas_thread",
+           "read_toml", "check_rig", "check_document", "rig_value_problem", "rig_key_is_run_json",
+           "value_problem", "load_schema", "read_config_bytes", "MAX_CONFIG_BYTES"]
 
 _PACKAGE_DIR = Path(__file__).resolve().parent
 
@@ -197,6 +200,14 @@ def load_rig(path: str | Path | None = None, overrides: Mapping | None = None) -
     """Load a rig config TOML (default: the shipped one), then apply overrides.
 
     A user file may give only some keys; the rest come from the default.
+    The result is checked against the rig schema (:func:`check_rig`).
+
+    Raises
+    ------
+    ConfigError
+        the file is missing, not a TOML file, names another schema, or a
+        key is unknown, of the wrong type or outside its range (one line
+        naming the file, the key, the value and what is expected).
     """
     default = default_rig_path()
     with open(default, "rb") as fh:
@@ -204,16 +215,267 @@ def load_rig(path: str | Path | None = None, overrides: Mapping | None = None) -
     source = "default"
     if path is not None:
         path = Path(path)
-        try:
-            with open(path, "rb") as fh:
-                user = tomllib.load(fh)
-        except FileNotFoundError:
-            raise ConfigError(f"{path}: rig config not found") from None
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise ConfigError(f"{path}: not a valid TOML file ({exc})") from None
+        user = read_toml(path, what="rig config")
+        for key in ("schema", "name"):
+            if key in user:
+                problem = rig_value_problem(key, user[key])
+                if problem:
+                    raise ConfigError(f"{path}: {key} = {_shown(user[key])} {problem}")
         user.pop("schema", None)
         user.pop("name", None)
         data = _deep_update(data, user, str(path))
         source = str(path)
     rig = RigConfig(data, source=source)
-    return rig.with_overrides(overrides) if overrides else rig
+    if overrides:
+        rig = rig.with_overrides(overrides)
+    check_rig(rig.data, where=source if path is not None else "rig")
+    return rig
+
+
+#: the largest configuration file read (rig, pipeline, model)
+MAX_CONFIG_BYTES = 16 << 20
+
+
+def read_config_bytes(path: str | Path, *, what: str) -> bytes:
+    """The bytes of the configuration file ``path`` (a ``what`` file: 'rig
+    config', 'pipeline', 'valve model'), links followed.
+
+    Raises
+    ------
+    ConfigError
+        missing, unreadable, not a regular file (a FIFO or a device: never
+        read, it could block or never end) or larger than
+        :data:`MAX_CONFIG_BYTES` (one line naming the file).
+    """
+    import stat
+
+    path = Path(path)
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: {what} not found") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the {what} ({exc.strerror or exc})") from None
+    with open(fd, "rb") as fh:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise ConfigError(f"{path}: not a regular file; expected a {what} file")
+        if st.st_size > MAX_CONFIG_BYTES:
+            raise ConfigError(f"{path}: {st.st_size} bytes; expected a {what} file of at most "
+                              f"{MAX_CONFIG_BYTES >> 20} MiB")
+        return fh.read(MAX_CONFIG_BYTES + 1)
+
+
+def read_toml(path: str | Path, *, what: str) -> dict[str, Any]:
+    """The TOML document of the file ``path`` (:func:`read_config_bytes`).
+
+    Raises
+    ------
+    ConfigError
+        as :func:`read_config_bytes`; or not UTF-8, not TOML, or nested too
+        deeply (one line naming the file).
+    """
+    raw = read_config_bytes(path, what=what)
+    try:
+        return tomllib.loads(raw.decode("utf-8"))
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not a valid TOML file (not UTF-8: byte {exc.start})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not a valid TOML file ({exc})") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not a valid TOML file (nested too deeply)") from None
+
+
+# The schemas -----------------------------------------------------------------
+
+@functools.lru_cache(maxsize=None)
+def load_schema(name: str) -> dict[str, dict[str, Any]]:
+    """{dotted key: spec} of ``_data_schema/<name>/schema.toml`` ('rig', 'model')."""
+    with open(schema_dir() / name / "schema.toml", "rb") as fh:
+        return tomllib.load(fh)["keys"]
+
+
+def _shown(value: Any) -> str:
+    """A value as it appears in a message (short)."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _is_number(value: Any) -> bool:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(float(value))
+    except OverflowError:
+        return False
+
+
+def _expected(spec: Mapping[str, Any]) -> str:
+    """What a key of ``spec`` must be, in words: 'a number > 0 and <= 100 [mm]'."""
+    kind = spec["type"]
+    if kind == "string":
+        return f'"{spec["equals"]}"' if "equals" in spec else "a string"
+    noun = {"number": "a finite number", "integer": "an integer",
+            "range": "two finite numbers [lo, hi], lo < hi, each"}[kind]
+    bounds = []
+    if "gt" in spec:
+        bounds.append(f"> {spec['gt']:g}")
+    if "min" in spec:
+        bounds.append(f">= {spec['min']:g}")
+    if "lt" in spec:
+        bounds.append(f"< {spec['lt']:g}")
+    if "max" in spec:
+        bounds.append(f"<= {spec['max']:g}")
+    unit = f" [{spec['unit']}]" if spec.get("unit") not in (None, "-") else ""
+    return f"{noun} {' and '.join(bounds)}{unit}" if bounds else f"{noun}{unit}"
+
+
+def value_problem(spec: Mapping[str, Any], value: Any) -> str | None:
+    """What is wrong with ``value`` for a key of ``spec`` (a schema entry),
+    as the words after the value ('is not a finite number; expected ...');
+    None when it is fine."""
+    kind = spec["type"]
+    if kind == "string":
+        if not isinstance(value, str):
+            return f"is not a string; expected {_expected(spec)}"
+        if "equals" in spec and value != spec["equals"]:
+            return f"is not a schema this version reads; expected {_expected(spec)}"
+        return None
+    if kind == "range":
+        if (not isinstance(value, list) or len(value) != 2
+                or not all(_is_number(v) for v in value)):
+            return f"is not two finite numbers; expected {_expected(spec)}"
+        if not value[0] < value[1]:
+            return f"is not increasing (lo >= hi); expected {_expected(spec)}"
+        values = value
+    elif kind == "integer":
+        if isinstance(value, bool) or not isinstance(value, int):
+            return f"is not an integer; expected {_expected(spec)}"
+        values = [value]
+    else:
+        if not _is_number(value):
+            return f"is not a finite number; expected {_expected(spec)}"
+        values = [value]
+    for v in values:
+        if spec.get("gt") == 0 and not v > 0:
+            return f"is not positive; expected {_expected(spec)}"
+        if (("gt" in spec and not v > spec["gt"]) or ("min" in spec and not v >= spec["min"])
+                or ("lt" in spec and not v < spec["lt"])
+                or ("max" in spec and not v <= spec["max"])):
+            return f"is outside the plausible range; expected {_expected(spec)}"
+        if spec.get("nonzero") and v == 0:
+            return str(spec["nonzero"])
+    return None
+
+
+def check_document(doc: Mapping[str, Any], schema_name: str, *, where: str,
+                   required_all: bool = False) -> dict[str, Any]:
+    """Check a nested document (a parsed TOML or JSON file) against the
+    schema ``schema_name`` (:func:`load_schema`): every key known, each value
+    of its type and range, the required keys present (every key with
+    ``required_all``, else those marked ``required = true``). A key of type
+    "table" may hold anything (it is not looked into); "list" any list.
+
+    Returns
+    -------
+    dict
+        {dotted key: value} of the document's keys.
+
+    Raises
+    ------
+    ConfigError
+        one line: ``where``, the dotted key, its value and what is expected.
+    """
+    schema = load_schema(schema_name)
+    tables = {k.rsplit(".", i)[0] for k in schema for i in range(1, k.count(".") + 1)}
+    flat: dict[str, Any] = {}
+
+    def walk(d: Mapping[str, Any], prefix: str) -> None:
+        for k, v in d.items():
+            key = f"{prefix}{k}"
+            if key in schema:
+                flat[key] = v
+            elif key in tables:
+                if not isinstance(v, Mapping):
+                    raise ConfigError(f"{where}: {key} = {_shown(v)} is not a table; expected "
+                                      f"a table of {', '.join(_below(schema, key))}")
+                walk(v, key + ".")
+            else:
+                level = prefix[:-1]
+                known = _below(schema, level) if level else sorted({x.split(".")[0] for x in schema})
+                raise ConfigError(f"{where}: unknown key '{key}'; expected one of "
+                                  f"{', '.join(known)}")
+
+    walk(doc, "")
+    for key, value in flat.items():
+        spec = schema[key]
+        if spec["type"] == "table":
+            problem = None if isinstance(value, Mapping) else "is not a table"
+        elif spec["type"] == "list":
+            problem = None if isinstance(value, list) else "is not a list"
+        else:
+            problem = value_problem(spec, value)
+        if problem:
+            raise ConfigError(f"{where}: {key} = {_shown(value)} {problem}")
+    missing = [k for k, spec in schema.items() if k not in flat
+               and (spec.get("required") or (required_all and k not in ("schema", "name")))]
+    if missing:
+        raise ConfigError(f"{where}: {missing[0]} is missing; expected "
+                          f"{_expected(schema[missing[0]])}")
+    return flat
+
+
+def _below(schema: Mapping[str, Any], table: str) -> list[str]:
+    """The names directly under the dotted ``table`` in ``schema``."""
+    n = table.count(".") + 1
+    return sorted({k.split(".")[n] for k in schema if k.startswith(table + ".")})
+
+
+def rig_value_problem(key: str, value: Any) -> str | None:
+    """:func:`value_problem` of the rig key ``key`` (dotted, e.g.
+    'valve.supply.z0_mm'); 'is not a rig key' for a key the schema lacks."""
+    spec = load_schema("rig").get(key)
+    if spec is None:
+        return "is not a rig key"
+    return value_problem(spec, value)
+
+
+def rig_key_is_run_json(key: str) -> bool:
+    """Whether a run.json's "rig" object may change the rig key ``key``."""
+    return bool(load_schema("rig").get(key, {}).get("run_json", True))
+
+
+#: at most this many samples in a run's common time base (max span x encoder rate)
+MAX_ALIGNED_SAMPLES = 1e8
+
+
+def check_rig(data: Mapping[str, Any], *, where: str = "rig") -> None:
+    """Check a whole rig (the nested dict of a :class:`RigConfig`) against
+    the rig schema (``_data_schema/rig/schema.toml``): every key known and
+    present, each of its type and range, and the keys that bound each other
+    (cam range, diameters, sample intervals, the aligned samples of a run).
+
+    Raises
+    ------
+    ConfigError
+        one line: ``where``, the dotted key, its value and what is expected.
+    """
+    flat = check_document(data, "rig", where=where, required_all=True)
+    below = [("valve.cam_min_deg", "valve.cam_max_deg", "the model's cam range min < max"),
+             ("valve.seat_diameter_mm", "valve.needle_diameter_mm",
+              "the seat narrower than the needle (Table II: d_o < d_n)"),
+             ("tube.inner_diameter_mm", "tube.outer_diameter_mm", "the tube's bore inside its wall"),
+             ("actuator.rod_diameter_mm", "actuator.piston_diameter_mm", "a rod thinner than its piston"),
+             ("load.rod_diameter_mm", "load.piston_diameter_mm", "a rod thinner than its piston"),
+             ("analysis.min_sample_interval_s", "analysis.max_sample_interval_s",
+              "the plausible sample interval's min < max")]
+    for lo, hi, what in below:
+        if not flat[lo] < flat[hi]:
+            raise ConfigError(f"{where}: {lo} = {_shown(flat[lo])} is not below {hi} = "
+                              f"{_shown(flat[hi])}; expected {what}")
+    samples = flat["analysis.max_run_duration_s"] * flat["sensors.encoder_rate_hz"]
+    if samples > MAX_ALIGNED_SAMPLES:
+        raise ConfigError(f"{where}: analysis.max_run_duration_s x sensors.encoder_rate_hz = "
+                          f"{samples:g} samples on a run's common time base; expected at most "
+                          f"{MAX_ALIGNED_SAMPLES:g} (a longer run or faster clock would not fit "
+                          "in memory)")

@@ -262,14 +262,20 @@ def test_bad_rig_geometry_is_a_config_error(tmp_path):
     assert res.output.count("\n") == 1 and "not monotonic" in res.output
 
 
-@pytest.mark.parametrize("over, match", [
-    ({"tube": {"inertance_factor": 0.0}}, "tube.inertance_factor: expected > 0"),
-    ({"supply": {"droop_mpa_s_per_mm3": -1e-5}}, "supply.droop_mpa_s_per_mm3: expected >= 0"),
+@pytest.mark.parametrize("over, match, schema", [
+    ({"tube": {"inertance_factor": 0.0}}, "tube.inertance_factor: expected > 0",
+     r"tube\.inertance_factor = 0\.0 is not positive"),
+    ({"supply": {"droop_mpa_s_per_mm3": -1e-5}}, "supply.droop_mpa_s_per_mm3: expected >= 0",
+     r"supply\.droop_mpa_s_per_mm3 = -1e-05 is outside the plausible range"),
 ])
-def test_line_and_supply_keys_out_of_range_are_config_errors(over, match):
+def test_line_and_supply_keys_out_of_range_are_config_errors(over, match, schema):
     """A line without inertance (a division by zero in the tube's flow
-    equation) or a supply that rises with flow is refused, naming the key."""
-    rig = load_rig(overrides=over)
+    equation) or a supply that rises with flow is refused, naming the key:
+    by the rig schema when the rig is loaded, and by the plant for a rig
+    changed in code."""
+    with pytest.raises(ConfigError, match=schema):
+        load_rig(overrides=over)
+    rig = load_rig().with_overrides(over)
     with pytest.raises(ConfigError, match=match):
         simulate_flow_step(rig, side="supply", cam_deg=0.0, load_mpag=0.3, hold_max_s=0.1)
 

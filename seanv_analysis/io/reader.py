@@ -21,8 +21,8 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Callable, Iterator, TypeVar
 
-from ..config import RigConfig, load_rig
-from ..errors import DataError, SeanvError
+from ..config import RigConfig, check_rig, load_rig
+from ..errors import ConfigError, DataError, SeanvError
 from .contract import ColumnSpec, TableSpec, contract_columns, table_specs
 from .dataset import DatasetRead, RunError, dataset_plan, find_runs, is_run_dir
 from .formats import TableFormat
@@ -115,6 +115,10 @@ def _read_tables(meta: RunMeta, base: RigConfig, *, hash_files: bool) -> Run:
     if meta.rig_overrides:
         check_rig_overrides(meta.rig_overrides, base.data, path=run_json)
         rig = base.with_overrides(meta.rig_overrides, where=f"{run_json} rig")
+        try:
+            check_rig(rig.data, where="field 'rig'")   # the keys that bound each other
+        except ConfigError as exc:
+            raise DataError(str(exc), path=run_json) from None
     files: dict[str, Path] = {"run.json": run_json}
     hashes: dict[str, str] = {}
     if hash_files:

@@ -380,27 +380,22 @@ def _check_controller(controller: Any, fail) -> dict[str, Any]:
     return dict(controller)
 
 
-#: rig keys (by name, any section) that the models divide by or take as
-#: physical sizes: an override must keep them > 0 (c_flow: != 0)
-_POSITIVE_RIG_KEY = re.compile(
-    r"((?<!^rod_)diameter_mm|^length_m|^stroke_mm|radius_mm|rate_hz|^cam_slope_deg"
-    r"|^spring_constant_n_per_mm|bulk_modulus_mpa|^time_step_s|^density_kg_per_m3"
-    r"|viscosity_pa_s|^moving_mass_kg|^stribeck_velocity_mm_s|time_constant_s|resolution_deg"
-    r"|resolution_mm|^kpa_per_mpa|^derivative_window_s|^max_run_duration_s|_sample_interval_s)$")
-_NONZERO_RIG_KEY = re.compile(r"^c_flow$")
-
-
 def check_rig_overrides(overrides: Mapping[str, Any], base: Mapping[str, Any], *,
                         path: str | Path, where: str = "rig") -> None:
-    """Check run.json "rig" overrides against the rig config: every key must
-    exist there, tables must stay tables and numbers stay numbers.
+    """Check run.json "rig" overrides against the rig config and its schema
+    (:func:`seanv_analysis.config.check_rig`): every key must exist there,
+    tables must stay tables, each value of its type and within its range, and
+    the keys a run may not change (the plausibility guards of
+    ``analysis``) left alone.
 
     Raises
     ------
     DataError
         naming the dotted key (``rig.valve.supply.z0_mm``), the bad value and
-        the keys that exist at that level.
+        what is expected (the keys that exist at that level, for an unknown one).
     """
+    from ..config import rig_key_is_run_json, rig_value_problem
+
     for key, value in overrides.items():
         here = f"{where}.{key}"
         if key not in base:
@@ -412,22 +407,14 @@ def check_rig_overrides(overrides: Mapping[str, Any], base: Mapping[str, Any], *
                 raise DataError(f"field '{here}': {format_value(value)} is not an object; "
                                 "expected a table of rig keys", path=path)
             check_rig_overrides(value, ref, path=path, where=here)
-        elif _is_number(ref) and not _is_finite_number(value):
-            raise DataError(f"field '{here}': {format_value(value)} is not a finite number; "
-                            f"expected a number like the rig config's {format_value(ref)}",
-                            path=path)
-        elif _is_number(ref) and _POSITIVE_RIG_KEY.search(key) and not value > 0:
-            raise DataError(f"field '{here}': {format_value(value)} is not positive; expected a "
-                            f"size or rate > 0 like the rig config's {format_value(ref)}",
-                            path=path)
-        elif _is_number(ref) and _NONZERO_RIG_KEY.search(key) and value == 0:
-            raise DataError(f"field '{here}': 0 gives no flow; expected a nonzero flow "
-                            f"coefficient like the rig config's {format_value(ref)}", path=path)
-        elif isinstance(ref, str) and not isinstance(value, str):
-            raise DataError(f"field '{here}': {format_value(value)} is not a string", path=path)
-        elif isinstance(ref, list) and not isinstance(value, list):
-            raise DataError(f"field '{here}': {format_value(value)} is not a list; "
-                            f"expected e.g. {format_value(ref)}", path=path)
+            continue
+        dotted = here.split(".", 1)[1]
+        if not rig_key_is_run_json(dotted):
+            raise DataError(f"field '{here}': a run may not change this plausibility guard; "
+                            "expected it in the rig file (--rig) only", path=path)
+        problem = rig_value_problem(dotted, value)
+        if problem:
+            raise DataError(f"field '{here}': {format_value(value)} {problem}", path=path)
 
 
 # columns ------------------------------------------------------------------
