@@ -30,7 +30,8 @@ __all__ = ["validate_cmd"]
 @click.argument("data", required=False, type=click.Path(exists=True, file_okay=False, path_type=Path))
 @click.option("--model", "model_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Identified valve model (JSON/TOML from flowfit): the plant's valve and the "
-                   "flow-model controller's model. Default: the rig config's valve.")
+                   "flow-model controller's model; the effects and proposed term of discover's "
+                   "model_augmented.json are simulated too. Default: the rig config's valve.")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML. Default: the shipped one.")
 @click.option("--threshold", "threshold_pct", type=float, default=80.0, show_default=True,
@@ -72,7 +73,7 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     """
     from ..config import load_rig
     from ..errors import ConfigError, DataError
-    from ..io.model_file import read_model
+    from ..io.model_file import read_model_file
     from ..stages import dataset, figures, validate
 
     rig = load_rig(rig_file)
@@ -82,7 +83,8 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
                    f"set ({data})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "validate")
     check_out_dir(data, out)
-    model = read_model(model_file, rig=rig) if model_file else None
+    # a model file's effects and proposed term (discover's model_augmented.json) are simulated
+    model, effects = read_model_file(model_file, rig=rig) if model_file else (None, ())
     options = {"threshold_pct": threshold_pct, "controller_model": controller_model}
     with stage_context(data, rig=rig, out_dir=out, model=model) as ctx, warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -92,7 +94,8 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
         ctx.add("ingest", ds)
         try:
             validate.check_option("threshold_pct", threshold_pct)
-            result = validate.run(ctx, options)
+            result = (validate.validate_model(ctx, ctx.valve, effects, options=options)
+                      if effects and validate.position_paths(ctx) else validate.run(ctx, options))
             if result is None:
                 raise DataError("no position_control run could be validated", path=data)
         except ValueError as exc:
@@ -105,6 +108,7 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
         written += figures.draw_figures(ctx, figures.figures_of("validation"), out,
                                         formats=formats).all_paths()
     write_command_manifest(out, ctx, outputs=written, extra={"model": str(model_file) if model_file else None,
+                                            "effects": list(effects),
                                             "threshold_pct": threshold_pct,
                                             "controller_model": controller_model})
     if as_json:
