@@ -69,7 +69,7 @@ def test_pipeline_file_errors(tmp_path):
         load_pipeline("no-such-pipeline")
     bad = tmp_path / "bad.toml"
     bad.write_text("[pipeline\nname=")
-    with pytest.raises(ConfigError, match=r"not valid TOML"):
+    with pytest.raises(ConfigError, match=r"not a valid TOML file"):
         load_pipeline(bad)
 
 

@@ -36,7 +36,8 @@ __all__ = ["discover_cmd"]
                    "kfold: 5 folds by run.")
 @click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset>/discover/.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the permutation check.")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True,
+              help="Seed of the permutation check.")  # stages.pipeline.MAX_SEED
 @click.option("--identify", "identify_first", is_flag=True,
               help="Identify the rig from DATA first (as `seanv-analyze identify`) and discover on "
                    "the identified twin: its valve with the identified needle geometry, and in "

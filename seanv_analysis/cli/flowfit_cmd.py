@@ -50,9 +50,10 @@ BUILTIN_SCENARIO = "paper-flowsteps"
               show_default=True,
               help="Cam angle theta of each run: servo feedback (median over the hold; the "
                    "command where missing), or the commanded angle.")
-@click.option("--n-boot", type=click.IntRange(min=0), default=200, show_default=True,
+@click.option("--n-boot", type=click.IntRange(0, 10_000), default=200, show_default=True,  # stages.pipeline.MAX_N_BOOT
               help="Bootstrap resamples for the 95 % intervals (0: none).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Bootstrap seed.")
+@click.option("--seed", type=click.IntRange(0, 2**32 - 1), default=0, show_default=True,
+              help="Bootstrap seed.")  # stages.pipeline.MAX_SEED
 @figure_options
 def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, as_json: bool,
                 side: str, method: str, procedure: str, cam: str, n_boot: int, seed: int,

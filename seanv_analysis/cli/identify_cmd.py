@@ -33,7 +33,7 @@ _PARTS = ("geometry", "servo", "friction", "load", "flow_path")
                    "Default: the shipped one.")
 @click.option("--part", "parts", type=click.Choice(_PARTS), multiple=True,
               help="Identify only this part (repeatable). Default: all.")
-@click.option("--n-boot", type=click.IntRange(min=0), default=100, show_default=True,
+@click.option("--n-boot", type=click.IntRange(0, 10_000), default=100, show_default=True,  # stages.pipeline.MAX_N_BOOT
               help="Bootstrap resamples of the z0/C refit with the identified geometry.")
 @click.option("--out", "out_dir", type=OUT_FOLDER,
               help="Output folder. Default: outputs/<dataset>/identify/.")

@@ -23,6 +23,7 @@ from ..errors import FitError, SeanvError
 from ..jsonable import JsonResult
 from .base import Context, FailedRun, one_line
 from .dataset import position_runs
+from .pipeline import MAX_SEED, check_count
 from .validate import controller_numbers, position_paths, validate_model
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DiscoverResult", "check_option", "run", "write",
@@ -44,8 +45,8 @@ MIN_FLOW_RUNS = 12
 def check_option(key: str, value: Any) -> Any:
     if key == "holdout" and value not in ("chrono", "kfold"):
         raise ValueError("'chrono' or 'kfold'")
-    if key == "seed" and (not isinstance(value, int) or isinstance(value, bool)):
-        raise ValueError("a whole number")
+    if key == "seed":
+        return check_count(value, most=MAX_SEED, what="a seed")
     return value
 
 

@@ -14,6 +14,7 @@ from typing import Any, Mapping
 
 from ..errors import DataError
 from .base import Context
+from .pipeline import MAX_N_BOOT, MAX_SEED, check_count
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "check_option", "run", "write"]
 
@@ -37,9 +38,10 @@ def check_option(key: str, value: Any) -> Any:
         raise ValueError("'joint' or 'two_step'")
     if key == "cam" and value not in ("measured", "commanded"):
         raise ValueError("'measured' or 'commanded'")
-    if key in ("n_boot", "seed") and (not isinstance(value, int) or isinstance(value, bool)
-                                      or value < 0):
-        raise ValueError("a whole number >= 0")
+    if key == "n_boot":
+        return check_count(value, most=MAX_N_BOOT, what="a number of resamples")
+    if key == "seed":
+        return check_count(value, most=MAX_SEED, what="a seed")
     return value
 
 

@@ -15,6 +15,7 @@ from typing import Any, Mapping
 
 from .base import Context
 from .dataset import position_runs
+from .pipeline import MAX_N_BOOT, MAX_SEED, check_count
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DESCRIPTION", "check_option", "run", "write",
            "rig_toml"]
@@ -38,10 +39,10 @@ def check_option(key: str, value: Any) -> Any:
                 or not all(isinstance(v, str) and v in PARTS for v in value)):
             raise ValueError(f"a non-empty list of {', '.join(PARTS)}")
         return list(value)
-    if key in ("n_boot", "seed"):
-        if not isinstance(value, int) or isinstance(value, bool) or value < 0:
-            raise ValueError("a whole number >= 0")
-        return value
+    if key == "n_boot":
+        return check_count(value, most=MAX_N_BOOT, what="a number of resamples")
+    if key == "seed":
+        return check_count(value, most=MAX_SEED, what="a seed")
     return value
 
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import copy
 import re
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -33,7 +32,8 @@ from typing import Any, Mapping
 from ..errors import ConfigError
 
 __all__ = ["STAGE_NAMES", "stage_options", "Stage", "Pipeline", "load_pipeline",
-           "parse_pipeline", "shipped_pipelines", "pipelines_dir", "PIPELINE_NAME"]
+           "parse_pipeline", "shipped_pipelines", "pipelines_dir", "PIPELINE_NAME", "MAX_N_BOOT",
+           "MAX_SEED", "check_count"]
 
 
 
@@ -48,6 +48,21 @@ PIPELINE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
 #: Stage names in the order they run (a pipeline lists a subset, in this order).
 STAGE_NAMES = ("ingest", "flowfit", "identify", "tracking", "validate", "discover", "figures", "report")
+
+
+#: the most bootstrap resamples an option may ask for (each refits the model;
+#: 200 by default: 1e9 would run for weeks)
+MAX_N_BOOT = 10_000
+#: the largest seed (numpy's generators take 0 .. 2**32 - 1 as one word)
+MAX_SEED = 2**32 - 1
+
+
+def check_count(value: Any, *, most: int, what: str = "a whole number") -> int:
+    """``value`` as an option's whole number in 0..``most``; ValueError (the
+    words of what is expected) otherwise."""
+    if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= most:
+        raise ValueError(f"{what} from 0 to {most}")
+    return value
 
 
 def stage_options() -> dict[str, dict[str, Any]]:
@@ -204,8 +219,9 @@ def load_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any]) -> Pipeli
     Raises
     ------
     ConfigError
-        the file does not exist (and is not a shipped name), is not valid
-        TOML, or fails :func:`parse_pipeline`.
+        the file does not exist (and is not a shipped name), is not a
+        regular file, not UTF-8, not valid TOML or nested too deeply, or
+        fails :func:`parse_pipeline`.
     """
     if isinstance(pipeline, Pipeline):
         return pipeline
@@ -220,11 +236,7 @@ def load_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any]) -> Pipeli
             names = ", ".join(shipped) or "(none found)"
             raise ConfigError(f"pipeline: {pipeline} is neither a file nor a shipped pipeline; "
                               f"shipped: {names}")
-    try:
-        with open(path, "rb") as fh:
-            doc = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML ({exc})") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read ({exc.strerror})") from None
-    return parse_pipeline(doc, source=path)
+    from ..config import read_toml
+
+    # a regular file of at most a few MB, UTF-8, not nested too deeply: else one line
+    return parse_pipeline(read_toml(path, what="pipeline"), source=path)
