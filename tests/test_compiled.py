@@ -125,7 +125,7 @@ def test_turned_off_runs_the_jit(monkeypatch, tmp_path):
 
     _fresh(monkeypatch, tmp_path)
     monkeypatch.setenv("SEANV_AOT", "0")
-    assert compiled.simulate_kernel() is kernel.simulate_kernel
+    assert compiled.simulate_kernel().__wrapped__ is kernel.simulate_kernel
     assert "turned off" in compiled.aot_status()
     assert not compiled.aot_module_path().exists()
 
@@ -139,7 +139,7 @@ def test_a_failed_build_is_not_retried_and_the_jit_serves(monkeypatch, tmp_path)
     assert path.is_relative_to(tmp_path)
     path.parent.mkdir(parents=True)
     (path.parent / "build-failed.txt").write_text("CompileError: no Python.h\n")
-    assert compiled.servo_track() is kernel.servo_track
+    assert compiled.servo_track().__wrapped__ is kernel.servo_track
     status = compiled.aot_status()
     assert "no Python.h" in status and "delete that file to try again" in status
     assert not path.exists()

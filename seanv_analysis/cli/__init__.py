@@ -26,8 +26,23 @@ class Terminated(BaseException):
     stage takes it for a failure of the stage."""
 
 
+def _stop_simulations() -> None:
+    """Stop the compiled simulations running on any thread of this process
+    (they would finish their runs first: a kernel does not see Python's
+    signals), and refuse new ones: the command is ending."""
+    compiled = sys.modules.get("seanv_analysis.sim.compiled")
+    if compiled is not None:
+        compiled.stop_all()
+
+
 def _on_sigterm(signum, frame):  # pragma: no cover - exercised through a subprocess
+    _stop_simulations()
     raise Terminated()
+
+
+def _on_sigint(signum, frame):  # pragma: no cover - exercised through a subprocess
+    _stop_simulations()
+    raise KeyboardInterrupt()
 
 
 class _SeanvGroup(click.Group):
@@ -184,6 +199,8 @@ def main(argv: list[str] | None = None) -> None:
     atexit.register(gc.freeze)   # registered first: runs after the other exit handlers
     return_large_blocks_to_os()
     signal.signal(signal.SIGTERM, _on_sigterm)
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:   # not ignored (nohup, &)
+        signal.signal(signal.SIGINT, _on_sigint)
     cli.main(args=argv, prog_name="seanv-analyze")
 
 

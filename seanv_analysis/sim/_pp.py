@@ -54,9 +54,10 @@ class PP:
     X_STOP_LO = 37        # flow step: release when x <= this (drain) [mm]
     X_STOP_HI = 38        # flow step: release when x >= this (supply) [mm]
     SUPPLY_DROOP = 39     # supply pressure drop per unit of extending flow [MPa s/mm^3]
+    STOP = 40             # set != 0 while a kernel runs: it returns early (Ctrl-C, SIGTERM) [-]
 
 
-PP_SIZE = 40
+PP_SIZE = 41
 
 #: controller kind of the kernel for an open-loop cam schedule (flow-step runs)
 MODE_SCHEDULE = 0
@@ -109,3 +110,4 @@ _NEUTRAL = PP.NEUTRAL
 _X_STOP_LO = PP.X_STOP_LO
 _X_STOP_HI = PP.X_STOP_HI
 _SUPPLY_DROOP = PP.SUPPLY_DROOP
+_STOP = PP.STOP

@@ -47,11 +47,13 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
+from ._pp import PP
 from ._sources import cache_base, hash_compiled_sources, private_cache_folder
 
-__all__ = ["simulate_kernel", "servo_track", "aot_module_path", "aot_status", "build_aot"]
+__all__ = ["simulate_kernel", "servo_track", "aot_module_path", "aot_status", "build_aot",
+           "stop_all", "SimulationStopped"]
 
 log = logging.getLogger(__name__)
 
@@ -187,8 +189,100 @@ def _function(name: str) -> Callable:
                     from . import kernel  # numba: compiles or loads numba's cache
 
                     fn = getattr(kernel, name)
-                _loaded[name] = fn
+                _loaded[name] = fn = _stoppable(fn, name)
     return fn
+
+
+# Stopping a simulation ------------------------------------------------------
+# A compiled kernel runs without returning to Python, so Python's signal
+# handlers wait for it to finish. Each kernel reads the stop slot of its
+# packed parameters (``PP.STOP``) every few hundred samples and returns when
+# it is set: a long call from the main thread runs on a helper thread while
+# the main thread waits, so Ctrl-C and SIGTERM reach it at once and set the
+# slot; :func:`stop_all` (the CLI's signal handlers) sets every running
+# kernel's slot and makes later calls refuse to start.
+
+#: the packed parameters of the kernels running now, by call
+_RUNNING: dict[object, Any] = {}
+_STOPPED = False
+#: plant steps above which a main-thread call runs on a helper thread (~0.3 s)
+_HELPER_STEPS = 1_000_000
+#: where each entry point takes its packed parameters, and its plant steps
+_CALLS = {"simulate_kernel": (0, lambda args: float(args[-5]) * float(args[0][PP.SUBSTEPS])),
+          "servo_track": (6, lambda args: float(args[4]))}
+
+
+class SimulationStopped(KeyboardInterrupt):
+    """A simulation stopped before its end by Ctrl-C or SIGTERM (a
+    ``KeyboardInterrupt``: no ``except Exception`` takes it for a failure)."""
+
+
+def stop_all() -> None:
+    """Stop every simulation of this process now and refuse new ones: each
+    running kernel returns at its next check (within milliseconds) and its
+    call raises :class:`SimulationStopped`. For a process that is ending (the
+    CLI's Ctrl-C and SIGTERM handlers); safe in a signal handler."""
+    global _STOPPED
+    _STOPPED = True
+    for pp in list(_RUNNING.values()):
+        pp[PP.STOP] = 1.0
+
+
+def _stoppable(fn: Callable, name: str) -> Callable:
+    """``fn`` (an entry point) that can be stopped (see above)."""
+    import numpy as np
+
+    at, steps = _CALLS[name]
+
+    def call(*args):
+        if _STOPPED:
+            raise SimulationStopped(f"{name}: this process is stopping")
+        args = list(args)
+        pp = args[at] = np.ascontiguousarray(args[at], dtype=np.float64)
+        token = object()
+        _RUNNING[token] = pp
+        try:
+            if steps(args) > _HELPER_STEPS and threading.current_thread() is threading.main_thread():
+                out = _on_helper_thread(fn, args, pp)
+            else:
+                out = fn(*args)
+        finally:
+            _RUNNING.pop(token, None)
+        if pp[PP.STOP] != 0.0:
+            raise SimulationStopped(f"{name}: stopped before its end")
+        return out
+
+    call.__name__ = call.__qualname__ = name
+    call.__doc__ = fn.__doc__
+    call.__wrapped__ = fn
+    return call
+
+
+def _on_helper_thread(fn: Callable, args: list, pp) -> Any:
+    """``fn(*args)`` on a helper thread while this (the main) thread waits,
+    so a signal's handler runs now; on any exception here (Ctrl-C, SIGTERM)
+    the kernel is stopped and the exception raised."""
+    box: dict[str, Any] = {}
+    done = threading.Event()
+
+    def work():
+        try:
+            box["out"] = fn(*args)
+        except BaseException as exc:  # handed to the waiting thread
+            box["exc"] = exc
+        finally:
+            done.set()
+
+    threading.Thread(target=work, name="seanv-kernel", daemon=True).start()
+    try:
+        while not done.wait(0.2):
+            pass
+    except BaseException:
+        pp[PP.STOP] = 1.0
+        raise
+    if "exc" in box:
+        raise box["exc"]
+    return box["out"]
 
 
 def _aot_module():

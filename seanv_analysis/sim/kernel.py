@@ -67,6 +67,7 @@ from ._pp import (
     _RIPPLE_HZ,
     _SERVO_DEAD_TICKS,
     _SERVO_RES,
+    _STOP,
     _STROKE,
     _SUBSTEPS,
     _SUPPLY_DROOP,
@@ -196,6 +197,8 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th, tw,
     p_load_set = p_load
     step = 0
     for i in range(n_fast):
+        if i % 256 == 0 and pp[_STOP] != 0.0:   # stopped from outside (Ctrl-C): return now
+            break
         t = i * dt * nsub
         if step % 1000 == 0:
             sn, cn = math.sin(om * step * dt), math.cos(om * step * dt)
@@ -316,6 +319,8 @@ def servo_track(t_cmd, cmd, t0, h, n, dead_s, pp, theta0):
     j = 0
     m = t_cmd.size
     for i in range(n):
+        if i % 65536 == 0 and pp[_STOP] != 0.0:   # stopped from outside (Ctrl-C): return now
+            break
         t_eff = t0 + i * h - dead_s
         while j + 1 < m and t_cmd[j + 1] <= t_eff:
             j += 1

@@ -74,7 +74,7 @@ def test_a_module_in_another_users_folder_is_not_loaded(fresh, monkeypatch, capl
     _plant(path, folder_mode=0o777)
     monkeypatch.setattr(config, "_uid", lambda: os.getuid() + 4242)   # the folder is not ours
     with caplog.at_level("WARNING", logger="seanv_analysis"):
-        assert compiled.simulate_kernel() is _jit()
+        assert compiled.simulate_kernel().__wrapped__ is _jit()
     assert fresh["load"] == [] and fresh["build"] == []
     assert "owned by user id" in compiled.aot_status() and "not by you" in compiled.aot_status()
     assert any("numba's JIT" in r.getMessage() for r in caplog.records)
@@ -88,7 +88,7 @@ def test_a_folder_really_owned_by_another_user_is_refused(fresh):
     _plant(path, folder_mode=0o777)
     os.chown(path.parent, 65534, 65534)
     os.chown(path, 65534, 65534)
-    assert compiled.simulate_kernel() is _jit()
+    assert compiled.simulate_kernel().__wrapped__ is _jit()
     assert fresh["load"] == [] and "owned by user id 65534" in compiled.aot_status()
 
 
@@ -97,7 +97,7 @@ def test_a_folder_open_to_others_is_emptied_and_made_private(fresh):
     may be someone else's: removed, built again, the folder made 0700."""
     path = compiled.aot_module_path()
     _plant(path, folder_mode=0o777)
-    assert compiled.simulate_kernel()() == "aot"
+    assert compiled.simulate_kernel().__wrapped__() == "aot"
     assert fresh["build"] == [path] and fresh["load"] == [BUILT]
     assert stat.S_IMODE(os.stat(path.parent).st_mode) == 0o700
     assert stat.S_IMODE(os.stat(compiled.aot_module_path().parents[1]).st_mode) == 0o700
@@ -117,14 +117,14 @@ def test_a_module_without_its_recorded_sha256_is_rebuilt_before_any_load(fresh, 
         target = path.parent / "elsewhere"
         target.write_text(hashlib.sha256(PLANTED).hexdigest())
         rec.symlink_to(target)
-    assert compiled.servo_track()() == "aot"
+    assert compiled.servo_track().__wrapped__() == "aot"
     assert fresh["build"] == [path] and fresh["load"] == [BUILT]   # never the planted bytes
 
 
 def test_a_module_with_its_recorded_sha256_is_loaded_without_a_build(fresh):
     path = compiled.aot_module_path()
     _plant(path, BUILT)
-    assert compiled.simulate_kernel()() == "aot"
+    assert compiled.simulate_kernel().__wrapped__() == "aot"
     assert fresh["build"] == [] and fresh["load"] == [BUILT]
 
 
@@ -141,8 +141,8 @@ def test_a_module_missing_its_functions_is_removed_and_the_jit_serves(fresh, mon
     path = compiled.aot_module_path()
     _plant(path, BUILT)
     monkeypatch.setattr(compiled, "_load", lambda p: types.SimpleNamespace(servo_track=len))
-    assert compiled.simulate_kernel() is _jit()
-    assert compiled.servo_track() is _jit("servo_track")
+    assert compiled.simulate_kernel().__wrapped__ is _jit()
+    assert compiled.servo_track().__wrapped__ is _jit("servo_track")
     assert "lacks simulate_kernel" in compiled.aot_status()
     assert not path.exists() and not compiled._record_path(path).exists()
 
