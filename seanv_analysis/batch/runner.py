@@ -21,7 +21,7 @@ import pandas as pd
 
 from .. import __version__
 from ..config import RigConfig
-from ..errors import ConfigError, DataError, SeanvError
+from ..errors import ConfigError, DataError, OutputError, SeanvError
 from ..io.atomic import atomic_folder, check_not_foreign, remove_stale_temps, retire_folder
 from ..io.outdir import check_out_dir
 from ..jsonable import JsonResult
@@ -424,8 +424,8 @@ def _run_stage(ctx: Context, name: str, options: Mapping[str, Any], result: Pipe
                           f"'{name}' needs the per-run summary; add an 'ingest' stage first")
     try:
         value = mod.run(ctx, options)
-    except ConfigError:
-        raise
+    except (ConfigError, OutputError):
+        raise   # bad input, or an output that cannot be written: the run ends, one line
     except DataError:
         if name == "ingest":
             raise

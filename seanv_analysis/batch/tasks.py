@@ -56,6 +56,7 @@ def cached_run_task(run_dir: str, *, func: Callable[..., Any], func_kwargs: Mapp
             return {"value": hit, "hashes": hashes, "stats": stats, "computed": False}
         rejected.append(f"{key}.json: not what stage '{stage}' stores")
     value = func(run, **func_kwargs)
-    write_entry(entries, key, value)
+    if valid is None or valid(value):   # never stored: what would be refused when read back
+        write_entry(entries, key, value)
     return {"value": value, "hashes": hashes, "stats": stats, "computed": True,
             "rejected": rejected}

@@ -121,6 +121,13 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
 
     On an exception the temp file is removed and ``path`` is untouched. The
     file gets the mode the umask gives new files (e.g. 0644 with umask 022).
+
+    Raises
+    ------
+    OutputError
+        an operating-system error that names no file or the temp file (disk
+        full, file too large, while writing): the message names ``path``
+        and why.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -131,8 +138,13 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
         yield tmp_path
         _follow_umask(tmp_path)
         os.replace(tmp_path, path)
-    except BaseException:
+    except BaseException as exc:
         tmp_path.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.filename in (None, tmp, tmp_path):
+            from ..errors import OutputError
+
+            why = " ".join((exc.strerror or str(exc) or type(exc).__name__).split())
+            raise OutputError(f"{path}: {why}") from None
         raise
 
 

@@ -4,7 +4,10 @@ Every registered :class:`~seanv_analysis.plots.Figure` the pipeline asks for
 (``figs``: numbers such as 4, 6, 7 or names; "all" by default) whose inputs
 exist is drawn: data-set figures from the results of earlier stages, per-run
 figures (Fig. 6, one per position-control run) as per-run tasks through the
-context's mapper. A figure that cannot be drawn is noted; it never sinks the run.
+context's mapper. A figure that cannot be drawn is noted; it never sinks the run;
+a figure file that cannot be written (disk full, file too large) ends the
+run like any output error (:class:`~seanv_analysis.errors.OutputError`
+naming the file).
 
 A data-set figure whose inputs are unchanged is not drawn again: its key
 (:func:`figure_key`: the SHA-256 of the figure's name, the formats, the code
@@ -20,6 +23,7 @@ from functools import partial
 from pathlib import Path
 from typing import Any, Mapping
 
+from ..errors import OutputError
 from .base import Context, one_line, with_path
 from .dataset import position_runs
 from .validate import position_paths
@@ -114,9 +118,15 @@ def figures_of(result_name: str) -> list[str]:
 
 def draw_run_figure(run, *, name: str, folder: str, formats: tuple[str, ...], rig) -> dict[str, Any]:
     """Per-run function: the per-run figure ``name`` of one run."""
+    from ..errors import os_error_line
     from ..plots import FIGURES
 
-    paths = FIGURES[name].draw_run(run, Path(folder), formats=formats, rig=rig)
+    try:
+        paths = FIGURES[name].draw_run(run, Path(folder), formats=formats, rig=rig)
+    except OutputError as exc:   # ends the run (draw_figures raises it), never cached
+        return {"output_error": str(exc), "run_id": run.meta.run_id}
+    except OSError as exc:
+        return {"output_error": os_error_line(exc), "run_id": run.meta.run_id}
     return {"paths": [str(p) for p in paths], "run_id": run.meta.run_id}
 
 
@@ -160,6 +170,8 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
             got: list[Path] = []
             for d in runs:
                 r = res[str(d)]
+                if r.ok and "output_error" in r.value:
+                    raise OutputError(r.value["output_error"])
                 if r.ok:
                     got += [Path(p) for p in r.value["paths"]]
                 else:
@@ -182,7 +194,9 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
             continue
         try:
             drawn = fig.draw(inputs, folder, formats=formats)
-        except Exception as exc:  # a figure must not sink the run
+        except (OutputError, OSError):
+            raise   # a file that cannot be written (disk full): the run ends, the file named
+        except Exception as exc:  # a figure that cannot be drawn must not sink the run
             problems.append(f"{fig.name}: {one_line(exc)}")
             continue
         paths[fig.name] = tuple(Path(p) for p in drawn)
