@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import os
+import re
 import sys
 import threading
 import time
@@ -141,9 +142,11 @@ class Executor:
     kind: str = "serial"
 
     def __init__(self, kind: str = "serial", *, workers: int = 1, client: Any = None,
-                 own_client: bool = False):
+                 own_client: bool = False, asked: int | None = None):
         self.kind = kind
         self.workers = workers
+        #: the workers asked for when more than the processors (capped to ``workers``)
+        self.asked = asked
         self.client = client
         self._own_client = own_client
         self._pool: ProcessPoolExecutor | None = None
@@ -175,8 +178,11 @@ class Executor:
         """One line: 'serial', 'process pool (2 workers)', 'dask tcp://...'."""
         if self.kind == "serial":
             return "serial (1 process)"
-        if self.kind == "process":
-            return f"process pool ({self.workers} workers)"
+        if self.kind == "process" or self.asked:
+            capped = (f"; {self.asked} asked, capped at the processors this process may use"
+                      if self.asked else "")
+            return (f"process pool ({self.workers} workers{capped})" if self.kind == "process"
+                    else f"serial (1 process{capped})")
         addr = getattr(getattr(self.client, "scheduler", None), "address", None) or "?"
         return f"dask.distributed ({addr})"
 
@@ -374,7 +380,9 @@ def make_executor(*, workers: int | None = None, scheduler: str | None = None,
     Parameters
     ----------
     workers : number of local processes; 1 runs serially in this process;
-        None: the CPU count (serial on a single-CPU machine)
+        None: the CPU count (serial on a single-CPU machine); more than the
+        processors this process may use (at least 2) is capped to them, and
+        :meth:`Executor.describe` says so
     scheduler : address of a running dask scheduler (``tcp://host:port``);
         also read from ``DASK_SCHEDULER_ADDRESS`` when neither this nor
         ``client`` is given and ``workers`` is None
@@ -383,7 +391,8 @@ def make_executor(*, workers: int | None = None, scheduler: str | None = None,
     Raises
     ------
     ConfigError
-        ``workers`` < 1, dask not installed, or the scheduler cannot be reached.
+        ``workers`` < 1, dask not installed, a scheduler address that is not
+        one, or the scheduler cannot be reached.
     """
     if workers is not None and workers < 1:
         raise ConfigError(f"workers: {workers}; expected 1 or more")
@@ -392,6 +401,7 @@ def make_executor(*, workers: int | None = None, scheduler: str | None = None,
     if scheduler is None and workers is None:
         scheduler = os.environ.get("DASK_SCHEDULER_ADDRESS") or None
     if scheduler:
+        _check_address(scheduler)
         try:
             from dask.distributed import Client
         except ImportError:
@@ -404,8 +414,40 @@ def make_executor(*, workers: int | None = None, scheduler: str | None = None,
             raise ConfigError(f"scheduler: cannot connect to {scheduler} after "
                               f"{time.monotonic() - t0:.0f} s ({one_line_error(exc)}); is "
                               "`dask scheduler` running there?") from None
+        except (ValueError, TypeError) as exc:   # dask's own parse of the address
+            raise ConfigError(f"scheduler: {scheduler!r} is not a dask scheduler address "
+                              f"({one_line_error(exc)}); expected tcp://HOST:PORT") from None
         return Executor("dask", workers=0, client=c, own_client=True)
-    n = workers if workers is not None else (os.cpu_count() or 1)
+    cpus = usable_cpus()
+    n = workers if workers is not None else cpus
+    limit = max(cpus, 2)   # more processes than processors only wait on each other (2: a pool)
+    asked = n if n > limit else None
+    n = min(n, limit)
     if n == 1:
-        return Executor("serial", workers=1)
-    return Executor("process", workers=n)
+        return Executor("serial", workers=1, asked=asked)
+    return Executor("process", workers=n, asked=asked)
+
+
+def usable_cpus() -> int:
+    """The processors this process may run on (its affinity; else the CPU count)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
+_ADDRESS = re.compile(r"(?P<scheme>[a-z]+)://(?P<host>\[[0-9A-Fa-f:.]+\]|[^\s:/\[\]]+)"
+                      r"(?::(?P<port>\d{1,5}))?/?")
+
+
+def _check_address(address: str) -> None:
+    """A dask scheduler address, ``tcp://HOST:PORT`` (or tls://, ws://, wss://,
+    ucx://, inproc://): refused in one line before a connection is tried."""
+    m = _ADDRESS.fullmatch(address.strip()) if isinstance(address, str) else None
+    schemes = ("tcp", "tls", "ws", "wss", "ucx", "inproc")
+    if m is None or m["scheme"] not in schemes or \
+            (m["port"] is not None and not 0 < int(m["port"]) < 65536) or \
+            (m["port"] is None and m["scheme"] in ("tcp", "tls")):
+        raise ConfigError(f"scheduler: {address!r} is not a dask scheduler address; expected "
+                          f"SCHEME://HOST:PORT with SCHEME one of {', '.join(schemes)} and a port "
+                          "1..65535 (e.g. tcp://127.0.0.1:8786)")

