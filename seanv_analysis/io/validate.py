@@ -152,9 +152,10 @@ def check_folder_link(run_dir: str | Path) -> None:
         naming the link (not its target).
     """
     if os.path.islink(run_dir):
-        raise DataError("is a symbolic link to a folder; run folders inside a data set are not "
-                        "followed through links: copy or move the run into the data set, or "
-                        "give the folder itself as DATA", path=Path(run_dir))
+        raise DataError("is a symbolic link to a folder; folders inside a data set are not "
+                        "followed through links (the runs there are not read): copy or move "
+                        "them into the data set, or give the folder itself as DATA",
+                        path=Path(run_dir))
 
 
 def check_link(run_dir: str | Path, path: str | Path) -> None:

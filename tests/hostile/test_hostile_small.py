@@ -49,3 +49,21 @@ def test_a_bad_dask_address_on_the_command_line(hostile_data, tmp_path):
                                    str(tmp_path / "o"), "-q", "--scheduler", "foo://x"])
     assert res.exit_code == 2 and res.output.count("\n") == 1, res.output
     assert "'foo://x' is not a dask scheduler address" in res.output
+
+
+def test_a_linked_sub_folder_of_the_data_set_is_named(hostile_data, tmp_path):
+    """The probe: a symlinked sub-folder (a folder of runs) was skipped
+    without a word."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(hostile_data, data)
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.move(str(data / "z001-drain"), elsewhere / "z001-drain")
+    (data / "more").symlink_to(elsewhere, target_is_directory=True)
+    res = CliRunner().invoke(cli, ["ingest", str(data), "--out", str(tmp_path / "o"), "--json"])
+    assert res.exit_code == 1, res.output
+    bad = {b["path"]: b["message"] for b in json.loads(res.stdout)["bad_runs"]}
+    assert list(bad) == [str(data / "more")]
+    assert "is a symbolic link to a folder" in bad[str(data / "more")]
