@@ -190,14 +190,27 @@ def save_figure(fig, out_dir: str | Path, stem: str, *, formats: str | Sequence[
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     bbox = _tight_bbox(fig) if tight else None
+    engine = fig.get_layout_engine()
+    if engine is not None and not tight:
+        # a layout engine (constrained layout) solves again at every draw,
+        # starting from where the last draw left the axes: an SVG saved after
+        # a PNG had axes off by 1e-13 (other clip-path ids). Solved once, then
+        # held for every format: the same bytes whichever formats are asked.
+        fig.draw_without_rendering()
+        fig.set_layout_engine("none")
     paths = []
-    for ext in formats:
-        path = out / f"{stem}.{ext}"
-        if ext == "svg":
-            _fix_svg_ids()
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, format=ext, dpi=dpi, bbox_inches=bbox, metadata=_METADATA.get(ext))
-        paths.append(path)
+    try:
+        for ext in formats:
+            path = out / f"{stem}.{ext}"
+            if ext == "svg":
+                _fix_svg_ids()
+            with atomic_path(path) as tmp:
+                fig.savefig(tmp, format=ext, dpi=dpi, bbox_inches=bbox,
+                            metadata=_METADATA.get(ext))
+            paths.append(path)
+    finally:
+        if engine is not None and not tight:
+            fig.set_layout_engine(engine)
     return paths
 
 

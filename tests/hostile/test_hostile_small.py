@@ -67,3 +67,29 @@ def test_a_linked_sub_folder_of_the_data_set_is_named(hostile_data, tmp_path):
     bad = {b["path"]: b["message"] for b in json.loads(res.stdout)["bad_runs"]}
     assert list(bad) == [str(data / "more")]
     assert "is a symbolic link to a folder" in bad[str(data / "more")]
+
+
+def test_svg_bytes_do_not_depend_on_the_other_formats(flowfit_out, tmp_path):
+    """The probe: `--formats svg` and `png,svg` gave different SVG clip-path
+    ids (a constrained layout solved again from the PNG's)."""
+    from seanv_analysis.plots import FIGURES
+
+    fit = _flowfit_of(flowfit_out)
+    svg_only = FIGURES["fig4"].draw({"flowfit": fit}, tmp_path / "a", formats=("svg",))
+    both = FIGURES["fig4"].draw({"flowfit": fit}, tmp_path / "b", formats=("png", "svg"))
+    assert svg_only[0].read_bytes() == both[1].read_bytes()
+
+
+def _flowfit_of(out):
+    """The flow fit of the shared run, computed again from its summary."""
+    import warnings
+
+    import pandas as pd
+
+    from seanv_analysis.config import load_rig
+    from seanv_analysis.fit import fit_flow
+
+    summary = pd.read_parquet(out / "summary.parquet")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")   # 8 synthetic runs: no intervals (a warning says so)
+        return fit_flow(summary, rig=load_rig(), n_boot=0)
