@@ -26,6 +26,7 @@ from seanv_analysis.errors import ConfigError
 from seanv_analysis.models import effects as fx
 from seanv_analysis.models import side_pressures
 from seanv_analysis.report import render_report
+from seanv_analysis.stages import report_sections
 
 RIG = load_rig()
 MODEL = ValveModel.from_rig(RIG)
@@ -126,7 +127,7 @@ def test_discover_names_the_toy_effect_and_reports_it(toy):
     _, specs = d.augmented_model_and_effects()
     assert specs[0].startswith("ripple:amplitude=")
     # and the HTML report names it with its sentence (no report code knows "ripple")
-    html = render_report(_record(d))
+    html = render_report(_record(d), report_sections())
     assert "ripple" in html and html_escape(first.sentence(), quote=True) in html
 
 

@@ -205,9 +205,6 @@ class RunCache:
             return None
         return read_entry(self.entries, key)
 
-    def put(self, key: str, value: Any) -> None:
-        write_entry(self.entries, key, value)
-
 
 _ENTRY_SCHEMA = b"seanv-cache-entry/2"
 

@@ -28,6 +28,7 @@ from typing import Any, Sequence
 
 import pandas as pd
 
+from ..discover.split import split_position_runs as split_runs
 from ..models import SIDES
 from .controller import controller_constants
 from .flowpath import closed_loop_fits, flow_path_constants
@@ -41,13 +42,6 @@ __all__ = ["identify_rig", "PARTS", "split_runs"]
 
 #: the parts of the rig ``identify`` looks at, in order
 PARTS = ("geometry", "servo", "friction", "load", "flow_path")
-
-
-def split_runs(runs: Sequence[Any]) -> tuple[list[Any], list[Any]]:
-    """(training, held-out) position-control runs: in time order, every other
-    run held out (the second, fourth, ...); one run: trained on, none held out."""
-    order = sorted(runs, key=lambda r: (str(r.meta.started_at), r.run_id))
-    return order[0::2], order[1::2]
 
 
 def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (),

@@ -12,7 +12,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..jsonable import JsonResult, clean_json, json_num, unit_suffix
+from ..jsonable import JsonResult, clean_json, json_num
+from ..units import unit_suffix
 
 __all__ = ["Constant", "Identification", "json_num", "nest_constants"]
 

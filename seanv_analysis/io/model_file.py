@@ -16,9 +16,9 @@ from typing import Any, Mapping
 
 from ..errors import ConfigError
 from ..models import ValveModel
-from .atomic import write_json_atomic, write_text_atomic
+from .atomic import write_text_atomic
 
-__all__ = ["read_model", "write_model_json", "write_model_toml", "dumps_toml"]
+__all__ = ["read_model", "write_model_toml", "dumps_toml"]
 
 
 def read_model(path: str | Path, *, rig: Any) -> ValveModel:
@@ -49,11 +49,6 @@ def read_model(path: str | Path, *, rig: Any) -> ValveModel:
         raise ConfigError(f"{path}: model file not found") from None
     except (KeyError, TypeError, ValueError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(f"{path}: not a valve model file ({exc})") from None
-
-
-def write_model_json(path: str | Path, model: ValveModel) -> Path:
-    """Write ``model`` as JSON (:meth:`ValveModel.to_dict`), atomically; returns the path."""
-    return write_json_atomic(path, model.to_dict())
 
 
 def write_model_toml(path: str | Path, model: ValveModel, *, header: str = "") -> Path:

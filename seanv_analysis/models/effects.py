@@ -68,7 +68,7 @@ __all__ = [
     "TermCorrection", "ValveTerms", "PlantTerms",
     "static_effects", "vocabulary_effects", "dynamic_effects", "parse_effect", "parse_effects",
     "drift_multiplier", "threshold_shift_mm", "backlash_cam_deg", "backlash_play_deg",
-    "saturate_flow", "saturate_flow_core", "measured_from_true", "true_from_measured",
+    "saturate_flow", "saturate_flow_core", "true_from_measured",
     "term_variables", "apply_corrections",
 ]
 
@@ -140,11 +140,6 @@ def saturate_flow(q, q_max, sharpness=8.0):
     if m.any():     # (none capped, the usual case: nothing to do)
         out[m] = saturate_flow_core(q[m], q_max[m], sharpness)
     return out
-
-
-def measured_from_true(true, *, gain):
-    """Sensor reading with a scale error: gain * true."""
-    return gain * np.asarray(true, dtype=float)
 
 
 def true_from_measured(measured, *, gain, sensor="pressure"):
@@ -287,6 +282,8 @@ class Effect:
     """
 
     name: ClassVar[str] = ""
+    #: {parameter: its meaning, with its unit in brackets at the end of the
+    #: quantity ("total play between servo and cam [deg]", "[-]" for a ratio)}
     PARAMS: ClassVar[dict[str, str]] = {}
     #: one clause for the discovery report, ``str.format``-ed with ``side``
     #: and the fitted parameters (see :meth:`sentence`)
@@ -299,6 +296,22 @@ class Effect:
     #: a parameter whose value runs to the end of a string spec, commas
     #: included (it must come last); None: every value ends at a comma
     TAIL_PARAM: ClassVar[str | None] = None
+
+    @classmethod
+    def param_units(cls) -> dict[str, str]:
+        """{parameter: unit} of its numeric parameters: the unit its name
+        carries (the package's unit table, :mod:`seanv_analysis.units`),
+        else the bracket of its ``PARAMS`` entry; '-' for a ratio."""
+        from ..units import unit_of_key
+
+        out = {}
+        for k, text in cls.PARAMS.items():
+            named = unit_of_key(k)
+            if named is not None:
+                out[k] = named[1]
+            elif "[" in text and "]" in text.rsplit("[", 1)[1]:
+                out[k] = text.rsplit("[", 1)[1].split("]", 1)[0]
+        return out
 
     def __init_subclass__(cls, register: bool = True, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)

@@ -13,14 +13,19 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping
 
-from .base import Context
+from ..report import ReportSection, sections
+from .base import Context, Result
 from .dataset import position_runs
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DESCRIPTION", "check_option", "run", "write",
            "rig_toml"]
 
 NAME = "identify"
+ORDER = 30
 NEEDS = ("ingest",)
+FOLDER = "identify"
+RESULTS = (Result("identify", "Identification"),)
+SECTION = ReportSection("identify", "The rig identified from its logs", sections.identify_section)
 WRITES = ("identify/rig-identified.toml", "identify/identify.json", "identify/identify.txt")
 DESCRIPTION = ("identify the rig's unpublished constants (needle geometry, servo, friction, "
                "line) from its logs; later stages simulate the identified twin")

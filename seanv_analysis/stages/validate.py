@@ -16,14 +16,19 @@ from typing import Any, Mapping, Sequence
 
 from ..errors import DataError
 from ..jsonable import JsonResult
-from .base import Context, FailedRun, one_line, with_path
+from ..report import ReportSection, sections
+from .base import Context, FailedRun, Result, one_line, with_path
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "ValidateResult", "check_option", "run", "write",
            "validate_model",
            "validate_one", "controller_numbers"]
 
 NAME = "validate"
+ORDER = 50
 NEEDS = ("ingest",)
+FOLDER = "validate"
+RESULTS = (Result("validation", "Validation", get=lambda value, ctx: value.validation),)
+SECTION = ReportSection("validation", "Closed-loop validation", sections.validation_section)
 WRITES = ("validate/validate.json", "validate/validate.txt", "validate/validate_table.parquet",
           "validate/validate_steps.parquet", "validate/validate_<run>.parquet")
 DESCRIPTION = "re-run each position-control run's controller on the simulated plant; fit %"
