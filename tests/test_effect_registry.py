@@ -270,9 +270,8 @@ def test_plant_terms_fold_effects_in_order():
     assert drain.dp_exponent is None
     assert plant.valve_terms("supply", 4) == fx.ValveTerms(dp_exponent=0.6)
     extra = plant.plant_terms()
-    assert (extra.backlash_deg, extra.delay_s) == (1.5, 0.2)
-    assert extra.gains == {"position_mm": 1.1, "p_supply_mpag": 1.0, "p_head_mpag": 0.9,
-                           "p_load_mpag": 1.0}
+    assert dict(extra.items()) == {"BACKLASH": 1.5, "DELAY": 0.2, "GAIN_X": 1.1, "GAIN_PS": 1.0,
+                                   "GAIN_PH": 0.9, "GAIN_PL": 1.0}
 
 
 # Errors: ValueError in models, ConfigError at the simulator's boundary -------------
