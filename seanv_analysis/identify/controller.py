@@ -47,7 +47,8 @@ controller reads (:meth:`~seanv_analysis.sim.control.CamController.from_rig`,
 :meth:`~seanv_analysis.sim.control.FlowModelController.from_rig`) and
 replays every run's logged error through the rig file's and the identified
 law (the compiled step law itself) to compare their commands with the
-logged one.
+logged one. Where the rig file's value lies in a constant's interval (the
+logs cannot tell them apart) it is kept, as the supply's droop is.
 """
 from __future__ import annotations
 
@@ -71,6 +72,10 @@ _SEED_BAND_FACTOR = 1.2
 _SEED_MIN_MM = 0.1
 #: seed ticks needed for a fit
 _MIN_SEED = 10
+#: a hold's cluster in the seed: within this of its densest bin [deg] ...
+_CLUSTER_DEG = 1.0
+#: ... holding at least this share of the seed
+_CLUSTER_SHARE = 0.05
 #: residual tolerance: this many robust standard deviations, at least _TOL_MIN_DEG
 _TOL_SIGMAS = 6.0
 _TOL_MIN_DEG = 0.02
@@ -410,17 +415,18 @@ class _Law:
 
 
 def _seed(e: np.ndarray, cmd: np.ndarray, hv: np.ndarray, band0: float) -> np.ndarray:
-    """Ticks to fit the P law on first: unsaturated, |e| well outside the rig
-    file's band, and not in a cluster of one hold value ``hv`` (command, or
-    threshold - command) holding a quarter of them (a latched hold whose
-    error drifted out of the band)."""
+    """Ticks to fit the P law on first: unsaturated, |e| outside the rig
+    file's band, and not in the densest cluster (+-:data:`_CLUSTER_DEG`) of
+    the hold value ``hv`` (command, or threshold - command) when it holds
+    :data:`_CLUSTER_SHARE` of them (a latched hold whose error drifted out of
+    the band; there, the P law's command is at least Kp x band from the hold)."""
     lo, hi = np.nanmin(cmd), np.nanmax(cmd)
     seed = (cmd > lo + 1e-6) & (cmd < hi - 1e-6)
     seed &= np.abs(e) > max(_SEED_BAND_FACTOR * band0, _SEED_MIN_MM)
     if seed.sum() >= _MIN_SEED:
-        centre = _mode_centre(hv[seed], half_deg=0.3)
-        cluster = seed & (np.abs(hv - centre) <= 0.3)
-        if cluster.sum() >= 0.25 * seed.sum():
+        centre = _mode_centre(hv[seed], half_deg=_CLUSTER_DEG)
+        cluster = seed & (np.abs(hv - centre) <= _CLUSTER_DEG)
+        if cluster.sum() >= max(_MIN_SEED, _CLUSTER_SHARE * seed.sum()):
             seed &= ~cluster
     return seed
 
@@ -681,6 +687,15 @@ def _pooled(laws: list[ControllerLaw], kind: str | None = None) -> ControllerLaw
     return p
 
 
+def _or_default(value: float, default: float, interval: tuple[float, float]) -> tuple[float, str]:
+    """``default`` when it lies in ``interval`` (the logs cannot tell them
+    apart: the rig file's value stays), else ``value``; and a note saying so."""
+    lo, hi = interval
+    if lo <= default <= hi:
+        return default, "; the rig file's value lies in the interval and is kept"
+    return value, ""
+
+
 def controller_constants(runs: Sequence[Any], valve, rig) -> tuple[list[Constant], dict, list[str]]:
     """The controller's law as rig constants, from every position-control run.
 
@@ -719,11 +734,13 @@ def controller_constants(runs: Sequence[Any], valve, rig) -> tuple[list[Constant
                                     f"to |e| = {pool.band_interval_mm[1]:.3g} mm"))
     else:
         lo, hi = pool.band_interval_mm
+        band, kept = _or_default(pool.band_mm, band0, (lo, hi))
         consts.append(Constant("controller.convergence_band_mm", "controller hold band",
-                               pool.band_mm, band0, "mm", True,
+                               band, band0, "mm", True,
                                f"{pool.n_ticks} controller ticks of {n_runs}: holds entered at "
                                f"|e| <= {lo:.4g} mm, P law at |e| >= {hi:.4g} mm",
-                               (lo, hi), note="interval: the bands the logged switches allow"))
+                               (lo, hi), note="interval: the bands the logged switches allow"
+                               + kept))
         rname = "controller hold release band"
         if pool.release == "latch":
             consts.append(Constant("controller.release_band_mm", rname, math.inf, rel0, "mm",
@@ -735,13 +752,16 @@ def controller_constants(runs: Sequence[Any], valve, rig) -> tuple[list[Constant
             rlo, rhi = pool.release_interval_mm
             how = ("released as soon as |e| leaves the band" if pool.release == "band" else
                    f"released at |e| > {pool.release_mm:.3g} mm")
-            consts.append(Constant("controller.release_band_mm", rname, pool.release_mm, rel0,
+            if pool.release == "band":
+                release, ci, kept = band, (band, band), ""
+            else:
+                release, kept = _or_default(pool.release_mm, rel0, (rlo, rhi))
+                ci = (rlo, rhi)
+            consts.append(Constant("controller.release_band_mm", rname, release, rel0,
                                    "mm", True,
                                    f"{int(sum(w.n_releases for w in laws))} holds that ended "
                                    f"before the reference changed (at |e| >= {rhi:.4g} mm), "
-                                   f"held up to |e| = {rlo:.4g} mm",
-                                   (pool.band_mm, pool.band_mm) if pool.release == "band"
-                                   else (rlo, rhi), note=how))
+                                   f"held up to |e| = {rlo:.4g} mm", ci, note=how + kept))
         else:
             consts.append(Constant("controller.release_band_mm", rname, rel0, rel0, "mm", False,
                                    src, note="no hold ended before its reference, but the held "
@@ -770,10 +790,11 @@ def controller_constants(runs: Sequence[Any], valve, rig) -> tuple[list[Constant
             w.messages.append(msg)
         disagree |= bool(bad)
         agree = "" if bad else "; agrees with run.json's kp"
-        consts.append(Constant(key, name, kp, k0, unit, True,
+        value, kept = _or_default(kp, k0, (kp - half, kp + half))
+        consts.append(Constant(key, name, value, k0, unit, True,
                                f"{sum(w.n_law for w in ws)} ticks of the P law "
                                + ("(Q_ref vs e)" if kind == "flow_model" else "(cam command vs e)"),
-                               (kp - half, kp + half), note=f"least squares{agree}"))
+                               (kp - half, kp + half), note=f"least squares{agree}{kept}"))
     for kind, key, name in (("cam", "servo.neutral_deg", "cam controller hold angle"),
                             ("flow_model", "controller.hold_below_supply_threshold_deg",
                              "flow-model hold below threshold")):
@@ -802,9 +823,10 @@ def controller_constants(runs: Sequence[Any], valve, rig) -> tuple[list[Constant
                 extra = (f"; the controller's own eq. (6) puts the supply threshold {off:+.3g} "
                          "deg from the identified valve's: its flow model is not that valve, "
                          "and the hold is counted from its threshold")
-        consts.append(Constant(key, name, centre, d0, "deg", True,
+        value, kept = _or_default(centre, d0, ci)
+        consts.append(Constant(key, name, value, d0, "deg", True,
                                f"{n_ep} holds of {len(ws)} run(s) (median of each hold's angle)",
-                               ci, note=f"interval: bootstrap over the holds{extra}"))
+                               ci, note=f"interval: bootstrap over the holds{kept}{extra}"))
     # the command's limits
     for key, name, attr in (("valve.cam_min_deg", "cam command lower limit", "cam_min_deg"),
                             ("valve.cam_max_deg", "cam command upper limit", "cam_max_deg")):
