@@ -437,7 +437,7 @@ _OFFSET_CAP_MM = 0.1
 _OFFSET_SHARE = 1.05
 
 
-def _offset_score(log: _Log, offset: float, band0: float, valve) -> float:
+def _offset_score(log: _Log, offset: float, band0: float) -> float:
     """How well the logged command (Q_ref, or the cam command of the cam
     controller) follows the position ``offset`` s before the logged tick:
     the mean misfit in mm of e, each tick's capped at :data:`_OFFSET_CAP_MM`."""
@@ -480,7 +480,7 @@ def controller_law(run, valve, rig) -> ControllerLaw | None:
         out.messages.append(f"ticks every {period * 1e3:.1f} ms: {1.0 / period:.1f} Hz, run.json "
                             f"says rate_hz {log.rate_declared_hz:g}")
     offsets = np.arange(0.0, max(period - 1e-9, 0.0), _OFFSET_STEP_S)
-    scores = np.array([_offset_score(log, float(o), band0, valve) for o in offsets])
+    scores = np.array([_offset_score(log, float(o), band0) for o in offsets])
     if np.isfinite(scores).any():
         out.offset_s = float(offsets[np.flatnonzero(scores <= _OFFSET_SHARE * scores.min())[0]])
     d = log.at(out.offset_s)
