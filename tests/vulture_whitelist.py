@@ -13,6 +13,8 @@ lags_s  # analysis.lag.LagEstimate: the cross-correlation curve
 correlation
 binned  # discover.diagnostics.Trend: the binned residual for a figure
 train_sse_drop  # identify.dynamic.DynamicFinding (to_json_dict via asdict)
+n_cycles  # analysis.limitcycle.LimitCycle: cycles counted and where
+windows_s
 _.span_s  # io.run.Run: the time span of a run
 _.with_constants  # models.expr.Program: refit a form's numbers
 valid_start_s  # signals.derive.Derived: where the filter is valid

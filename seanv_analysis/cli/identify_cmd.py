@@ -44,8 +44,9 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
     DATA: one or more data set folders; flow-step runs give the needle
     geometry (eq. 4's centre, with z0 and C refitted) and the Coulomb and
     viscous friction, position-control runs give the servo (dead time, time
-    constant, rate limit, from its logs), the breakaway force, whether the
-    controller holds once converged, the load regulator's time constant
+    constant, rate limit, from its logs), the breakaway force, the
+    controller's law (gain, hold band and angle, whether the hold latches
+    or lets go, cam limits), the load regulator's time constant
     (from the logged load pressure) and the line (its bulk modulus, fitted so
     the twin driven by the logged cam command moves like the runs); both give the
     supply pressure the runs were made at. Each constant comes with

@@ -50,7 +50,11 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     the simulated plant with the same reference and load steps; simulated and
     measured position, flow and cam angle are compared (fit %, RMSE), with
     convergence (+-0.5 mm), overshoot and settling time per step. Runs with
-    position fit below --threshold are flagged.
+    position fit below --threshold are flagged. A run that hunts (a limit
+    cycle: the cam swinging for as long as the reference stays) is judged by
+    the cycle's amplitude, period and mean error (limit_cycle_* columns; its
+    phase cannot be reproduced): not flagged when both records hold the same
+    limit cycle (within 20 %), flagged when only one does or they differ.
 
     Each run is also re-run segment by segment, from the logged state where
     the rig rests before each reference step and load change (the *_segments_*

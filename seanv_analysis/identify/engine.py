@@ -3,7 +3,8 @@
 Order (each part uses what the ones before found):
 
 0. the supply pressure the runs were made at (logged; the twin runs at it),
-   and whether the controller holds the cam once converged (its logs);
+   and the controller's law (:mod:`.controller`: gain, hold band, hold
+   angle, latch or release, cam limits, from its logs);
 1. needle geometry (:mod:`.geometry`): the sealing threshold's dependence
    on the pressures, from the flow steps; then z0 and C refitted with it
    (flowfit's joint fit, bootstrap intervals);

@@ -224,7 +224,10 @@ def _n_kind(r, kind: str) -> int | None:
 def _validation_table(val) -> str:
     cols = ["run_id", "controller", "fit_position_pct", "rmse_position_mm", "fit_flow_pct",
             "rmse_flow_mm3_s", "fit_cam_pct", "overshoot_measured_mm", "overshoot_simulated_mm",
-            "flagged"]
+            "limit_cycle", "limit_cycle_amplitude_measured_mm", "limit_cycle_amplitude_simulated_mm",
+            "limit_cycle_period_measured_s", "limit_cycle_period_simulated_s", "flagged"]
+    if "limit_cycle" in val.table and (val.table["limit_cycle"] == "none").all():
+        cols = [c for c in cols if not c.startswith("limit_cycle")]   # no run hunts
     df = val.table[[c for c in cols if c in val.table.columns]]
     out = _table(df, left=("run_id", "controller"))
     by = val.by_controller()
