@@ -56,9 +56,9 @@ CASES = {
 def _one(args):
     name, spec, side, seed = args
     from seanv_analysis import load_rig
+    from seanv_analysis.discover import discover_dataset as discover_runs
     from seanv_analysis.sim.scenarios import iter_scenario_runs
     from seanv_analysis.stages.dataset import summarize_runs
-    from seanv_analysis.stages.discover import discover_runs
 
     rig = load_rig()
     scenario = "paper-position" if name == "delay" else "paper-flowsteps"

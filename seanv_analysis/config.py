@@ -313,6 +313,8 @@ def _is_number(value: Any) -> bool:
 def _expected(spec: Mapping[str, Any]) -> str:
     """What a key of ``spec`` must be, in words: 'a number > 0 and <= 100 [mm]'."""
     kind = spec["type"]
+    if kind == "bool":
+        return "true or false"
     if kind == "string":
         return f'"{spec["equals"]}"' if "equals" in spec else "a string"
     noun = {"number": "a finite number", "integer": "an integer",
@@ -327,7 +329,8 @@ def _expected(spec: Mapping[str, Any]) -> str:
     if "max" in spec:
         bounds.append(f"<= {spec['max']:g}")
     unit = f" [{spec['unit']}]" if spec.get("unit") not in (None, "-") else ""
-    return f"{noun} {' and '.join(bounds)}{unit}" if bounds else f"{noun}{unit}"
+    inf = " (or inf)" if spec.get("inf") else ""
+    return f"{noun} {' and '.join(bounds)}{unit}{inf}" if bounds else f"{noun}{unit}{inf}"
 
 
 def value_problem(spec: Mapping[str, Any], value: Any) -> str | None:
@@ -335,6 +338,10 @@ def value_problem(spec: Mapping[str, Any], value: Any) -> str | None:
     as the words after the value ('is not a finite number; expected ...');
     None when it is fine."""
     kind = spec["type"]
+    if kind == "bool":
+        return None if isinstance(value, bool) else "is not true or false; expected a boolean"
+    if spec.get("inf") and value == math.inf and not isinstance(value, bool):
+        return None   # a key where +inf means 'never' (e.g. a band never left)
     if kind == "string":
         if not isinstance(value, str):
             return f"is not a string; expected {_expected(spec)}"

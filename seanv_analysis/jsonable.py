@@ -13,54 +13,10 @@ import math
 from pathlib import Path
 from typing import Any
 
+from .units import UNIT_SUFFIXES, unit_of_key, unit_suffix  # noqa: F401  (re-exported)
+
 __all__ = ["json_num", "clean_json", "dumps", "JsonResult", "UNIT_SUFFIXES", "unit_of_key",
            "unit_suffix"]
-
-#: The units of the numbers the package writes: a number's unit is the end
-#: of its key (``data_schema/json/common.schema.json``), key suffix -> unit
-#: in plain text. The HTML report prints it in column headers, results that
-#: name keys after a unit take the suffix here (:func:`unit_suffix`) and the
-#: JSON Schema tests check every number's key against it. A suffix comes
-#: before the shorter ones it ends with (``_mm3_s`` before ``_s``), so the
-#: first suffix a key ends with is its unit (:func:`unit_of_key`); of two
-#: suffixes of one unit, the first is the one new keys get.
-UNIT_SUFFIXES: dict[str, str] = {
-    "_mm3_s_deg2_sqrtMPa": "mm^3/(s deg^2 MPa^0.5)",   # C of eq. (5)
-    "_mm3_s_deg2": "mm^3/(s deg^2)",                   # alpha of Q = alpha (theta - theta_d)^2
-    "_mm3_s_per_mm": "mm^3/s per mm",
-    "_deg_per_mm": "deg/mm",
-    "_mm3_s": "mm^3/s",
-    "_mpag": "MPaG",
-    "_MPa": "MPa",
-    "_mpa": "MPa",
-    "_pct": "%",
-    "_frac": "fraction",
-    "_deg": "deg",
-    "_mm": "mm",
-    "_kg": "kg",
-    "_hz": "Hz",
-    "_m": "m",
-    "_s": "s",
-    "_N": "N",
-    "_n": "N",
-}
-
-
-def unit_of_key(key: str) -> tuple[str, str] | None:
-    """(name, unit) of a key ending in a unit suffix of :data:`UNIT_SUFFIXES`
-    (``'rmse_mm3_s'`` -> ``('rmse', 'mm^3/s')``), else None (a bare suffix
-    is no name: ``'_s'`` -> None)."""
-    for suffix, unit in UNIT_SUFFIXES.items():
-        if key.endswith(suffix) and len(key) > len(suffix):
-            return key[:-len(suffix)], unit
-    return None
-
-
-def unit_suffix(unit: str) -> str | None:
-    """The key suffix of a plain-text ``unit`` (``'mm^3/s'`` -> ``'_mm3_s'``,
-    ``'MPa'`` -> ``'_MPa'``), None for a unit :data:`UNIT_SUFFIXES` lacks."""
-    return next((suffix for suffix, u in UNIT_SUFFIXES.items() if u == unit), None)
-
 
 def json_num(x: Any) -> float | None:
     """A finite float, or None (JSON null) for NaN/inf/None/non-numbers."""

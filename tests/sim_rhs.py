@@ -110,7 +110,7 @@ def initial_state(pp: np.ndarray, aux: np.ndarray, x0_mm: float) -> np.ndarray:
 
 def check_supported(pp: np.ndarray) -> None:
     """Refuse parameter vectors using kernel features the RHS leaves out."""
-    if pp[PP.BACKLASH] != 0.0 or pp[PP.DELAY_STEPS] != 0.0:
+    if pp[PP.BACKLASH] != 0.0 or pp[PP.DELAY] != 0.0:
         raise ValueError("the continuous RHS does not model backlash / extra delay effects")
 
 

@@ -98,6 +98,16 @@ def test_ruff_clean():
     assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
 
 
+def test_no_dead_code():
+    """vulture finds no unused function, class, method, attribute or variable
+    in the package, its scripts and benchmarks (tests/vulture_whitelist.py
+    lists what is used where vulture cannot see it, each with why)."""
+    res = subprocess.run([sys.executable, "-m", "vulture", "seanv_analysis", "scripts",
+                          "benchmarks", "tests/vulture_whitelist.py", "--min-confidence", "60"],
+                         cwd=ROOT, capture_output=True, text=True)
+    assert res.returncode == 0, res.stdout[-4000:] + res.stderr[-2000:]
+
+
 def test_constraints_pin_every_dependency_within_pyproject():
     """constraints.txt (what `make venv` installs with) pins every package
     pyproject.toml asks for, at a version pyproject allows."""

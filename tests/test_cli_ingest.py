@@ -66,7 +66,7 @@ def test_dataset_writes_tables_summary_manifest(tmp_path, make_dataset):
         table = pq.read_table(out / f"{kind}.parquet")
         assert table.column_names[0] == "run_id"
         units = json.loads(table.schema.metadata[b"seanv.units"])
-        assert units["t_s"] == "s" and units["p_supply_mpag"] == "MPa gauge"
+        assert units["t_s"] == "s" and units["p_supply_mpag"] == "MPaG"
         assert table.schema.field("position_mm").metadata[b"unit"] == b"mm"
         df = table.to_pandas()
         runs = [r for r in ds.runs if r.kind == kind]

@@ -75,3 +75,45 @@ def test_the_grouped_jacobian_is_scipys_and_costs_fewer_evaluations(case):
     want = approx_derivative(resid, x, f0=f0, method="2-point", bounds=(lo, hi))
     assert np.array_equal(got, want) and got.flags.f_contiguous == want.flags.f_contiguous
     assert np.array_equal(np.signbit(got), np.signbit(want))    # the zeros' signs too
+
+
+@pytest.mark.parametrize("x", [[-0.2, 17.0, 1.0 - 1e-12, -22.0], [0.0, 0.0, -1.0, 0.0],
+                               [-1.0 + 1e-300, 60.0, 0.999999999, -1e-9], [0.5, 30.0, 0.0, -30.0]])
+def test_the_steps_and_the_dense_fallback_are_scipys(x):
+    """The steps (scipy's private rule, written out in the package) and the
+    column-by-column fallback equal scipy's bit for bit, at and near bounds."""
+    from scipy.optimize._numdiff import (
+        _adjust_scheme_to_bounds,
+        _compute_absolute_step,
+        _prepare_bounds,
+    )
+
+    x = np.asarray(x, float)
+    lo, hi = np.array([-1.0, 0.0, -1.0, -60.0]), np.array([1.0, 60.0, 1.0, 0.0])
+    f0 = np.array([1.0, 2.0])
+    want = _adjust_scheme_to_bounds(x, _compute_absolute_step(None, x, f0, "2-point"), 1,
+                                    "1-sided", *_prepare_bounds((lo, hi), x))[0]
+    got = static._forward_steps(x, (lo, hi))
+    assert np.array_equal(got, want) and np.array_equal(np.signbit(got), np.signbit(want))
+
+    def fun(v):
+        return np.array([np.sin(v).sum(), (v ** 2 * np.arange(1, 5)).sum()])
+
+    f0 = fun(x)
+    dense = static._dense_forward(fun, x, f0, got)
+    assert np.array_equal(dense, approx_derivative(fun, x, f0=f0, method="2-point",
+                                                   bounds=(lo, hi)))
+
+
+def test_the_package_uses_no_private_scipy():
+    """scipy's private modules may change under a pinned version's patch
+    release; the package imports none (tests compare against them)."""
+    import re
+    from pathlib import Path
+
+    import seanv_analysis
+
+    root = Path(seanv_analysis.__file__).parent
+    private = [str(p.relative_to(root)) for p in root.rglob("*.py")
+               if re.search(r"\bscipy(\.\w+)*\._\w+", p.read_text())]
+    assert private == []

@@ -13,9 +13,9 @@ import pytest
 from json_schemas import check_schema, keys_without_unit
 
 from seanv_analysis import load_rig
+from seanv_analysis.discover import discover_dataset as discover_runs
 from seanv_analysis.sim.scenarios import iter_scenario_runs
 from seanv_analysis.stages.dataset import summarize_runs
-from seanv_analysis.stages.discover import discover_runs
 
 RIG = load_rig()
 

@@ -26,6 +26,7 @@ from seanv_analysis.errors import ConfigError
 from seanv_analysis.models import effects as fx
 from seanv_analysis.models import side_pressures
 from seanv_analysis.report import render_report
+from seanv_analysis.stages import report_sections
 
 RIG = load_rig()
 MODEL = ValveModel.from_rig(RIG)
@@ -126,7 +127,7 @@ def test_discover_names_the_toy_effect_and_reports_it(toy):
     _, specs = d.augmented_model_and_effects()
     assert specs[0].startswith("ripple:amplitude=")
     # and the HTML report names it with its sentence (no report code knows "ripple")
-    html = render_report(_record(d))
+    html = render_report(_record(d), report_sections())
     assert "ripple" in html and html_escape(first.sentence(), quote=True) in html
 
 
@@ -269,9 +270,8 @@ def test_plant_terms_fold_effects_in_order():
     assert drain.dp_exponent is None
     assert plant.valve_terms("supply", 4) == fx.ValveTerms(dp_exponent=0.6)
     extra = plant.plant_terms()
-    assert (extra.backlash_deg, extra.delay_s) == (1.5, 0.2)
-    assert extra.gains == {"position_mm": 1.1, "p_supply_mpag": 1.0, "p_head_mpag": 0.9,
-                           "p_load_mpag": 1.0}
+    assert dict(extra.items()) == {"BACKLASH": 1.5, "DELAY": 0.2, "GAIN_X": 1.1, "GAIN_PS": 1.0,
+                                   "GAIN_PH": 0.9, "GAIN_PL": 1.0}
 
 
 # Errors: ValueError in models, ConfigError at the simulator's boundary -------------

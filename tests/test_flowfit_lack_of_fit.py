@@ -212,10 +212,12 @@ def test_html_model_table_says_lack_of_fit(drift_fit, clean_fit, tmp_path):
     from seanv_analysis.batch import load_pipeline
     from seanv_analysis.batch.runner import PipelineResult
     from seanv_analysis.report import render_report
+    from seanv_analysis.stages import report_sections
 
     def table_rows(fit):
         html = render_report(PipelineResult(load_pipeline("flowfit"), [tmp_path], tmp_path,
-                                            flowfit=fit, rig=_rig(), command=["x"]))
+                                            results={"flowfit": fit}, rig=_rig(), command=["x"]),
+                           report_sections())
         start = html.index("<th class='l verdict'>verdict (flowfit")
         return {side: html[html.index(f"<td class='l'>{side}</td>", start):].split("</tr>")[0]
                 for side in ("supply", "drain")}, html

@@ -1,5 +1,6 @@
 """Table formats registry: the shipped formats match the contract, and a new
-format is one parse function + one registry entry + its name in the contract."""
+format is one module (a parse function and its registry entry); the contract's
+formats come first, a format it does not name is looked for after them."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -126,17 +127,20 @@ def test_format_named_in_contract_without_parser_is_a_config_error(tmp_path, mak
         read_dataset(data)
 
 
-def test_parser_not_named_in_contract_is_a_config_error(tmp_path, make_run):
+def test_a_format_the_contract_does_not_name_is_an_extension(tmp_path, make_run):
+    """Registered without a contract change (the one-file recipe): read after
+    the contract's formats, which keep their order."""
     run_dir = make_run(tmp_path, duration_s=0.2)
     saved = dict(formats.FORMATS)
     try:
         register_format(TSV)
-        with pytest.raises(ConfigError, match=r"does not name the registered format\(s\) 'tsv'"):
-            read_run(run_dir)
+        assert [f.name for f in table_formats()] == ["csv", "parquet", "tsv"]
+        assert table_suffixes() == (".csv", ".parquet", ".tsv")
+        read_run(run_dir)
     finally:
         formats.FORMATS.clear()
         formats.FORMATS.update(saved)
-    read_run(run_dir)
+    assert [f.name for f in table_formats()] == ["csv", "parquet"]
 
 
 def test_register_format_refuses_a_taken_or_bad_suffix():

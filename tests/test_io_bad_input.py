@@ -128,7 +128,7 @@ CASES = [
          r"servo\.parquet: not a readable Parquet file", fmt="parquet"),
     # columns
     Case("missing_column", lambda d: drop_column(d / "pressure.csv", "p_head_mpag"),
-         r"pressure\.csv, column 'p_head_mpag': missing .*expected 'p_head_mpag' \[MPa gauge\]"),
+         r"pressure\.csv, column 'p_head_mpag': missing .*expected 'p_head_mpag' \[MPaG\]"),
     Case("missing_t_s", lambda d: drop_column(d / "servo.csv", "t_s"),
          r"servo\.csv, column 't_s': missing"),
     Case("duplicate_column", lambda d: (d / "encoder.csv").write_text(
@@ -139,7 +139,7 @@ CASES = [
     # values
     Case("non_numeric", lambda d: set_cell(d / "pressure.csv", 5, "p_supply_mpag", "abc"),
          r"pressure\.csv, column 'p_supply_mpag', row 5: value \"abc\" is not a number; "
-         r"expected a decimal number \[MPa gauge\]"),
+         r"expected a decimal number \[MPaG\]"),
     Case("non_numeric_parquet", _parquet_with_string,
          r"encoder\.parquet, column 'position_mm', row 7: value \"n/a\" is not a number", fmt="parquet"),
     Case("nan_required", lambda d: set_cell(d / "encoder.csv", 7, "position_mm", "nan"),

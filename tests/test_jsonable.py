@@ -1,9 +1,9 @@
-"""The package's one table of units in key names (seanv_analysis.jsonable)."""
+"""The package's one table of units in key names (seanv_analysis.units)."""
 from __future__ import annotations
 
 import pytest
 
-from seanv_analysis.jsonable import UNIT_SUFFIXES, unit_of_key, unit_suffix
+from seanv_analysis.units import UNIT_SUFFIXES, unit_of_key, unit_suffix
 
 
 def test_a_longer_suffix_comes_before_the_shorter_ones_it_ends_with():
@@ -40,3 +40,30 @@ def test_unit_suffix_is_the_first_of_its_unit_and_round_trips():
     assert unit_suffix("furlong") is None
     for unit in UNIT_SUFFIXES.values():
         assert unit_of_key("x" + unit_suffix(unit)) == ("x", unit)
+
+
+def test_the_contract_columns_and_the_unit_table_agree():
+    """contract.toml's unit of every column and run.json field is the unit
+    its name carries in the package's one table (the Parquet writer's too)."""
+    from seanv_analysis.io.contract import contract, table_specs
+    from seanv_analysis.units import units_of_columns
+
+    checked = 0
+    for spec in table_specs().values():
+        for col in spec.columns:
+            if col.unit:
+                assert units_of_columns([col.name])[col.name] == col.unit, col.name
+                checked += 1
+    for name, field in contract()["run_json"]["fields"].items():
+        if isinstance(field, dict) and field.get("unit"):
+            assert unit_of_key(name)[1] == field["unit"], name
+            checked += 1
+    assert checked >= 15
+
+
+@pytest.mark.parametrize("key,unit", [("max_rate_deg_s", "deg/s"), ("velocity_mm_s", "mm/s"),
+                                      ("droop_mpa_s_per_mm3", "MPa s/mm^3"),
+                                      ("viscous_friction_n_s_per_mm", "N s/mm"),
+                                      ("rate_mm_per_run", "mm/run"), ("dead_volume_mm3", "mm^3")])
+def test_compound_units_are_not_read_as_their_last_part(key, unit):
+    assert unit_of_key(key)[1] == unit

@@ -12,6 +12,7 @@ from seanv_analysis import __version__
 from seanv_analysis.batch import load_pipeline, run_pipeline
 from seanv_analysis.batch.runner import FailedRun, PipelineResult
 from seanv_analysis.report import render_report, write_report
+from seanv_analysis.stages import report_sections
 
 SECTIONS = ("overview", "flowfit", "tracking", "validation", "discovery", "runs", "provenance")
 
@@ -94,14 +95,14 @@ def _fake_result(tmp_path, rig) -> PipelineResult:
     fig.write_text("<?xml version='1.0'?><svg xmlns='http://www.w3.org/2000/svg' width='10' "
                    "height='10'><rect width='10' height='10'/></svg>")
     return PipelineResult(load_pipeline("flowfit"), [tmp_path / "data"], tmp_path, executor="serial",
-                          runs_found=3, runs_read=2, summary=summary, flowfit=fit,
+                          runs_found=3, runs_read=2, summary=summary, results={"flowfit": fit},
                           excluded={"leakage": 1, "friction": 0}, figures={"fig4": [fig]},
                           failed=[FailedRun("/d/c", "ingest", "/d/c/encoder.csv: not found")],
                           rig=rig, command=["x"])
 
 
 def test_report_fit_without_error_bars_says_so(tmp_path, rig):
-    html = render_report(_fake_result(tmp_path, rig))
+    html = render_report(_fake_result(tmp_path, rig), report_sections())
     assert "no interval (singular covariance" in html        # drain side: NaN intervals
     assert "[0.4, 0.42]" in html or "[0.40000, 0.42000]" in html or "0.42" in html
     assert "bootstrap over runs" in html                      # interval method named
@@ -113,7 +114,7 @@ def test_report_fit_without_error_bars_says_so(tmp_path, rig):
 
 
 def test_write_report_atomic(tmp_path, rig):
-    path = write_report(_fake_result(tmp_path, rig), tmp_path / "r" / "report.html")
+    path = write_report(_fake_result(tmp_path, rig), tmp_path / "r" / "report.html", sections=report_sections())
     assert path.is_file()
     assert not list(path.parent.glob(".*.tmp"))
 
@@ -205,7 +206,7 @@ def test_model_table_shows_flowfit_lack_of_fit(tmp_path, rig):
     res = _fake_result(tmp_path, rig)
     res.flowfit.sides["drain"].lack_of_fit = True
     res.flowfit.sides["supply"].lack_of_fit = False
-    html = render_report(res)
+    html = render_report(res, report_sections())
     assert "lack of fit" in _row(html, "drain") and "class='ok'" not in _row(html, "drain")
     assert "class='ok'>ok<" in _row(html, "supply")
 
@@ -214,7 +215,7 @@ def test_model_table_unexplained_residual_flags_every_side(tmp_path, rig):
     res = _fake_result(tmp_path, rig)
     res.flowfit.sides["supply"].lack_of_fit = False
     res.discovery = _discovery("unexplained", effects=[])
-    html = render_report(res)
+    html = render_report(res, report_sections())
     for side in ("supply", "drain"):
         assert "no known effect explains it" in _row(html, side)
         assert "class='ok'" not in _row(html, side)
@@ -231,7 +232,7 @@ def test_report_counts_runs_from_the_data(tmp_path, rig):
          "excluded": ["", ""], "run_index": [2, 3]})], ignore_index=True)
     res.validation = _validation()
     res.discovery = _discovery(position_control={"n_runs": 1})
-    html = render_report(res)
+    html = render_report(res, report_sections())
     assert "2 position-control runs re-run (of 2 in the data set)" in html
     assert "52 runs (chrono)" in html
     assert "Position control (1 run with a target flow" in html
@@ -248,7 +249,7 @@ def test_validation_section_tables_and_figures(tmp_path, rig, monkeypatch):
     png = tmp_path / "validate_fit.png"
     png.write_bytes(b"\x89PNG\r\n\x1a\n")
     res.figures = {"validate_fit": [png]}
-    html = render_report(res).replace("<wbr>", "")
+    html = render_report(res, report_sections()).replace("<wbr>", "")
     val = html.split("id='validation'")[1].split("id='discovery'")[0]
     ident, aug = val.split("Augmented model")
     assert "identified twin" in ident and "href='#fig-validate_fit'" in ident
@@ -263,7 +264,7 @@ def test_validation_section_tables_and_figures(tmp_path, rig, monkeypatch):
         name="validate_augmented_fit", needs=("discovery",), draw=lambda *a, **k: [],
         title="Closed-loop validation of the augmented model"))
     res.figures["validate_augmented_fit"] = [png]
-    val = render_report(res).split("id='validation'")[1].split("id='discovery'")[0]
+    val = render_report(res, report_sections()).split("id='validation'")[1].split("id='discovery'")[0]
     ident, aug = val.split("Augmented model")
     assert "href='#fig-validate_augmented_fit'" in aug
     assert "validate_augmented_fit" not in ident and "href='#fig-validate_fit'" in ident
@@ -272,7 +273,7 @@ def test_validation_section_tables_and_figures(tmp_path, rig, monkeypatch):
 def test_headers_are_words_with_units(tmp_path, rig):
     """No snake_case column name reaches a header; units in brackets."""
     res = _full_result(_fake_result(tmp_path, rig), tmp_path, rig)
-    html = render_report(res).replace("<wbr>", "")
+    html = render_report(res, report_sections()).replace("<wbr>", "")
     heads = re.findall(r"<th[^>]*>([^<]*)</th>", html)
     assert heads and not [h for h in heads if "_" in h.replace("Q_ref", "").replace("θ_d", "")]
     for h in ("z0 [mm]", "C [mm³/(s·deg²·MPa^0.5)]", "C 95 % interval [mm³/(s·deg²·MPa^0.5)]",
@@ -301,7 +302,7 @@ def test_report_renders_in_headless_chromium(report_run, tmp_path, rig):
     spec = importlib.util.spec_from_file_location("check_report_browser", script)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    path = write_report(_full_result(report_run, tmp_path, rig), tmp_path / "report.html")
+    path = write_report(_full_result(report_run, tmp_path, rig), tmp_path / "report.html", sections=report_sections())
     for width in (1280, 800):
         lay = mod.layout(path, width=width)
         assert lay["inner"] == width, lay
@@ -317,7 +318,7 @@ def test_model_table_never_ok_beside_a_discovery_finding(tmp_path, rig):
     words with units."""
     res = _fake_result(tmp_path, rig)
     res.discovery = _discovery()
-    html = render_report(res)
+    html = render_report(res, report_sections())
     drain = _row(html, "drain")
     assert "discovery found drift: C of the drain side falls 0.5 % every 3 runs" in drain
     assert "class='warn'" in drain and "class='ok'" not in drain

@@ -24,8 +24,18 @@ hold's end is carried into the next step (``*_segments_*`` metrics; with
 stick-slip these, not the whole run's, measure the twin's response to the
 inputs).
 
+A sustained oscillation (limit cycle, :mod:`.limitcycle`) is compared by
+its statistics, measured and simulated: amplitude [mm], period [s], mean
+error [mm] (``limit_cycle_*``; ``limit_cycle``: 'none', 'agrees' (amplitude
+and period within 20 %, mean error within 20 % of the amplitude),
+'differs', 'measured only', 'simulated only'). Its phase depends on where
+the first swing began, so a twin that hunts like the rig still scores a low
+fit %.
+
 Runs whose position fit % is below ``threshold_pct`` (default 80) are
-flagged: the plant disagrees with the data (what discovery looks at).
+flagged: the plant disagrees with the data (what discovery looks at);
+unless both records hold a limit cycle that agrees. A run where only one
+record oscillates, or whose oscillations differ, is flagged whatever its fit.
 """
 from __future__ import annotations
 
@@ -41,6 +51,7 @@ from ..errors import ConfigError, DataError
 from ..io.run import Run
 from ..jsonable import JsonResult, clean_json
 from ..signals.derive import derive_columns, derive_samples
+from .limitcycle import LIMIT_CYCLE_RTOL, compare_limit_cycles, limit_cycle
 from .tracking import load_level_holds
 
 __all__ = ["DEFAULT_THRESHOLD_PCT", "fit_percent", "reference_steps", "load_steps",
@@ -222,19 +233,25 @@ def build_controller(run: Run, model, rig=None):
     """The run's controller (run.json ``controller``) rebuilt with ``model``.
 
     flow_model true (default): ``FlowModelController.from_rig(rig, model,
-    kp_mm3_s_per_mm=kp)``; false: ``CamController.from_rig(rig, kp_deg_per_mm=kp)``.
-    Missing ``kp`` takes the rig's value; ``rate_hz`` is kept.
+    kp_mm3_s_per_mm=kp)``; false: ``CamController.from_rig(rig, kp_deg_per_mm=kp)``;
+    the band, release, hold angle and cam limits are the rig's
+    ([controller], ``servo.neutral_deg``, ``valve.cam_min_deg``/``cam_max_deg``:
+    what ``identify`` reads from the logs). Missing ``kp`` takes the rig's
+    value, and so does every run when the rig says ``controller.kp_from_logs``
+    (the logged gain contradicts run.json's); ``rate_hz`` is kept.
     """
     from ..sim.control import CamController, FlowModelController
 
     rig = run.rig if rig is None else rig
     c = dict(run.meta.controller or {})
     extra = {"rate_hz": float(c["rate_hz"])} if c.get("rate_hz") else {}
+    declared = c.get("kp") is not None and not rig["controller"].get("kp_from_logs", False)
     if c.get("flow_model", True):
-        if c.get("kp") is not None:
+        if declared:
             extra["kp_mm3_s_per_mm"] = float(c["kp"])
-        return FlowModelController.from_rig(rig, model, **extra)
-    if c.get("kp") is not None:
+        lo, hi = rig.cam_range_deg
+        return FlowModelController.from_rig(rig, model, cam_min_deg=lo, cam_max_deg=hi, **extra)
+    if declared:
         extra["kp_deg_per_mm"] = float(c["kp"])
     return CamController.from_rig(rig, **extra)
 
@@ -282,8 +299,12 @@ class Validation(JsonResult):
         convergence_time_simulated_s (mean time to first enter the band),
         overshoot_measured_mm /
         overshoot_simulated_mm (largest), settling_measured_s /
-        settling_simulated_s (mean over settled steps), flagged
-    flagged : run ids with position fit % < ``threshold_pct``
+        settling_simulated_s (mean over settled steps), limit_cycle ('none',
+        'agrees', 'differs', 'measured only', 'simulated only') and
+        limit_cycle_{amplitude,mean_error}_{measured,simulated}_mm,
+        limit_cycle_{period,duration}_{measured,simulated}_s, flagged
+    flagged : run ids with position fit % < ``threshold_pct`` (unless their
+        limit cycles agree), or whose limit cycles do not agree
     threshold_pct : the flag threshold [%]
     runs : per-run :class:`RunValidation` (overlay data for the figure)
     skipped : {run_id: reason}
@@ -333,7 +354,9 @@ class Validation(JsonResult):
         return {"threshold_pct": self.threshold_pct, "flagged": list(self.flagged),
                 "controller_model": self.controller_model,
                 "metric": "fit % = 100 (1 - ||y - y_sim|| / ||y - mean(y)||); RMSE of "
-                          "measured - simulated",
+                          "measured - simulated; limit cycle: amplitude (half peak-to-peak "
+                          "error per cycle, median), period (median), mean error",
+                "limit_cycle_tolerance_pct": 100.0 * LIMIT_CYCLE_RTOL,
                 "runs": [_applicable({k: clean_json(v) for k, v in rec.items()})
                          for rec in self.table.to_dict(orient="records")],
                 "by_controller": {str(c): _applicable({k: clean_json(v) for k, v in row.items()})
@@ -364,7 +387,8 @@ class Validation(JsonResult):
     def report(self) -> str:
         """Plain-text table."""
         lines = ["Closed-loop validation: measured vs simulated position control "
-                 f"(flag: position fit < {self.threshold_pct:g} %)"]
+                 f"(flag: position fit < {self.threshold_pct:g} % unless both hold the same "
+                 "limit cycle; a limit cycle in one only)"]
         head = (f"  {'run':<28} {'ctrl':<10} {'fit x %':>8} {'RMSE x':>7} {'fit Q %':>8} "
                 f"{'fit cam %':>9} {'conv':>9} {'t_conv s':>13} {'OS mm':>11} {'settle s':>13}")
         lines.append(head)
@@ -379,6 +403,18 @@ class Validation(JsonResult):
                 f"{r['overshoot_measured_mm']:>5.2f}/{r['overshoot_simulated_mm']:<5.2f} "
                 f"{r['settling_measured_s']:>6.2f}/{r['settling_simulated_s']:<6.2f}"
                 + ("  FLAGGED" if r["flagged"] else ""))
+            if r.get("limit_cycle", "none") != "none":
+                lines.append(
+                    f"    limit cycle ({r['limit_cycle']}): amplitude "
+                    f"{r['limit_cycle_amplitude_measured_mm']:.3g}/"
+                    f"{r['limit_cycle_amplitude_simulated_mm']:.3g} mm, period "
+                    f"{r['limit_cycle_period_measured_s']:.3g}/"
+                    f"{r['limit_cycle_period_simulated_s']:.3g} s, mean error "
+                    f"{r['limit_cycle_mean_error_measured_mm']:.3g}/"
+                    f"{r['limit_cycle_mean_error_simulated_mm']:.3g} mm, for "
+                    f"{r['limit_cycle_duration_measured_s']:.3g}/"
+                    f"{r['limit_cycle_duration_simulated_s']:.3g} s (measured/simulated; "
+                    f"agrees: within {100 * LIMIT_CYCLE_RTOL:g} %)")
         by = self.by_controller()
         for c, row in by.iterrows():
             lines.append(f"  mean {c}: position fit {row['fit_position_pct']:.1f} %, flow fit "
@@ -509,6 +545,9 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
         return float(how(v)) if v.size else math.nan
 
     fit_x = fit_percent(ov.position_mm, ov.position_sim_mm)
+    lc_m = limit_cycle(t, ov.position_mm.to_numpy(), ref_t, ref_v, band_mm=band)
+    lc_s = limit_cycle(t, ov.position_sim_mm.to_numpy(), ref_t, ref_v, band_mm=band)
+    lc = compare_limit_cycles(lc_m, lc_s)
     seg = _no_segments(len(dm))
     if segments:            # unless the logs cannot start one (then the whole run's stand)
         from .rerun import rerun_segments
@@ -549,8 +588,28 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
            "overshoot_simulated_mm": agg(ss, "overshoot_mm", np.max),
            "settling_measured_s": agg(sm, "settling_time_s", np.mean),
            "settling_simulated_s": agg(ss, "settling_time_s", np.mean),
-           "flagged": bool(not (fit_x >= threshold_pct))}
+           # a sustained oscillation, compared by its statistics (its phase is not reproducible)
+           "limit_cycle": lc,
+           "limit_cycle_amplitude_measured_mm": lc_m.amplitude_mm,
+           "limit_cycle_amplitude_simulated_mm": lc_s.amplitude_mm,
+           "limit_cycle_period_measured_s": lc_m.period_s,
+           "limit_cycle_period_simulated_s": lc_s.period_s,
+           "limit_cycle_mean_error_measured_mm": lc_m.mean_error_mm,
+           "limit_cycle_mean_error_simulated_mm": lc_s.mean_error_mm,
+           "limit_cycle_duration_measured_s": lc_m.duration_s,
+           "limit_cycle_duration_simulated_s": lc_s.duration_s,
+           "flagged": _flagged(fit_x, threshold_pct, lc)}
     return RunValidation(run.run_id, row, sm, ss, ov, sim)
+
+
+def _flagged(fit_position_pct: float, threshold_pct: float, limit_cycle: str) -> bool:
+    """A run is flagged when its position fit is below the threshold, unless
+    both records hold the same limit cycle ('agrees': a hunting loop's phase
+    cannot be reproduced, its statistics can), or when one record oscillates
+    and the other does not, or their oscillations differ."""
+    if limit_cycle in ("differs", "measured only", "simulated only"):
+        return True
+    return bool(not (fit_position_pct >= threshold_pct) and limit_cycle != "agrees")
 
 
 def validate_runs(runs: Iterable[Run], model=None, *, rig=None,

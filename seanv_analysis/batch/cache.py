@@ -243,9 +243,6 @@ class RunCache:
         except OSError:
             pass
 
-    def put(self, key: str, value: Any) -> None:
-        write_entry(self.entries, key, value)
-
 
 _ENTRY_SCHEMA = b"seanv-cache-entry/2"
 #: the largest entry read back (a long run's validation overlay is a few hundred MB)

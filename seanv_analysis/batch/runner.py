@@ -25,7 +25,7 @@ from ..errors import ConfigError, DataError, OutputError, SeanvError
 from ..io.atomic import atomic_folder, check_not_foreign, remove_stale_temps, retire_folder
 from ..io.outdir import check_out_dir
 from ..jsonable import JsonResult
-from ..stages import STAGES, Context, FailedRun, RunOutcome, one_blas_thread
+from ..stages import STAGES, Context, FailedRun, RunOutcome, execute, one_blas_thread, results_of
 from ..stages.pipeline import Pipeline, load_pipeline
 from .cache import CACHE_DIRNAME, RunCache, run_key
 from .executor import Executor, TaskResult, make_executor, one_line_error
@@ -34,11 +34,14 @@ from .tasks import cached_run_task
 
 __all__ = ["PipelineResult", "FailedRun", "run_pipeline", "CachedMapper", "owned_outputs"]
 
-#: where each stage writes, under the output folder; a stage with a folder of
-#: its own owns it: the folder is written anew and swapped in whole
-#: (:func:`_write_stage_folder`), "." means files directly in the output folder
-STAGE_FOLDERS = {"ingest": ".", "flowfit": "flowfit", "identify": "identify", "tracking": "tracking",
-                 "validate": "validate", "discover": "discover", "figures": "figures", "report": "."}
+def stage_folder(name: str) -> str:
+    """Where stage ``name`` writes, under the output folder (its ``FOLDER``):
+    a stage with a folder of its own owns it: the folder is written anew and
+    swapped in whole (:func:`_write_stage_folder`); "." means files directly
+    in the output folder."""
+    return STAGES[name].FOLDER
+
+
 #: the files a run writes directly into the output folder (besides the report)
 TOP_LEVEL_FILES = ("summary.parquet", "manifest.json", "result.json")
 
@@ -50,7 +53,7 @@ def owned_outputs(pipe: Pipeline) -> list[str]:
     files. No input may be or lie inside one of them
     (:func:`~seanv_analysis.io.outdir.check_out_dir`)."""
     report = [s.options.get("filename", "report.html") for s in pipe.stages if s.name == "report"]
-    folders = sorted({f for f in STAGE_FOLDERS.values() if f != "."})
+    folders = sorted({m.FOLDER for m in STAGES.values() if m.FOLDER != "."})
     return [*folders, CACHE_DIRNAME, *TOP_LEVEL_FILES, *report]
 
 
@@ -68,8 +71,10 @@ class PipelineResult(JsonResult):
     summary : per-run summary (``SUMMARY_COLUMNS`` + ``path``), filters applied
     failed : runs that could not be read or processed (one line each)
     excluded : {reason: count} of the paper's filters (flow-step runs)
-    flowfit, identify, tracking, validation, validation_augmented, discovery : the
-        stage results (None when the stage did not run or failed)
+    results : {result name: result} of the stages that ran (the catalogue's
+        ``RESULTS``: "flowfit", "validation", "discovery"...); the record is a
+        mapping of them (``res["flowfit"]``, ``res.get("tracking")``), and
+        ``res.flowfit`` reads the same (None when absent)
     figures : {figure name: [paths]}
     stage_errors : {stage: one-line error} of stages that failed on the data
     computed, cached : per-run tasks computed / taken from the cache, per stage
@@ -88,12 +93,7 @@ class PipelineResult(JsonResult):
     failed: list[FailedRun] = field(default_factory=list)
     excluded: dict[str, int] = field(default_factory=dict)
     model: Any = None
-    flowfit: Any = None
-    identify: Any = None
-    tracking: Any = None
-    validation: Any = None
-    validation_augmented: Any = None
-    discovery: Any = None
+    results: dict[str, Any] = field(default_factory=dict)
     figures: dict[str, list[Path]] = field(default_factory=dict)
     stage_errors: dict[str, str] = field(default_factory=dict)
     stage_notes: dict[str, str] = field(default_factory=dict)
@@ -141,6 +141,42 @@ class PipelineResult(JsonResult):
             except Exception:  # unreadable: the run is not reused, it runs
                 return None
         return r
+
+    def __getitem__(self, name: str) -> Any:
+        """The result called ``name``; KeyError when no stage gave it."""
+        return self.results[name]
+
+    def get(self, name: str, default: Any = None) -> Any:
+        return self.results.get(name, default)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self.results
+
+    def keys(self):
+        return self.results.keys()
+
+    def __getattr__(self, name: str) -> Any:
+        """``res.flowfit``: a result of the catalogue by name (None when absent)."""
+        if name.startswith("_") or name == "results":
+            raise AttributeError(name)
+        from ..stages import result_names
+
+        if name in result_names():
+            return self.results.get(name)
+        raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        """``res.flowfit = fit`` keeps ``fit`` among the results (a result of
+        the catalogue by name); any other attribute as usual."""
+        from ..stages import result_names
+
+        if name in result_names() and name not in self.__dataclass_fields__:
+            if value is None:
+                self.results.pop(name, None)
+            else:
+                self.results[name] = value
+            return
+        object.__setattr__(self, name, value)
 
     @property
     def success(self) -> bool:
@@ -191,10 +227,14 @@ class PipelineResult(JsonResult):
         """Runs read but left out of a stage's result: run id, stage and why
         (the flow fit's filters, tracking's and validate's unusable runs)."""
         out = []
-        for stage, obj in (("flowfit", self.flowfit), ("tracking", self.tracking),
-                           ("validate", self.validation)):
-            fn = getattr(obj, "skipped_runs", None)
-            if callable(fn):
+        seen = set()
+        for stage, mod in STAGES.items():
+            for res in mod.RESULTS:
+                obj = self.results.get(res.name)
+                fn = getattr(obj, "skipped_runs", None)
+                if not res.json or res.name in seen or not callable(fn):
+                    continue
+                seen.add(res.name)
                 out += [{"run_id": k, "stage": stage, "reason": v} for k, v in fn().items()]
         return out
 
@@ -218,12 +258,7 @@ class PipelineResult(JsonResult):
             "failed": [f.to_json_dict() for f in self.failed],
             "skipped": self.skipped(),
             "excluded": self.excluded,
-            "flowfit": j(self.flowfit),
-            "identify": j(self.identify),
-            "tracking": j(self.tracking),
-            "validation": j(self.validation),
-            "validation_augmented": j(self.validation_augmented),
-            "discovery": j(self.discovery),
+            **{name: j(self.results.get(name)) for name in json_results()},
             "figures": {k: [str(p) for p in v] for k, v in self.figures.items()},
             "stage_errors": self.stage_errors,
             "stage_notes": self.stage_notes,
@@ -233,6 +268,11 @@ class PipelineResult(JsonResult):
             "outputs": [str(p) for p in self.outputs],
             "report": str(self.report_path) if self.report_path else None,
         }
+
+
+def json_results() -> list[str]:
+    """The results recorded in ``result.json`` (each under its name), in run order."""
+    return list(dict.fromkeys(r.name for m in STAGES.values() for r in m.RESULTS if r.json))
 
 
 class CachedMapper:
@@ -347,8 +387,8 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     check_out_dir(out_dir, data=datas, owned=owned_outputs(pipe), label="out_dir",
                   files=[pipe.source, rig if isinstance(rig, (str, Path)) else None])
     for stage in pipe.stages:   # a folder of the user's where a stage folder goes: refused now
-        if STAGE_FOLDERS[stage.name] != ".":
-            check_not_foreign(Path(out_dir) / STAGE_FOLDERS[stage.name])
+        if stage_folder(stage.name) != ".":
+            check_not_foreign(Path(out_dir) / stage_folder(stage.name))
     ctx = Context.for_data(data, rig=rig, out_dir=out_dir, quiet=quiet, log=say)
     from ..models import ValveModel
 
@@ -370,7 +410,7 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
             return reused
     forget_run(out)  # this run replaces the outputs the memo describes
     cache = RunCache(out / CACHE_DIRNAME)
-    removed = cache.removed_partial + remove_stale_temps(out, set(STAGE_FOLDERS.values()))
+    removed = cache.removed_partial + remove_stale_temps(out, {m.FOLDER for m in STAGES.values()})
     if removed:
         result.stage_notes["resume"] = (f"removed {removed} partial temp file(s) or folder(s) "
                                         "left by an interrupted run")
@@ -400,53 +440,44 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
 
 
 def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, say) -> None:
-    """Each stage of ``pipe`` in order, timed and logged."""
-    for stage in pipe.stages:
-        t0 = time.perf_counter()
-        say(f"[{pipe.name}] stage {stage.name} ...")
-        _run_stage(ctx, stage.name, stage.options, result)
-        result.timings_s[stage.name] = time.perf_counter() - t0
-        status = "FAILED: " + result.stage_errors[stage.name] \
-            if stage.name in result.stage_errors else "done"
-        say(f"[{pipe.name}] stage {stage.name} {status} ({result.timings_s[stage.name]:.1f} s)")
+    """Each stage of ``pipe`` in order (:func:`~seanv_analysis.stages.execute`),
+    timed and logged; a stage that fails on the data is recorded and the
+    others go on; each value is recorded and written."""
+    started: dict[str, float] = {}
 
+    def start(name: str) -> None:
+        say(f"[{pipe.name}] stage {name} ...")
+        if name == "report":
+            _write_manifest(result, ctx)
+        started[name] = time.perf_counter()
 
-def _run_stage(ctx: Context, name: str, options: Mapping[str, Any], result: PipelineResult) -> None:
-    """Run one stage, keep its result in the context and the record, write its files."""
-    mod = STAGES[name]
-    if name == "report":
-        _write_manifest(result, ctx)
-    if name != "ingest" and ctx.result("ingest") is None:
-        if "ingest" in result.stage_errors:   # listed, and failed: said once, not blamed on the file
-            result.stage_notes[name] = "skipped: stage ingest failed"
-            return
-        raise ConfigError(f"pipeline {result.pipeline.source or result.pipeline.name}: stage "
-                          f"'{name}' needs the per-run summary; add an 'ingest' stage first")
-    try:
-        value = mod.run(ctx, options)
-    except (ConfigError, OutputError):
-        raise   # bad input, or an output that cannot be written: the run ends, one line
-    except DataError:
-        if name == "ingest":
-            raise
-        _stage_failed(result, name, sys.exc_info()[1])
-        return
-    except OSError:
-        raise  # output side (disk full, a folder gone read-only): ends the run, one line
-    except Exception as exc:  # a bug in one stage must not lose the others' results
-        _stage_failed(result, name, exc)
-        return
-    if value is None:
-        result.stage_notes[name] = "no position-control runs in the data: skipped"
-        _retire_stage_folder(result.out_dir, name)
-        return
-    ctx.add(name, value)
-    _record(result, name, value)
-    for p in _write_stage(mod, name, value, result.out_dir):
-        if p not in result.outputs:
-            result.outputs.append(p)
-    if name == "report":
-        result.report_path = result.outputs[-1]
+    def finish(name: str) -> None:
+        result.timings_s[name] = time.perf_counter() - started[name]
+        status = "FAILED: " + result.stage_errors[name] if name in result.stage_errors else "done"
+        say(f"[{pipe.name}] stage {name} {status} ({result.timings_s[name]:.1f} s)")
+
+    def on_error(name: str, exc: BaseException) -> bool:
+        if isinstance(exc, (ConfigError, OutputError, OSError)) or (
+                isinstance(exc, DataError) and name == "ingest"):
+            return False   # the pipeline or the output side: ends the run, one line
+        _stage_failed(result, name, exc)   # a bug in one stage must not lose the others'
+        finish(name)
+        return True
+
+    def done(name: str, value: Any) -> None:
+        if value is None:
+            result.stage_notes[name] = "no position-control runs in the data: skipped"
+            _retire_stage_folder(result.out_dir, name)
+        else:
+            _record(result, name, value, ctx)
+            for p in _write_stage(STAGES[name], value, result.out_dir):
+                if p not in result.outputs:
+                    result.outputs.append(p)
+            if name == "report":
+                result.report_path = result.outputs[-1]
+        finish(name)
+
+    execute(pipe, ctx, start=start, on_error=on_error, done=done)
 
 
 def _stage_failed(result: PipelineResult, name: str, exc: BaseException) -> None:
@@ -458,16 +489,16 @@ def _stage_failed(result: PipelineResult, name: str, exc: BaseException) -> None
 def _retire_stage_folder(out: Path, name: str) -> None:
     """Remove the folder of a stage that gave nothing this time, so no file of
     an earlier run stands beside this run's results."""
-    if STAGE_FOLDERS[name] != ".":
-        retire_folder(out / STAGE_FOLDERS[name])
+    if stage_folder(name) != ".":
+        retire_folder(out / stage_folder(name))
 
 
-def _write_stage(mod: Any, name: str, value: Any, out: Path) -> list[Path]:
+def _write_stage(mod: Any, value: Any, out: Path) -> list[Path]:
     """Write a stage's files; a stage with a folder of its own gets it anew
     (written beside, then swapped in whole). Returns the final paths."""
-    if STAGE_FOLDERS[name] == ".":
+    if mod.FOLDER == ".":
         return [Path(p) for p in mod.write(value, out)]
-    return _write_stage_folder(mod, value, out / STAGE_FOLDERS[name])
+    return _write_stage_folder(mod, value, out / mod.FOLDER)
 
 
 def _write_stage_folder(mod: Any, value: Any, folder: Path) -> list[Path]:
@@ -495,35 +526,24 @@ def _write_stage_folder(mod: Any, value: Any, folder: Path) -> list[Path]:
     return final
 
 
-def _record(result: PipelineResult, name: str, value: Any) -> None:
-    """Copy a stage's result into the fields of the record."""
+def _record(result: PipelineResult, name: str, value: Any, ctx: Context) -> None:
+    """Keep a stage's value in the record: its failed runs, its results by
+    name (the catalogue's ``RESULTS``), the record fields it declares
+    (``RECORD``) and its note."""
+    mod = STAGES[name]
     result.failed += list(getattr(value, "failed", ()))
     result.failed.sort(key=lambda f: f.path)
-    if name == "ingest":
-        result.summary, result.excluded = value.summary, dict(value.excluded)
-        result.runs_read = value.runs_read
-        result.input_hashes.update(value.input_hashes)
-    elif name == "flowfit":
-        result.flowfit = value
-    elif name == "identify":
-        result.identify = value
-    elif name == "tracking":
-        result.tracking = value
-    elif name == "validate":
-        result.validation = value.validation
-    elif name == "discover":
-        result.discovery = value.discovery
-        if value.before is not None:
-            result.validation = value.before.validation
-        if value.after is not None:
-            result.validation_augmented = value.after.validation
-        if value.note:
-            result.stage_notes[name] = value.note
-    elif name == "figures":
-        for fig, paths in value.paths.items():
-            result.figures.setdefault(fig, []).extend(paths)
-        if value.problems:
-            result.stage_notes[name] = "; ".join(value.problems)
+    result.results.update(results_of(name, value, ctx, json_only=True))
+    for fld, attr in getattr(mod, "RECORD", {}).items():
+        new = getattr(value, attr)
+        old = getattr(result, fld)
+        if isinstance(old, dict):
+            old.update({k: list(v) if isinstance(v, tuple) else v for k, v in new.items()})
+        else:
+            setattr(result, fld, new)
+    note = getattr(value, "note", "")
+    if isinstance(note, str) and note:
+        result.stage_notes[name] = note
 
 
 def _write_manifest(result: PipelineResult, ctx: Context, *, final: bool = False) -> None:

@@ -7,13 +7,15 @@ import hashlib
 import inspect
 import json
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import click
 
 __all__ = ["verbosity", "default_out_dir", "check_out_dir", "probe_writable", "echo_bad_runs", "unusable", "stage_context",
-           "sim_default_dataset", "write_command_manifest", "OUTPUTS_ROOT", "OUT_FOLDER"]
+           "sim_default_dataset", "write_command_manifest", "OUTPUTS_ROOT", "OUT_FOLDER",
+           "command_pipeline", "run_command", "CommandRun"]
 
 OUTPUTS_ROOT = Path("outputs")
 
@@ -176,6 +178,97 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True):
             yield ctx
         finally:  # the pool is gone after the block
             ctx.map_runs = serial_map
+
+
+def command_pipeline(command: str, stages: Sequence[dict], *, ingest: dict | None = None,
+                     figures: bool = True, formats: Sequence[str] = ("png", "svg"),
+                     flags: dict[str, str] | None = None):
+    """The pipeline a command runs: ingest (with ``ingest``'s options), its
+    ``stages`` (each ``{"name": ..., option: value}``), and, unless
+    ``figures`` is False, the figures its last stage's results feed (the
+    catalogue's :func:`~seanv_analysis.stages.figures_reading`), written flat
+    into the output folder. Checked as a pipeline file is; a bad value is
+    said with its command-line option (``flags``: {option: "--flag"}).
+
+    Raises
+    ------
+    ConfigError
+        an option's value is not what its stage expects (one line naming it).
+    """
+    from ..errors import ConfigError
+    from ..stages import STAGES, figures_reading
+    from ..stages.pipeline import parse_pipeline
+
+    doc = [{"name": "ingest", **(ingest or {})}, *stages]
+    for item in doc:
+        for key, value in item.items():
+            try:
+                if key != "name":
+                    STAGES[item["name"]].check_option(key, value)
+            except ValueError as exc:
+                flag = (flags or {}).get(key)
+                raise ConfigError(f"{key} = {value!r}{f' ({flag})' if flag else ''}; "
+                                  f"expected {exc}") from None
+    figs = figures_reading(stages[-1]["name"]) if figures else []
+    if figs:
+        doc.append({"name": "figures", "figs": figs, "formats": list(formats), "layout": "flat"})
+    return parse_pipeline({"pipeline": {"name": command, "description": f"seanv-analyze {command}"},
+                           "stages": doc}, source=f"seanv-analyze {command}")
+
+
+@dataclass
+class CommandRun:
+    """What a command's pipeline gave: the context (every stage's value),
+    the data set read, the last analysis stage's value and the files written."""
+
+    ctx: Any
+    ds: Any
+    value: Any
+    written: list[Path]
+
+
+def run_command(pipe, data, *, rig, out: Path, model=None, quiet: bool = True,
+                folders: dict[str, str] | None = None, missing: str = "nothing to analyse"
+                ) -> CommandRun | int:
+    """Run a command's pipeline (:func:`command_pipeline`) through the one
+    path of the stages (:func:`seanv_analysis.stages.execute`), each stage's
+    files written into ``out`` (or ``out / folders[stage]``) as it ends;
+    per-run work on all cores for large data sets (:func:`stage_context`).
+
+    Returns the :class:`CommandRun`, or the exit code after listing the bad
+    runs when the data held nothing usable (:func:`unusable`); a last stage
+    that gives nothing raises ``DataError(missing)`` (listed the same way).
+    """
+    import warnings
+
+    from ..errors import DataError, FitError
+    from ..stages import STAGES, execute
+    from ..stages.dataset import NoRunsRead
+
+    folders = folders or {}
+    main = [s.name for s in pipe.stages if s.name not in ("ingest", "figures")][-1]
+    written: list[Path] = []
+
+    def done(name: str, value) -> None:
+        if value is None and name == main:
+            raise DataError(missing, path=data if isinstance(data, (str, Path)) else data[0])
+        if value is not None and name != "ingest":
+            written.extend(Path(p) for p in STAGES[name].write(value, out / folders.get(name, ".")))
+
+    first = data if isinstance(data, (str, Path)) else data[0]
+    with stage_context(data, rig=rig, out_dir=out, model=model, quiet=quiet) as ctx, \
+            warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")   # a result keeps what matters (skipped runs, notes)
+        try:
+            execute(pipe, ctx, done=done)
+        except NoRunsRead as exc:
+            return unusable(first, exc.result.failed)
+        except (DataError, FitError) as exc:  # nothing usable: say which runs were bad and why
+            ds = ctx.result("ingest")
+            if ds is None:
+                raise
+            return unusable(first, ds.failed, exc)
+    return CommandRun(ctx, ctx.result("ingest"), ctx.result(main), written)
 
 
 def unusable(data, failed, exc: Exception | None = None) -> int:

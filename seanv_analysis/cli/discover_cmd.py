@@ -9,13 +9,13 @@ from . import cli
 from ._common import (
     OUT_FOLDER,
     check_out_dir,
+    command_pipeline,
     default_out_dir,
     echo_bad_runs,
     figure_options,
     result_json,
+    run_command,
     sim_default_dataset,
-    stage_context,
-    unusable,
     verbosity,
     write_command_manifest,
 )
@@ -68,9 +68,7 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
     Example: seanv-analyze discover data/flow --json
     """
     from ..config import load_rig
-    from ..errors import DataError, FitError
     from ..io.model_file import read_model
-    from ..stages import dataset, discover, figures, identify
 
     rig = load_rig(rig_file)
     if data is None:
@@ -79,38 +77,24 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
         click.echo(f"no DATA given: using the built-in simulated paper flow-step data set ({data})",
                    err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
-    check_out_dir(data, out)
+    check_out_dir(data, out, files=[rig_file, model_file])
     model = read_model(model_file, rig=rig) if model_file else None
-    written: list[Path] = []
-    with stage_context(data, rig=rig, out_dir=out, model=model) as ctx:
-        ds = dataset.collect(ctx, {})
-        if ds.runs_read == 0:
-            return unusable(data, ds.failed)
-        ctx.add("ingest", ds)
-        try:
-            if identify_first:
-                ident = identify.run(ctx, {})
-                if ident is not None:
-                    ctx.add("identify", ident)
-                    written += identify.write(ident, out / "identify")
-            result = discover.run(ctx, {"holdout": holdout, "seed": seed})
-        except (DataError, FitError) as exc:  # nothing usable: say which runs were bad and why
-            if not ds.failed:
-                raise
-            return unusable(data, ds.failed, exc)
-    ctx.add("discover", result)
-    written += discover.write(result, out)
-    if not no_figures:
-        written += figures.draw_figures(ctx, figures.figures_of("discovery"), out,
-                                        formats=formats).all_paths()
-    write_command_manifest(out, ctx, outputs=written, extra={"holdout": holdout, "seed": seed,
-                                            "identify": identify_first,
-                                            "model": str(model_file) if model_file else None})
+    stages = ([{"name": "identify"}] if identify_first else []) + [
+        {"name": "discover", "holdout": holdout, "seed": seed}]
+    pipe = command_pipeline("discover", stages, figures=not no_figures, formats=formats)
+    run = run_command(pipe, data, rig=rig, out=out, model=model, folders={"identify": "identify"},
+                      missing="nothing to discover")
+    if isinstance(run, int):
+        return run
+    result = run.value
+    write_command_manifest(out, run.ctx, outputs=run.written, extra={
+        "holdout": holdout, "seed": seed, "identify": identify_first,
+        "model": str(model_file) if model_file else None})
     if as_json:
-        click.echo(result_json(result, ds, failed=result.failed, filtered=True))
+        click.echo(result_json(result, run.ds, failed=result.failed, filtered=True))
     else:
         click.echo(result.report())
         if result.note:
             click.echo(f"note: {result.note}")
         click.echo(f"outputs: {out}")
-    return echo_bad_runs([*ds.failed, *result.failed])
+    return echo_bad_runs([*run.ds.failed, *result.failed])

@@ -2,7 +2,6 @@
 with 95 % intervals; write the model file, tables and Fig. 4."""
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import click
@@ -11,13 +10,13 @@ from . import cli
 from ._common import (
     OUT_FOLDER,
     check_out_dir,
+    command_pipeline,
     default_out_dir,
     echo_bad_runs,
     figure_options,
     result_json,
+    run_command,
     sim_default_dataset,
-    stage_context,
-    unusable,
     verbosity,
     write_command_manifest,
 )
@@ -92,8 +91,6 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
       seanv-analyze flowfit data/flow --side both --json
     """
     from ..config import load_rig
-    from ..errors import DataError
-    from ..stages import dataset, figures, flowfit
 
     rig = load_rig(rig_file)
     if data is None:
@@ -101,28 +98,20 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
         click.echo(f"no DATA given: using the built-in simulated data set "
                    f"'{BUILTIN_SCENARIO}' ({data})", err=as_json)
     out = Path(out_dir) if out_dir else default_out_dir(data, "flowfit")
-    check_out_dir(data, out)
+    check_out_dir(data, out, files=[rig_file])
     sides = ["supply", "drain"] if side == "both" else [side]
     options = {"sides": sides, "procedure": procedure, "cam": cam, "n_boot": n_boot, "seed": seed}
-    with stage_context(data, rig=rig, out_dir=out) as ctx, warnings.catch_warnings(record=True):
-        warnings.simplefilter("always")
-        ds = dataset.collect(ctx, {"method": method})
-        if ds.runs_read == 0:
-            return unusable(data, ds.failed)
-        ctx.add("ingest", ds)
-        try:
-            fit = flowfit.run(ctx, options)
-        except DataError as exc:  # nothing usable: say which runs were bad and why
-            return unusable(data, ds.failed, exc)
-    ctx.add("flowfit", fit)
-    paths = flowfit.write(fit, out)
-    drawn = [] if no_figures else figures.draw_figures(ctx, ["fig4"], out, formats=formats).all_paths()
-    write_command_manifest(out, ctx, outputs=[*paths, *drawn], extra={"flowfit": {
+    pipe = command_pipeline("flowfit", [{"name": "flowfit", **options}],
+                            ingest={"method": method}, figures=not no_figures, formats=formats)
+    run = run_command(pipe, data, rig=rig, out=out, missing="no flow_step runs in the data set")
+    if isinstance(run, int):
+        return run
+    write_command_manifest(out, run.ctx, outputs=run.written, extra={"flowfit": {
         "data": str(data), "side": side, "method": method, **options,
-        "outputs": [str(p) for p in [*paths, *drawn]]}})
+        "outputs": [str(p) for p in run.written]}})
     if as_json:
-        click.echo(result_json(fit, ds, filtered=True))
+        click.echo(result_json(run.value, run.ds, filtered=True))
     else:
-        click.echo(fit.report())
+        click.echo(run.value.report())
         click.echo(f"outputs: {out}")
-    return echo_bad_runs(ds.failed)
+    return echo_bad_runs(run.ds.failed)

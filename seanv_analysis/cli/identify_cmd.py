@@ -9,12 +9,12 @@ from . import cli
 from ._common import (
     OUT_FOLDER,
     check_out_dir,
+    command_pipeline,
     default_out_dir,
     echo_bad_runs,
     result_json,
+    run_command,
     sim_default_dataset,
-    stage_context,
-    unusable,
     verbosity,
     write_command_manifest,
 )
@@ -44,8 +44,9 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
     DATA: one or more data set folders; flow-step runs give the needle
     geometry (eq. 4's centre, with z0 and C refitted) and the Coulomb and
     viscous friction, position-control runs give the servo (dead time, time
-    constant, rate limit, from its logs), the breakaway force, whether the
-    controller holds once converged, the load regulator's time constant
+    constant, rate limit, from its logs), the breakaway force, the
+    controller's law (gain, hold band and angle, whether the hold latches
+    or lets go, cam limits), the load regulator's time constant
     (from the logged load pressure) and the line (its bulk modulus, fitted so
     the twin driven by the logged cam command moves like the runs); both give the
     supply pressure the runs were made at. Each constant comes with
@@ -61,8 +62,6 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
              seanv-analyze validate data/position --rig outputs/flow/identify/rig-identified.toml
     """
     from ..config import load_rig
-    from ..errors import DataError
-    from ..stages import dataset, identify
 
     rig = load_rig(rig_file)
     if not data:
@@ -70,29 +69,18 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
         click.echo("no DATA given: using the built-in simulated flow-step and position-control "
                    f"data sets ({data[0]}, {data[1]})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data[0], "identify")
-    for d in data:
-        check_out_dir(d, out)
-    options = {"n_boot": n_boot}
-    if parts:
-        options["parts"] = list(parts)
-    with stage_context(list(data), rig=rig, out_dir=out, quiet=quiet) as ctx:
-        ds = dataset.collect(ctx, {})
-        if ds.runs_read == 0:
-            return unusable(data[0], ds.failed)
-        ctx.add("ingest", ds)
-        try:
-            result = identify.run(ctx, options)
-            if result is None:
-                raise DataError("no flow_step or position_control run to identify from",
-                                path=data[0])
-        except DataError as exc:
-            return unusable(data[0], ds.failed, exc)
-        written = identify.write(result, out)
-    write_command_manifest(out, ctx, outputs=written, extra={"parts": list(parts) or list(_PARTS),
-                                            "n_boot": n_boot})
+    check_out_dir(list(data), out, files=[rig_file])
+    options = {"n_boot": n_boot, **({"parts": list(parts)} if parts else {})}
+    pipe = command_pipeline("identify", [{"name": "identify", **options}], figures=False)
+    run = run_command(pipe, list(data), rig=rig, out=out, quiet=quiet,
+                      missing="no flow_step or position_control run to identify from")
+    if isinstance(run, int):
+        return run
+    write_command_manifest(out, run.ctx, outputs=run.written, extra={
+        "parts": pipe.stage("identify").options["parts"], "n_boot": n_boot})
     if as_json:
-        click.echo(result_json(result, ds))
+        click.echo(result_json(run.value, run.ds))
     else:
-        click.echo(result.report())
+        click.echo(run.value.report())
         click.echo(f"outputs: {out}  (use --rig {out / 'rig-identified.toml'})")
-    return echo_bad_runs(ds.failed)
+    return echo_bad_runs(run.ds.failed)

@@ -13,19 +13,16 @@ from ._common import OUT_FOLDER, check_out_dir, default_out_dir, formats_option,
 __all__ = ["plots_cmd", "plots_pipeline"]
 
 
-#: the stage that makes each result a figure can need
-_STAGE_OF = {"flowfit": "flowfit", "tracking": "tracking", "validation": "validate",
-             "discovery": "discover"}
-
-
 def plots_pipeline(figs: list[int | str]) -> dict:
-    """The pipeline document behind ``plots``: ingest, the stages the chosen
-    figures need (read from the figures registry) and figures."""
+    """The pipeline document behind ``plots``: ingest, the stages giving the
+    results the chosen figures need (the catalogue's producers, in run order)
+    and figures."""
+    from ..stages import STAGES, producers_of
     from ..stages.figures import selected_figures
 
-    needed = {_STAGE_OF[n] for f in selected_figures(figs) for n in f.needs if n in _STAGE_OF}
-    order = ("flowfit", "tracking", "validate", "discover")
-    stages: list[dict] = [{"name": "ingest"}] + [{"name": s} for s in order if s in needed]
+    needed = {stage for f in selected_figures(figs) if not f.per_run for n in f.needs
+              for stage in producers_of(n)[:1]}
+    stages: list[dict] = [{"name": s} for s in STAGES if s in needed | {"ingest"}]
     stages.append({"name": "figures", "figs": list(figs)})
     return {"pipeline": {"name": "plots", "description": f"figures {', '.join(map(str, figs))}"},
             "stages": stages}

@@ -1,7 +1,6 @@
 """``seanv-analyze tracking``: flow delay, delay compensation, RMSE, Fig. 6/7."""
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import click
@@ -10,13 +9,13 @@ from . import cli
 from ._common import (
     OUT_FOLDER,
     check_out_dir,
+    command_pipeline,
     default_out_dir,
     echo_bad_runs,
     figure_options,
     result_json,
+    run_command,
     sim_default_dataset,
-    stage_context,
-    unusable,
     verbosity,
     write_command_manifest,
 )
@@ -57,9 +56,7 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
     Example: seanv-analyze tracking data/position --shift 0.25 --json
     """
     from ..config import load_rig
-    from ..errors import DataError
     from ..io.model_file import read_model
-    from ..stages import dataset, figures, tracking
 
     rig = load_rig(rig_file)
     if data is None:
@@ -67,32 +64,23 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
         click.echo(f"no DATA given: using the built-in simulated paper position-control data "
                    f"set ({data})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "tracking")
-    check_out_dir(data, out)
+    check_out_dir(data, out, files=[rig_file, model_file])
     model = read_model(model_file, rig=rig) if model_file else None
     options = {"shift_s": shift_s, "q_range": list(q_range)}
-    with stage_context(data, rig=rig, out_dir=out, model=model) as ctx, warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # collected in the result (skipped, warnings)
-        ds = dataset.collect(ctx, {}, func=dataset.summarize_derived)
-        if ds.runs_read == 0:
-            return unusable(data, ds.failed)
-        ctx.add("ingest", ds)
-        try:
-            result = tracking.run(ctx, options)
-            if result is None:
-                raise DataError("no position_control run in the data set; expected runs with "
-                                "run.json kind = 'position_control'", path=data)
-        except DataError as exc:  # nothing usable: say which runs were bad and why
-            return unusable(data, ds.failed, exc)
-        ctx.add("tracking", result)
-        written = tracking.write(result, out)
-        if not no_figures:  # per-run figures on the command's workers
-            written += figures.draw_figures(ctx, [6, "fig6_runs", 7], out, formats=formats,
-                                            per_run_folders=False).all_paths()
-    write_command_manifest(out, ctx, outputs=written, extra={"shift_s": shift_s, "range_mm3_s": list(q_range),
-                                            "model": str(model_file) if model_file else None})
+    pipe = command_pipeline("tracking", [{"name": "tracking", **options}],
+                            ingest={"derive": True}, figures=not no_figures, formats=formats,
+                            flags={"shift_s": "--shift", "q_range": "--range"})
+    run = run_command(pipe, data, rig=rig, out=out, model=model,
+                      missing="no position_control run in the data set; expected runs with "
+                              "run.json kind = 'position_control'")
+    if isinstance(run, int):
+        return run
+    write_command_manifest(out, run.ctx, outputs=run.written, extra={
+        "shift_s": shift_s, "range_mm3_s": list(q_range),
+        "model": str(model_file) if model_file else None})
     if as_json:
-        click.echo(result_json(result, ds))
+        click.echo(result_json(run.value, run.ds))
     else:
-        click.echo(result.report())
+        click.echo(run.value.report())
         click.echo(f"outputs: {out}")
-    return echo_bad_runs(ds.failed)
+    return echo_bad_runs(run.ds.failed)

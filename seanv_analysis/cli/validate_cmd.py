@@ -2,7 +2,6 @@
 the simulated plant with the identified valve model and compare."""
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import click
@@ -11,13 +10,13 @@ from . import cli
 from ._common import (
     OUT_FOLDER,
     check_out_dir,
+    command_pipeline,
     default_out_dir,
     echo_bad_runs,
     figure_options,
     result_json,
+    run_command,
     sim_default_dataset,
-    stage_context,
-    unusable,
     verbosity,
     write_command_manifest,
 )
@@ -52,7 +51,11 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     the simulated plant with the same reference and load steps; simulated and
     measured position, flow and cam angle are compared (fit %, RMSE), with
     convergence (+-0.5 mm), overshoot and settling time per step. Runs with
-    position fit below --threshold are flagged.
+    position fit below --threshold are flagged. A run that hunts (a limit
+    cycle: the cam swinging for as long as the reference stays) is judged by
+    the cycle's amplitude, period and mean error (limit_cycle_* columns; its
+    phase cannot be reproduced): not flagged when both records hold the same
+    limit cycle (within 20 %), flagged when only one does or they differ.
 
     Each run is also re-run segment by segment, from the logged state where
     the rig rests before each reference step and load change (the *_segments_*
@@ -72,9 +75,7 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
     Example: seanv-analyze validate data/position --model outputs/flow/flowfit/model.json
     """
     from ..config import load_rig
-    from ..errors import ConfigError, DataError
     from ..io.model_file import read_model_file
-    from ..stages import dataset, figures, validate
 
     rig = load_rig(rig_file)
     if data is None:
@@ -82,38 +83,24 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
         click.echo(f"no DATA given: using the built-in simulated paper position-control data "
                    f"set ({data})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "validate")
-    check_out_dir(data, out)
+    check_out_dir(data, out, files=[rig_file, model_file])
     # a model file's effects and proposed term (discover's model_augmented.json) are simulated
     model, effects = read_model_file(model_file, rig=rig) if model_file else (None, ())
-    options = {"threshold_pct": threshold_pct, "controller_model": controller_model}
-    with stage_context(data, rig=rig, out_dir=out, model=model) as ctx, warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        ds = dataset.collect(ctx, {}, func=dataset.summarize_derived)
-        if ds.runs_read == 0:
-            return unusable(data, ds.failed)
-        ctx.add("ingest", ds)
-        try:
-            validate.check_option("threshold_pct", threshold_pct)
-            result = (validate.validate_model(ctx, ctx.valve, effects, options=options)
-                      if effects and validate.position_paths(ctx) else validate.run(ctx, options))
-            if result is None:
-                raise DataError("no position_control run could be validated", path=data)
-        except ValueError as exc:
-            raise ConfigError(f"threshold_pct: expected {exc}, got {threshold_pct!r}") from None
-        except DataError as exc:  # nothing usable: say which runs were bad and why
-            return unusable(data, ds.failed, exc)
-    ctx.add("validate", result)
-    written = validate.write(result, out)
-    if not no_figures:
-        written += figures.draw_figures(ctx, figures.figures_of("validation"), out,
-                                        formats=formats).all_paths()
-    write_command_manifest(out, ctx, outputs=written, extra={"model": str(model_file) if model_file else None,
-                                            "effects": list(effects),
-                                            "threshold_pct": threshold_pct,
-                                            "controller_model": controller_model})
+    options = {"threshold_pct": threshold_pct, "controller_model": controller_model,
+               **({"effects": list(effects)} if effects else {})}
+    pipe = command_pipeline("validate", [{"name": "validate", **options}],
+                            ingest={"derive": True}, figures=not no_figures, formats=formats,
+                            flags={"threshold_pct": "--threshold"})
+    run = run_command(pipe, data, rig=rig, out=out, model=model,
+                      missing="no position_control run could be validated")
+    if isinstance(run, int):
+        return run
+    write_command_manifest(out, run.ctx, outputs=run.written, extra={
+        "model": str(model_file) if model_file else None, "effects": list(effects),
+        "threshold_pct": threshold_pct, "controller_model": controller_model})
     if as_json:
-        click.echo(result_json(result, ds, failed=result.failed))
+        click.echo(result_json(run.value, run.ds, failed=run.value.failed))
     else:
-        click.echo(result.report())
+        click.echo(run.value.report())
         click.echo(f"outputs: {out}")
-    return echo_bad_runs([*ds.failed, *result.failed])
+    return echo_bad_runs([*run.ds.failed, *run.value.failed])

@@ -246,8 +246,6 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
     return Discovery(verdict=verdict, effects=findings, n_heldout_runs=n_held, geometry=geometry,
                      rmse_before_mm3_s=rmse_before, rmse_after_mm3_s=rmse_after,
                      trend_variable=trend_var, base_model=base.model, model=final.model,
-                     effect_fits=final.effects, trends=trends, ljung_box=lb,
-                     residual_before=np.concatenate(before), residual_after=np.concatenate(after),
                      heldout_data=data.subset(held_m), fit_data=fit_data,
                      base_fit=base, final_fit=final, holdout=holdout, proposed_term=proposed)
 

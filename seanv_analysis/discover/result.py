@@ -7,10 +7,8 @@ class in :mod:`seanv_analysis.models.effects`.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any
-
-import numpy as np
 
 from ..errors import ConfigError
 from ..jsonable import JsonResult, clean_json
@@ -70,17 +68,13 @@ class EffectFinding:
 
 
 def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
-    """{parameter: unit} of a named effect's numeric parameters, from the
-    '[unit]' of its ``PARAMS`` description ('-' for a ratio)."""
+    """{parameter: unit} of a named effect's fitted parameters (the effect's
+    own declaration: :meth:`~seanv_analysis.models.effects.Effect.param_units`)."""
     from ..models.effects import EFFECTS
 
-    desc = getattr(EFFECTS.get(name), "PARAMS", {})
-    out = {}
-    for k in params:
-        text = desc.get(k, "")
-        if "[" in text and "]" in text.rsplit("[", 1)[1]:
-            out[k] = text.rsplit("[", 1)[1].split("]", 1)[0]
-    return out
+    cls = EFFECTS.get(name)
+    units = cls.param_units() if cls is not None else {}
+    return {k: units[k] for k in params if k in units}
 
 
 #: unit of the correction f of each ``term`` mode (the models.effects.Term doc)
@@ -189,11 +183,6 @@ class Discovery(JsonResult):
     trend_variable: str | None
     base_model: ValveModel
     model: ValveModel
-    effect_fits: dict = field(default_factory=dict)
-    trends: list = field(default_factory=list)
-    ljung_box: tuple[float, float] = (0.0, 1.0)
-    residual_before: np.ndarray | None = None
-    residual_after: np.ndarray | None = None
     heldout_data: Any = None
     fit_data: Any = None
     base_fit: Any = None

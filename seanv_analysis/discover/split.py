@@ -6,9 +6,19 @@ used for fitting or selection.
 """
 from __future__ import annotations
 
+from typing import Any, Sequence
+
 import numpy as np
 
-__all__ = ["chrono_split", "kfold_splits", "permutation_strata", "permuted_run_order"]
+__all__ = ["chrono_split", "kfold_splits", "permutation_strata", "permuted_run_order",
+           "split_position_runs"]
+
+
+def split_position_runs(runs: Sequence[Any]) -> tuple[list[Any], list[Any]]:
+    """(training, held-out) position-control runs: in time order, every other
+    run held out (the second, fourth, ...); one run: trained on, none held out."""
+    order = sorted(runs, key=lambda r: (str(r.meta.started_at), r.run_id))
+    return order[0::2], order[1::2]
 
 
 def chrono_split(run_index: np.ndarray, *, fraction: float = 0.3,

@@ -368,32 +368,71 @@ def _jacobian_structure(data: FlowData, present: list[str], with_geom: list[str]
     return np.column_stack(cols)
 
 
+def _forward_steps(x: np.ndarray, bounds) -> np.ndarray:
+    """The forward-difference steps of ``least_squares(jac='2-point')``
+    (scipy's rule, written out here: scipy keeps it private): sqrt(eps) x
+    max(1, |x|), positive at x = 0, turned backward where the forward step
+    would leave the bounds and the backward one fits, shortened to the
+    farther bound where neither fits."""
+    lb, ub = (np.resize(np.asarray(b, dtype=float), x.shape) for b in bounds)
+    sign = (x >= 0).astype(float) * 2 - 1
+    h = np.finfo(np.float64).eps ** 0.5 * sign * np.maximum(1.0, np.abs(x))
+    if np.all((lb == -np.inf) & (ub == np.inf)):
+        return h
+    lower, upper = x - lb, ub - x
+    out = h.copy()
+    ahead = x + h
+    fitting = np.abs(h) <= np.maximum(lower, upper)
+    out[((ahead < lb) | (ahead > ub)) & fitting] *= -1
+    forward = (upper >= lower) & ~fitting
+    out[forward] = upper[forward]
+    backward = (upper < lower) & ~fitting
+    out[backward] = -lower[backward]
+    return out
+
+
+def _column_groups(structure: np.ndarray) -> list[np.ndarray]:
+    """Columns that touch disjoint rows, grouped greedily in column order
+    (each joins the first group it shares no row with)."""
+    groups: list[list[int]] = []
+    rows: list[np.ndarray] = []
+    for j in range(structure.shape[1]):
+        for g, used in enumerate(rows):
+            if not np.any(used & structure[:, j]):
+                groups[g].append(j)
+                rows[g] = used | structure[:, j]
+                break
+        else:
+            groups.append([j])
+            rows.append(structure[:, j].copy())
+    return [np.asarray(g) for g in groups]
+
+
+def _dense_forward(fun, x: np.ndarray, f0: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """The forward-difference Jacobian column by column, as ``'2-point'``
+    makes it (each column from x with that parameter stepped)."""
+    jt = np.empty((x.size, f0.size))
+    for j in range(x.size):
+        x1 = np.copy(x)
+        x1[j] = x[j] + h[j]
+        jt[j] = (fun(x1) - f0) / ((x[j] + h[j]) - x[j])
+    return jt.T
+
+
 def _grouped_jacobian(resid, structure: np.ndarray | None, bounds, far_off: list):
     """(residual, jac) for ``least_squares``: the forward-difference Jacobian
-    that ``jac='2-point'`` makes (scipy's steps, bounds handling, quotients
+    that ``jac='2-point'`` makes (the same steps, bounds handling, quotients
     and memory layout), with parameters that move disjoint runs perturbed in
-    one evaluation (scipy's column grouping): a fit of both sides costs
-    about half the evaluations, for the same matrix bit for bit. A step that
-    lands where eq. (4) fails (``far_off``: the residual is the sentinel)
-    is redone column by column, as the dense difference does it. Without a
-    ``structure``, or nothing to group: ``(resid, '2-point')``."""
+    one evaluation: a fit of both sides costs about half the evaluations, for
+    the same matrix bit for bit. A step that lands where eq. (4) fails
+    (``far_off``: the residual is the sentinel) is redone column by column,
+    as the dense difference does it. Without a ``structure``, or nothing to
+    group: ``(resid, '2-point')``."""
     if structure is None:
         return resid, "2-point"
-    try:
-        from scipy.optimize._numdiff import (
-            _adjust_scheme_to_bounds,
-            _compute_absolute_step,
-            _prepare_bounds,
-            approx_derivative,
-            group_columns,
-        )
-    except ImportError:  # another scipy: its own difference
+    members = _column_groups(np.asarray(structure, bool))
+    if len(members) == structure.shape[1]:
         return resid, "2-point"
-    groups = group_columns(structure)
-    n_groups = int(groups.max()) + 1
-    if n_groups == structure.shape[1]:
-        return resid, "2-point"
-    members = [np.flatnonzero(groups == g) for g in range(n_groups)]
     last: dict[str, np.ndarray] = {}
 
     def fun(x):
@@ -404,9 +443,7 @@ def _grouped_jacobian(resid, structure: np.ndarray | None, bounds, far_off: list
     def jac(x):
         x = np.asarray(x, dtype=float)
         f0 = last["f"] if "x" in last and np.array_equal(last["x"], x) else fun(x).copy()
-        lb, ub = _prepare_bounds(bounds, x)
-        h = _compute_absolute_step(None, x, f0, "2-point")
-        h, _ = _adjust_scheme_to_bounds(x, h, 1, "1-sided", lb, ub)
+        h = _forward_steps(x, bounds)
         del far_off[:]
         jt = np.empty((x.size, f0.size))
         for cols in members:
@@ -416,7 +453,7 @@ def _grouped_jacobian(resid, structure: np.ndarray | None, bounds, far_off: list
             for j in cols:   # runs a column does not move: exactly 0 in the dense difference too
                 jt[j] = np.where(structure[:, j], df, 0.0) / ((x[j] + h[j]) - x[j])
         if far_off:
-            return approx_derivative(fun, x, f0=f0, method="2-point", bounds=bounds)
+            return _dense_forward(fun, x, f0, h)
         return jt.T
 
     return fun, jac

@@ -46,7 +46,7 @@ import numpy as np
 
 from ..models import ValveModel, side_pressures
 from ..models import effects as fx
-from ..models.expr import compile_expr, evaluate
+from ..models.expr import compile_expr, evaluate, searched_variables
 from .result import ProposedTerm
 from .split import chrono_split, permutation_strata, permuted_run_order
 from .static import EffectSpec, FlowData, StaticFit, fit_static, predict_static
@@ -110,7 +110,7 @@ def library(variables: dict[str, np.ndarray]) -> list[str]:
     """Feature texts of the library on one side's runs (module doc, item 1):
     only finite, non-constant ones, each once."""
     first, texts = [], []
-    for v_text in LIBRARY_VARIABLES.values():
+    for v_text in dict.fromkeys([*LIBRARY_VARIABLES.values(), *searched_variables().values()]):
         v = np.asarray(evaluate(v_text, variables), float)
         if not np.all(np.isfinite(v)) or np.ptp(v) <= 1e-9 * (1.0 + np.max(np.abs(v))):
             continue

@@ -3,7 +3,8 @@
 Order (each part uses what the ones before found):
 
 0. the supply pressure the runs were made at (logged; the twin runs at it),
-   and whether the controller holds the cam once converged (its logs);
+   and the controller's law (:mod:`.controller`: gain, hold band, hold
+   angle, latch or release, cam limits, from its logs);
 1. needle geometry (:mod:`.geometry`): the sealing threshold's dependence
    on the pressures, from the flow steps; then z0 and C refitted with it
    (flowfit's joint fit, bootstrap intervals);
@@ -28,6 +29,7 @@ from typing import Any, Sequence
 
 import pandas as pd
 
+from ..discover.split import split_position_runs as split_runs
 from ..models import SIDES
 from .controller import controller_constants
 from .flowpath import closed_loop_fits, flow_path_constants
@@ -41,13 +43,6 @@ __all__ = ["identify_rig", "PARTS", "split_runs"]
 
 #: the parts of the rig ``identify`` looks at, in order
 PARTS = ("geometry", "servo", "friction", "load", "flow_path")
-
-
-def split_runs(runs: Sequence[Any]) -> tuple[list[Any], list[Any]]:
-    """(training, held-out) position-control runs: in time order, every other
-    run held out (the second, fourth, ...); one run: trained on, none held out."""
-    order = sorted(runs, key=lambda r: (str(r.meta.started_at), r.run_id))
-    return order[0::2], order[1::2]
 
 
 def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (),

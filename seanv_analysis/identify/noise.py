@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["integrated_autocorrelation", "effective_samples"]
+__all__ = ["integrated_autocorrelation"]
 
 
 def integrated_autocorrelation(r: np.ndarray) -> float:
@@ -31,8 +31,3 @@ def integrated_autocorrelation(r: np.ndarray) -> float:
     k = int(below[0]) if below.size else x.size
     return max(1.0, 1.0 + 2.0 * float(np.sum(acf[1:k])))
 
-
-def effective_samples(r: np.ndarray) -> float:
-    """n / tau_int of the residuals ``r``."""
-    r = np.asarray(r, float)
-    return float(np.isfinite(r).sum()) / integrated_autocorrelation(r)

@@ -12,7 +12,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
-from ..jsonable import JsonResult, clean_json, json_num, unit_suffix
+from ..jsonable import JsonResult, clean_json, json_num
+from ..units import unit_suffix
 
 __all__ = ["Constant", "Identification", "json_num", "nest_constants"]
 
@@ -79,7 +80,7 @@ def nest_constants(constants) -> dict[str, Any]:
         d = out
         for p in parts[:-1]:
             d = d.setdefault(p, {})
-        d[parts[-1]] = float(f"{c.value:.6g}")
+        d[parts[-1]] = c.value if isinstance(c.value, bool) else float(f"{c.value:.6g}")
     return out
 
 
@@ -130,10 +131,12 @@ class Identification(JsonResult):
             subs = [(f"{part} ({k})", v) for k, v in f.items() if isinstance(v, dict)] \
                 if "metric" not in f else [(part, f)]
             for label, g in subs:
+                held = ("heldout" in g or "heldout_default" in g)
                 lines.append(f"  {label}: {g.get('metric', '')}: training "
-                             f"{_fmt(g.get('train_default'))} -> {_fmt(g.get('train'))}, held-out "
-                             f"{_fmt(g.get('heldout_default'))} -> {_fmt(g.get('heldout'))} "
-                             "(rig file -> identified)")
+                             f"{_fmt(g.get('train_default'))} -> {_fmt(g.get('train'))}"
+                             + (f", held-out {_fmt(g.get('heldout_default'))} -> "
+                                f"{_fmt(g.get('heldout'))}" if held else "")
+                             + " (rig file -> identified)")
         lines += [f"  note: {n}" for n in self.notes]
         return "\n".join(lines)
 

@@ -16,7 +16,7 @@ __all__ = ["contract", "ColumnSpec", "TableSpec", "table_specs", "contract_colum
            "canonical_names", "PRESSURE_UNIT"]
 
 #: unit of every pressure column (checked against the plausible maximum)
-PRESSURE_UNIT = "MPa gauge"
+PRESSURE_UNIT = "MPaG"
 
 
 @functools.lru_cache(maxsize=1)

@@ -283,3 +283,9 @@ def _locate_bad_field_count(data: bytes, expected: int) -> tuple[int | None, int
         if got != expected:
             return row, got
     return None, None
+
+
+from .formats import TableFormat, register_format  # noqa: E402  (the registry imports this module)
+
+register_format(TableFormat("csv", "CSV", (".csv",), parse_csv, write_csv, text=True,
+                            writes_columns=True, parses_bytes=True))

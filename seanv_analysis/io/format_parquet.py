@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING, Any, Iterable, Mapping
 import pyarrow as pa
 
 from ..errors import DataError
+from ..units import units_of_columns
 from .atomic import atomic_path
 from .contract import TableSpec, canonical_names, contract_columns
 from .validate import one_line
@@ -22,13 +23,6 @@ if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = ["parse_parquet", "write_table_parquet", "units_from_columns"]
-
-# Unit of a column from its name suffix (data contract: units in names).
-_SUFFIX_UNITS = (
-    ("_mm3_s", "mm^3/s"), ("_mm_s", "mm/s"), ("_mpag", "MPa gauge"), ("_mpa", "MPa"),
-    ("_deg", "deg"), ("_mm", "mm"), ("_s", "s"), ("_n", "N"), ("_hz", "Hz"),
-    ("_pct", "%"),
-)
 
 
 def parse_parquet(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool, *,
@@ -62,11 +56,9 @@ def parse_parquet(path: Path, spec: TableSpec, head: bytes, pool: pa.MemoryPool,
 
 
 def units_from_columns(columns: Iterable[Any]) -> dict[str, str]:
-    """Map each column to the unit its name carries ('' when none)."""
-    out = {}
-    for c in columns:
-        out[c] = next((u for suf, u in _SUFFIX_UNITS if str(c).endswith(suf)), "")
-    return out
+    """Map each column to the unit its name carries ('' when none): the
+    package's unit table (:func:`seanv_analysis.units.units_of_columns`)."""
+    return units_of_columns(columns)
 
 
 def write_table_parquet(df: pd.DataFrame, path: str | Path, *,
@@ -90,3 +82,9 @@ def write_table_parquet(df: pd.DataFrame, path: str | Path, *,
     with atomic_path(path) as tmp:
         pq.write_table(table, tmp)
     return Path(path)
+
+
+from .formats import TableFormat, register_format  # noqa: E402  (the registry imports this module)
+
+register_format(TableFormat("parquet", "Parquet", (".parquet",), parse_parquet,
+                            write_table_parquet, parses_bytes=True))

@@ -7,16 +7,17 @@ Each table of a run (encoder, pressure, servo, controller) is one file
 ``parse``; :func:`~seanv_analysis.io.writer.write_run` writes with a
 format's ``write``.
 
-``data_schema/contract.toml`` ``table_formats`` says which formats a data set
-may use (the contract is shared with the rig software); this registry says
-how each is read. They must agree, and :func:`table_formats` checks it when
-reading starts: a format named in the contract without a parser, or a
-parser the contract does not name, is a :class:`~seanv_analysis.errors.ConfigError`
-rather than a format silently ignored.
+``data_schema/contract.toml`` ``table_formats`` names the formats the data
+contract guarantees (it is shared with the rig software), in the order they
+are looked for; this registry says how each is read. :func:`table_formats`
+checks them when reading starts: a format named in the contract without a
+parser is a :class:`~seanv_analysis.errors.ConfigError` rather than a format
+silently ignored. A registered format the contract does not name is an
+extension of this package, looked for after the contract's.
 
-Adding a format: a parse function (see :data:`ParseFn`), one
-:func:`register_format` call at the end of this module, and its name in
-contract.toml ``table_formats``.
+Adding a format is one module ``io/format_<name>.py``: a parse function (see
+:data:`ParseFn`), optionally a writer, and one :func:`register_format` call
+at its end; this module imports every ``format_*`` module of the package.
 """
 from __future__ import annotations
 
@@ -29,14 +30,13 @@ import pyarrow as pa
 from ..config import schema_dir
 from ..errors import ConfigError
 from .contract import TableSpec, contract
-from .format_csv import parse_csv, write_csv
-from .format_parquet import parse_parquet, write_table_parquet
 
 if TYPE_CHECKING:
     import pandas as pd
 
 __all__ = ["TableFormat", "ParseFn", "WriteFn", "FORMATS", "register_format",
-           "registered_formats", "table_formats", "table_suffixes", "format_named", "either"]
+           "registered_formats", "table_formats", "table_suffixes", "format_named", "either",
+           "load_format_modules"]
 
 #: ``parse(path, spec, head, pool) -> pyarrow.Table``: the table file at
 #: ``path`` as an Arrow table whose columns carry the contract's names
@@ -123,13 +123,14 @@ def registered_formats() -> list[TableFormat]:
 
 
 def table_formats() -> tuple[TableFormat, ...]:
-    """The formats a run's tables may use, in contract.toml ``table_formats``
-    order (the first is the one named when a table is missing).
+    """The formats a run's tables may use: the contract's, in contract.toml
+    ``table_formats`` order (the first is the one named when a table is
+    missing), then the package's extensions in registration order.
 
     Raises
     ------
     ConfigError
-        the contract and the registry disagree.
+        the contract names a format no module registers.
     """
     named = contract().get("table_formats", ())
     known = {fmt.name: fmt for fmt in registered_formats()}
@@ -139,15 +140,10 @@ def table_formats() -> tuple[TableFormat, ...]:
     missing = [n for n in named if n not in known]
     if missing:
         raise ConfigError(f"{where} names {either(repr(n) for n in missing)} but no parser is "
-                          f"registered for it; expected formats of seanv_analysis.io.formats "
-                          f"({', '.join(known)}), or register a TableFormat there")
-    unnamed = [n for n in known if n not in named]
-    if unnamed:
-        raise ConfigError(f"{where} does not name the registered format(s) "
-                          f"{', '.join(repr(n) for n in unnamed)}; expected every format of "
-                          "seanv_analysis.io.formats named there (add the name, or do not "
-                          "register the format)")
-    return tuple(known[n] for n in dict.fromkeys(named))  # a name listed twice counts once
+                          f"registered for it; expected formats of seanv_analysis.io "
+                          f"({', '.join(known)}), or a module io/format_<name>.py registering it")
+    order = [*dict.fromkeys(named), *(n for n in known if n not in named)]
+    return tuple(known[n] for n in order)  # a name listed twice counts once
 
 
 def table_suffixes() -> tuple[str, ...]:
@@ -177,7 +173,17 @@ def either(words: Iterable[str]) -> str:
     return words[0] if len(words) == 1 else f"{', '.join(words[:-1])} or {words[-1]}"
 
 
-register_format(TableFormat("csv", "CSV", (".csv",), parse_csv, write_csv, text=True,
-                            writes_columns=True, parses_bytes=True))
-register_format(TableFormat("parquet", "Parquet", (".parquet",), parse_parquet,
-                            write_table_parquet, parses_bytes=True))
+def load_format_modules() -> None:
+    """Import every ``format_*`` module of :mod:`seanv_analysis.io`: each
+    registers its format at its end (:func:`register_format`)."""
+    import importlib
+    import pkgutil
+
+    from .. import io as package
+
+    for info in pkgutil.iter_modules(package.__path__):
+        if info.name.startswith("format_"):
+            importlib.import_module(f"{package.__name__}.{info.name}")
+
+
+load_format_modules()

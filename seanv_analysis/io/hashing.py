@@ -22,7 +22,7 @@ from typing import Any
 
 from .run_tables import RunTables
 
-__all__ = ["file_sha256", "remember_sha256", "sha256_bytes", "code_version", "content_sha256"]
+__all__ = ["file_sha256", "remember_sha256", "code_version", "content_sha256"]
 
 _CACHE: dict[tuple[int, int, int, int, int], str] = {}
 _LOCK = threading.Lock()
@@ -36,11 +36,6 @@ def _key(path: Path, st: os.stat_result | None = None) -> tuple[int, int, int, i
     (which no user can set), a file replaced by another the inode."""
     st = os.stat(path) if st is None else st
     return (st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
-
-
-def sha256_bytes(data: bytes | memoryview) -> str:
-    """Hex SHA-256 of ``data``."""
-    return hashlib.sha256(data).hexdigest()
 
 
 def remember_sha256(path: str | Path, digest: str, *, stat: os.stat_result | None = None) -> None:

@@ -18,9 +18,9 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..models import ValveModel
-from .atomic import write_json_atomic, write_text_atomic
+from .atomic import write_text_atomic
 
-__all__ = ["read_model", "read_model_file", "write_model_json", "write_model_toml", "dumps_toml"]
+__all__ = ["read_model", "read_model_file", "write_model_toml", "dumps_toml"]
 
 
 def read_model(path: str | Path, *, rig: Any) -> ValveModel:
@@ -143,11 +143,6 @@ def _read_json(path: Path) -> Any:
         raise ConfigError(f"{path}: not a valve model file (nested too deeply)") from None
     except ValueError as exc:
         raise ConfigError(f"{path}: not a valve model file (not JSON: {exc})") from None
-
-
-def write_model_json(path: str | Path, model: ValveModel) -> Path:
-    """Write ``model`` as JSON (:meth:`ValveModel.to_dict`), atomically; returns the path."""
-    return write_json_atomic(path, model.to_dict())
 
 
 def write_model_toml(path: str | Path, model: ValveModel, *, header: str = "") -> Path:

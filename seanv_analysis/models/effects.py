@@ -65,10 +65,10 @@ from .expr import Program, compile_expr, evaluate
 __all__ = [
     "Effect", "Drift", "ThresholdShift", "Backlash", "PressureLaw", "Saturation", "Delay",
     "SensorGain", "Term", "EFFECTS", "SENSORS", "TERM_MODES", "StaticForm", "FlowTerms",
-    "TermCorrection", "ValveTerms", "PlantTerms",
+    "TermCorrection", "ValveTerms", "PlantTerms", "plant_param_defaults",
     "static_effects", "vocabulary_effects", "dynamic_effects", "parse_effect", "parse_effects",
     "drift_multiplier", "threshold_shift_mm", "backlash_cam_deg", "backlash_play_deg",
-    "saturate_flow", "saturate_flow_core", "measured_from_true", "true_from_measured",
+    "saturate_flow", "saturate_flow_core", "true_from_measured",
     "term_variables", "apply_corrections",
 ]
 
@@ -78,7 +78,6 @@ TERM_MODES = ("mul", "add", "threshold")
 #: sensors a ``sensor_gain`` can act on; 'pressure' is the A/B-port (head) sensor
 SENSORS = ("encoder", "pressure", "p_head", "p_supply", "p_load")
 #: the simulator's sensor channels and their gain without a ``sensor_gain`` [-]
-_UNIT_GAINS = {"position_mm": 1.0, "p_supply_mpag": 1.0, "p_head_mpag": 1.0, "p_load_mpag": 1.0}
 
 
 # Functional forms -----------------------------------------------------------
@@ -140,11 +139,6 @@ def saturate_flow(q, q_max, sharpness=8.0):
     if m.any():     # (none capped, the usual case: nothing to do)
         out[m] = saturate_flow_core(q[m], q_max[m], sharpness)
     return out
-
-
-def measured_from_true(true, *, gain):
-    """Sensor reading with a scale error: gain * true."""
-    return gain * np.asarray(true, dtype=float)
 
 
 def true_from_measured(measured, *, gain, sensor="pressure"):
@@ -248,19 +242,47 @@ class ValveTerms:
     term_program: Program | None = None
 
 
-@dataclass(frozen=True)
 class PlantTerms:
-    """What effects add to the plant outside the valve.
+    """What effects add to the plant outside the valve: a value for every
+    plant parameter an effect declares (:attr:`Effect.PLANT_PARAMS`: the
+    backlash's play, the extra delay, the sensor gains...), by name, from
+    its neutral value. Immutable: :meth:`plus` and :meth:`times` return a
+    new one (effects fold in order: ``terms = effect.plant_terms(terms)``).
+    The simulator packs each value under its name
+    (:meth:`seanv_analysis.sim.plant.Plant.packed_params`)."""
 
-    backlash_deg : total play between servo and cam [deg]
-    delay_s : extra dead time between servo and needle [s]
-    gains : measured/true of each sensor channel [-] (``position_mm``,
-        ``p_supply_mpag``, ``p_head_mpag``, ``p_load_mpag``)
-    """
+    def __init__(self, values: Mapping[str, float] | None = None):
+        self._values = {**plant_param_defaults(), **dict(values or {})}
 
-    backlash_deg: float = 0.0
-    delay_s: float = 0.0
-    gains: Mapping[str, float] = field(default_factory=lambda: dict(_UNIT_GAINS))
+    def __getitem__(self, name: str) -> float:
+        return self._values[name]
+
+    def items(self):
+        return self._values.items()
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, PlantTerms) and self._values == other._values
+
+    def __repr__(self) -> str:
+        return f"PlantTerms({self._values!r})"
+
+    def plus(self, name: str, value: float) -> "PlantTerms":
+        """A copy with ``value`` added to parameter ``name``."""
+        return PlantTerms({**self._values, name: self._values[name] + float(value)})
+
+    def times(self, name: str, factor: float) -> "PlantTerms":
+        """A copy with parameter ``name`` multiplied by ``factor``."""
+        return PlantTerms({**self._values, name: self._values[name] * float(factor)})
+
+
+def plant_param_defaults() -> dict[str, float]:
+    """{name: neutral value} of every plant parameter the registered effects
+    declare (:attr:`Effect.PLANT_PARAMS`), in registration order."""
+    out: dict[str, float] = {}
+    for cls in EFFECTS.values():
+        for name, (neutral, _meaning) in cls.PLANT_PARAMS.items():
+            out.setdefault(name, float(neutral))
+    return out
 
 
 # Effect classes ---------------------------------------------------------------
@@ -287,7 +309,13 @@ class Effect:
     """
 
     name: ClassVar[str] = ""
+    #: {parameter: its meaning, with its unit in brackets at the end of the
+    #: quantity ("total play between servo and cam [deg]", "[-]" for a ratio)}
     PARAMS: ClassVar[dict[str, str]] = {}
+    #: the plant parameters the effect acts through, outside the valve:
+    #: {NAME: (neutral value, "meaning [unit]")}; the simulator packs them by
+    #: name and its kernel reads ``pp[_NAME]`` (:mod:`seanv_analysis.sim._pp`)
+    PLANT_PARAMS: ClassVar[dict[str, tuple[float, str]]] = {}
     #: one clause for the discovery report, ``str.format``-ed with ``side``
     #: and the fitted parameters (see :meth:`sentence`)
     SENTENCE: ClassVar[str] = ""
@@ -299,6 +327,22 @@ class Effect:
     #: a parameter whose value runs to the end of a string spec, commas
     #: included (it must come last); None: every value ends at a comma
     TAIL_PARAM: ClassVar[str | None] = None
+
+    @classmethod
+    def param_units(cls) -> dict[str, str]:
+        """{parameter: unit} of its numeric parameters: the unit its name
+        carries (the package's unit table, :mod:`seanv_analysis.units`),
+        else the bracket of its ``PARAMS`` entry; '-' for a ratio."""
+        from ..units import unit_of_key
+
+        out = {}
+        for k, text in cls.PARAMS.items():
+            named = unit_of_key(k)
+            if named is not None:
+                out[k] = named[1]
+            elif "[" in text and "]" in text.rsplit("[", 1)[1]:
+                out[k] = text.rsplit("[", 1)[1].split("]", 1)[0]
+        return out
 
     def __init_subclass__(cls, register: bool = True, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -555,6 +599,8 @@ class Backlash(Effect):
 
     name: ClassVar[str] = "backlash"
     PARAMS: ClassVar[dict[str, str]] = {"width_deg": "total play between servo and cam [deg]"}
+    PLANT_PARAMS: ClassVar[dict[str, tuple[float, str]]] = {
+        "BACKLASH": (0.0, "total play between servo and cam [deg]")}
     SENTENCE: ClassVar[str] = ("the cam has a direction-dependent dead band of {width_deg:.2f} deg "
                                "(backlash)")
     STATIC: ClassVar[StaticForm] = StaticForm(("width_deg",), (0.5,), (0.0,), (10.0,),
@@ -577,7 +623,7 @@ class Backlash(Effect):
         terms.theta_deg[rows] = backlash_cam_deg(terms.theta_deg[rows], data.approach[rows], **p)
 
     def plant_terms(self, terms):
-        return replace(terms, backlash_deg=terms.backlash_deg + self.width_deg)
+        return terms.plus("BACKLASH", self.width_deg)
 
 
 @dataclass(frozen=True)
@@ -657,6 +703,8 @@ class Delay(Effect):
 
     name: ClassVar[str] = "delay"
     PARAMS: ClassVar[dict[str, str]] = {"delay_s": "extra dead time [s]"}
+    PLANT_PARAMS: ClassVar[dict[str, tuple[float, str]]] = {
+        "DELAY": (0.0, "extra transport delay between servo and needle [s]")}
     # found on position-control runs (discover.dynamic), not by the static fit
     SENTENCE: ClassVar[str] = ("the flow lags Q_ref by an extra {delay_s:.3f} s beyond the nominal "
                                "lag (transport delay)")
@@ -667,7 +715,7 @@ class Delay(Effect):
         self._check(0.0 <= self.delay_s <= 2.0, "delay_s", "0..2 s")
 
     def plant_terms(self, terms):
-        return replace(terms, delay_s=terms.delay_s + self.delay_s)
+        return terms.plus("DELAY", self.delay_s)
 
 
 @dataclass(frozen=True)
@@ -682,6 +730,14 @@ class SensorGain(Effect):
     # the flow steps see the head sensor only through dp of both sides
     STATIC: ClassVar[StaticForm] = StaticForm(("gain",), (1.0,), (0.5,), (2.0,),
                                               {"sensor": "pressure"}, ("p_head_mpag",))
+    #: the plant parameter of each channel's gain
+    GAIN_PARAM: ClassVar[dict[str, str]] = {"position_mm": "GAIN_X", "p_supply_mpag": "GAIN_PS",
+                                            "p_head_mpag": "GAIN_PH", "p_load_mpag": "GAIN_PL"}
+    PLANT_PARAMS: ClassVar[dict[str, tuple[float, str]]] = {
+        "GAIN_X": (1.0, "encoder: measured / true [-]"),
+        "GAIN_PS": (1.0, "supply pressure sensor: measured / true [-]"),
+        "GAIN_PH": (1.0, "head pressure sensor: measured / true [-]"),
+        "GAIN_PL": (1.0, "load pressure sensor: measured / true [-]")}
 
     sensor: str = "pressure"
     gain: float = 1.05
@@ -707,9 +763,7 @@ class SensorGain(Effect):
         terms.p_head_mpag[rows] = true_from_measured(terms.p_head_mpag[rows], **p)
 
     def plant_terms(self, terms):
-        gains = dict(terms.gains)
-        gains[self.channel] *= self.gain
-        return replace(terms, gains=gains)
+        return terms.times(self.GAIN_PARAM[self.channel], self.gain)
 
 
 @dataclass(frozen=True)

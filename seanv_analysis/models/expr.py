@@ -37,6 +37,11 @@ Grammar
   ``approach``  -          +1 / -1: the cam last moved up / down (0: unknown)
   ============  =========  ======================================================
 
+- derived variables (:data:`DERIVED`, :func:`define_variable`): a name for
+  an expression of the variables above (e.g. a downstream pressure
+  ``p1 - dp``), expanded where it is used, so the evaluators and the
+  simulator's kernel need nothing new; a new one is one
+  :func:`define_variable` call;
 - operators ``+ - * / **`` and unary ``-`` / ``+``; the exponent of ``**``
   must be a constant (a number, or arithmetic of numbers such as ``3/2``)
   with ``|exponent| <=`` :data:`MAX_EXPONENT`;
@@ -76,7 +81,8 @@ import numpy as np
 
 __all__ = ["VARIABLES", "VARIABLE_UNITS", "FUNCTIONS", "MAX_LENGTH", "MAX_DEPTH",
            "MAX_INSTRUCTIONS", "MAX_EXPONENT", "Program", "compile_expr", "evaluate",
-           "evaluate_scalar", "program_memory", "run_program_core", "GRAMMAR"]
+           "evaluate_scalar", "program_memory", "run_program_core", "GRAMMAR", "DERIVED",
+           "Derived", "define_variable", "variable_names", "searched_variables"]
 
 #: the variables an expression may use, in the order of their index
 VARIABLES = ("dp", "p1", "dtheta", "theta", "q", "load", "run", "approach")
@@ -92,6 +98,54 @@ VARIABLE_UNITS = {
     "run": "-, 0-based index of the run in time order",
     "approach": "-, +1/-1: the cam last moved up/down (0 unknown)",
 }
+
+
+@dataclass(frozen=True)
+class Derived:
+    """A derived variable: its definition (an expression of :data:`VARIABLES`
+    and earlier derived ones), its unit and meaning, and whether discover's
+    term search puts it in its library."""
+
+    definition: str
+    meaning: str
+    search: bool = False
+
+
+#: derived variables by name (:func:`define_variable`)
+DERIVED: dict[str, Derived] = {}
+
+
+def variable_names() -> tuple[str, ...]:
+    """Every name an expression may read: :data:`VARIABLES`, then :data:`DERIVED`."""
+    return (*VARIABLES, *DERIVED)
+
+
+def searched_variables() -> dict[str, str]:
+    """The derived variables discover's term search puts in its library:
+    {name: expression text} (the name itself)."""
+    return {name: name for name, d in DERIVED.items() if d.search}
+
+
+def define_variable(name: str, definition: str, meaning: str, *, search: bool = False) -> Derived:
+    """Add a derived variable: ``name`` stands for ``definition`` (an
+    expression of the variables) wherever an expression uses it. ``meaning``
+    starts with its unit ("MPa, ..."), as :data:`VARIABLE_UNITS`.
+
+    Raises
+    ------
+    ValueError
+        ``name`` is not an identifier, is a variable, a function or a derived
+        variable already; ``definition`` is not an expression of the grammar.
+    """
+    if not name.isidentifier() or name in variable_names() or name in FUNCTIONS:
+        raise ValueError(f"define_variable: name {name!r}; expected a new identifier (not "
+                         f"{', '.join(variable_names())} or a function)")
+    compile_expr(definition)   # refuses anything outside the grammar
+    DERIVED[name] = Derived(definition, meaning, search)
+    VARIABLE_UNITS[name] = meaning
+    return DERIVED[name]
+
+
 #: the functions and their number of arguments
 FUNCTIONS = {"tanh": 1, "exp": 1, "log": 1, "sqrt": 1, "abs": 1, "sign": 1, "min": 2,
              "max": 2, "clip": 3}
@@ -316,10 +370,13 @@ class _Compiler:
             if node.id in VARIABLES:
                 self.emit(OP_VAR, VARIABLES.index(node.id))
                 return
+            if node.id in DERIVED:   # expanded where it is used (checked when defined)
+                self.visit(ast.parse(DERIVED[node.id].definition, mode="eval").body, depth + 1)
+                return
             if node.id in FUNCTIONS:
                 raise self.fail(node, f"{node.id} is a function: call it, e.g. {node.id}(dp)")
             raise self.fail(node, f"unknown name {node.id!r}; expected one of "
-                                  f"{', '.join(VARIABLES)}")
+                                  f"{', '.join(variable_names())}")
         if isinstance(node, ast.UnaryOp):
             if isinstance(node.op, ast.UAdd):
                 self.visit(node.operand, depth + 1)

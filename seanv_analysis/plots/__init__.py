@@ -13,6 +13,6 @@ offers plain functions for use from a script or a notebook:
 
 Importing this package does not import matplotlib; drawing a figure does.
 """
-from .registry import FIGURES, RESULT_NAMES, Figure, describe_figures, register_figure
+from .registry import FIGURES, Figure, describe_figures, load_figure_modules, register_figure
 
-__all__ = ["FIGURES", "RESULT_NAMES", "Figure", "describe_figures", "register_figure"]
+__all__ = ["FIGURES", "Figure", "describe_figures", "register_figure", "load_figure_modules"]

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from ._style import DEFAULT_FORMATS, new_figure, save_figure
+from .registry import Figure, register_figure
 
 __all__ = ["plot_fig4", "draw_fig4", "draw"]
 
@@ -189,3 +190,9 @@ def draw(results: Mapping[str, Any], folder: Path, *,
          formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
     """Registry entry: Fig. 4 of ``results["flowfit"]`` as ``folder/fig4.<format>``."""
     return plot_fig4(results["flowfit"], folder, formats=formats)
+
+
+register_figure(Figure(
+    name="fig4", number=4, needs=("flowfit",), draw=draw, order=10,
+    title="Fig. 4: flow characterisation, flow rate vs cam angle and sealing threshold vs "
+          "pressure difference"))

@@ -29,6 +29,7 @@ from ._style import (
     shade_high_load,
     thin,
 )
+from .registry import Figure, register_figure
 
 __all__ = ["plot_fig6", "plot_fig6_dataset", "draw_fig6_column", "draw_run"]
 
@@ -153,3 +154,13 @@ def draw_run(run, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS,
     own, with the run's overrides applied, which is what the rig ran with.
     """
     return plot_fig6(run, folder, formats=formats)
+
+
+register_figure(Figure(
+    name="fig6", number=6, needs=("runs",), per_run=True, run_kind="position_control",
+    draw_run=draw_run, shown_with=("tracking",), order=20,
+    title="Fig. 6: position control under load variation, one figure per run"))
+register_figure(Figure(
+    name="fig6_runs", needs=("position_runs",), draw=draw_runs, shown_with=("tracking",), order=21,
+    title="Fig. 6: the position-control runs side by side, (a) without and (b) with the flow "
+          "model"))

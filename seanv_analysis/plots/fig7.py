@@ -26,6 +26,7 @@ from ._style import (
     shade_high_load,
     thin,
 )
+from .registry import Figure, register_figure
 
 __all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", "draw"]
 
@@ -193,3 +194,8 @@ def draw(results: Mapping[str, Any], folder: Path, *,
     """Registry entry: Fig. 7 of ``results["tracking"]``, the data set
     (``folder/fig7.<format>``) and each run (``folder/fig7_<run_id>.<format>``)."""
     return plot_fig7(results["tracking"], folder, formats=formats)
+
+
+register_figure(Figure(
+    name="fig7", number=7, needs=("tracking",), draw=draw, order=30,
+    title="Fig. 7: flow tracking, target vs actual flow (delay-shifted), all runs and per run"))

@@ -5,18 +5,18 @@ Each :class:`Figure` names the results it draws from (``needs``) and one
 drawing function that writes its files and returns their paths:
 
 - a data-set figure has ``draw(results, folder, *, formats) -> [paths]``,
-  where ``results`` maps each of its ``needs`` to the stage's result
-  (``"flowfit"``: FlowFit, ``"tracking"``: Tracking, ``"validation"``:
-  Validation, ``"discovery"``: Discovery, ``"position_runs"``: the data
-  set's position-control runs);
+  where ``results`` maps each of its ``needs`` to a result of the stages by
+  name (the catalogue's ``RESULTS``, :mod:`seanv_analysis.stages.catalogue`:
+  ``seanv-analyze run --list-stages`` lists them with their types);
 - a per-run figure (``per_run=True``, ``needs=("runs",)``) has
   ``draw_run(run, folder, *, formats, rig) -> [paths]``, called once per run
   of kind ``run_kind`` (the batch runner runs these as parallel, cached
   per-run tasks).
 
 Both write exactly the file formats asked (``("png", "svg")``, ...) into
-``folder``. Adding a figure is one module with such a function and one
-:func:`register_figure` call (or one entry below); nothing else changes.
+``folder``. Adding a figure is one module of this package with such a
+function and a :func:`register_figure` call at its end: the registry imports
+every module of the package; nothing else changes.
 
 The figure modules import matplotlib only when they draw, so reading this
 registry (``--help``, pipeline validation) does not load it.
@@ -29,17 +29,9 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from ..io.names import safe_name
-from . import fig4, fig6, fig7
-from ._style import DEFAULT_FORMATS, check_formats
 
-__all__ = ["Figure", "FIGURES", "RESULT_NAMES", "register_figure", "describe_figures",
-           "DrawDataset", "DrawRun"]
-
-#: names a figure's ``needs`` may use: the stage results a figure draws from,
-#: the position-control runs of the data set, and "runs" for a per-run figure
-#: (it draws from one run at a time)
-RESULT_NAMES: tuple[str, ...] = ("flowfit", "tracking", "validation", "discovery",
-                                  "position_runs", "runs")
+__all__ = ["Figure", "FIGURES", "register_figure", "describe_figures", "DrawDataset",
+           "DrawRun", "load_figure_modules"]
 
 
 class DrawDataset(Protocol):
@@ -66,13 +58,19 @@ class Figure:
         pipeline result's ``figures``; also the per-run figures' sub-folder
         ("fig4", "fig6", "fig7", "discover_residuals")
     title : one line, the report's caption and the ``--help`` text
-    needs : result names it draws from, among :data:`RESULT_NAMES`
+    needs : result names it draws from (a stage's ``RESULTS``; "runs" for a
+        per-run figure); a figure needing a result no stage gives is never drawn
     number : the paper's figure number (4, 6, 7), which ``figs`` may use
         instead of the name; None for figures not in the paper
     draw : data-set figure: ``draw(results, folder, *, formats) -> [paths]``
     draw_run : per-run figure: ``draw_run(run, folder, *, formats, rig) -> [paths]``
     per_run : drawn once per run (``draw_run``) instead of once per data set
     run_kind : per-run figures: the run kind drawn ("position_control")
+    shown_with : stages whose command draws this figure although it reads
+        none of their results (Fig. 6 beside ``tracking``'s Fig. 7); a
+        command draws the figures its stage's results feed and these
+    order : where the report shows it (lower first; equal orders in the
+        order registered)
     """
 
     name: str
@@ -83,6 +81,8 @@ class Figure:
     draw_run: DrawRun | None = None
     per_run: bool = False
     run_kind: str | None = None
+    shown_with: tuple[str, ...] = ()
+    order: float = float("inf")
 
     def __post_init__(self) -> None:
         where = f"figure {self.name!r}"
@@ -93,10 +93,9 @@ class Figure:
             raise ValueError(f"{where}: title must be one non-empty line, got {self.title!r}")
         needs = (self.needs,) if isinstance(self.needs, str) else tuple(self.needs)
         object.__setattr__(self, "needs", needs)
-        unknown = [n for n in needs if n not in RESULT_NAMES]
-        if not needs or unknown:
-            raise ValueError(f"{where}: needs {list(needs)!r}; expected one or more of "
-                             f"{', '.join(RESULT_NAMES)}")
+        if not needs or not all(isinstance(n, str) and n for n in needs):
+            raise ValueError(f"{where}: needs {list(needs)!r}; expected one or more result "
+                             "names")
         if self.number is not None and (isinstance(self.number, bool) or not isinstance(self.number, int)):
             raise ValueError(f"{where}: number must be an int or None, got {self.number!r}")
         if self.per_run:
@@ -136,6 +135,9 @@ def register_figure(figure: Figure, *, replace: bool = False) -> Figure:
             raise ValueError(f"figure {figure.name!r}: number {figure.number} is already "
                              f"figure {taken[0]!r}'s")
     FIGURES[figure.name] = figure
+    ordered = sorted(FIGURES.values(), key=lambda f: f.order)   # stable: equal orders as registered
+    FIGURES.clear()
+    FIGURES.update((f.name, f) for f in ordered)
     return figure
 
 
@@ -148,45 +150,20 @@ def describe_figures() -> str:
     return "\n".join(lines)
 
 
-def _draw_discovery_residuals(results: Mapping[str, Any], folder: Path, *,
-                              formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
-    """Residuals before/after discovery as ``folder/discover_residuals.<format>``
-    (:func:`~seanv_analysis.plots.residuals.plot_discovery_residuals`)."""
-    from .residuals import plot_discovery_residuals
+def load_figure_modules() -> None:
+    """Import every module of this package but the registry's own helpers:
+    each figure module registers its figures (:func:`register_figure` at its
+    end), so a new figure is one new module and nothing else. Called when
+    the registry loads; again to pick up a module added to the package's
+    path since (modules already imported are not run twice)."""
+    import importlib
+    import pkgutil
 
-    return plot_discovery_residuals(results["discovery"], out_dir=folder,
-                                    formats=check_formats(formats))
+    from .. import plots as package
 
-
-def _draw_validation(results: Mapping[str, Any], folder: Path, *,
-                     formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
-    """Closed-loop validation: the fit % per run (``validate_fit.<format>``)
-    and measured vs simulated overlays, one per run
-    (:func:`~seanv_analysis.plots.validate.plot_overlay`)."""
-    from .validate import plot_overlay
-
-    return plot_overlay(results["validation"], folder, formats=check_formats(formats))
+    for info in pkgutil.iter_modules(package.__path__):
+        if not info.name.startswith("_") and info.name not in ("registry", "notebook"):
+            importlib.import_module(f"{package.__name__}.{info.name}")
 
 
-register_figure(Figure(
-    name="fig4", number=4, needs=("flowfit",), draw=fig4.draw,
-    title="Fig. 4: flow characterisation, flow rate vs cam angle and sealing threshold vs "
-          "pressure difference"))
-register_figure(Figure(
-    name="fig6", number=6, needs=("runs",), per_run=True, run_kind="position_control",
-    draw_run=fig6.draw_run,
-    title="Fig. 6: position control under load variation, one figure per run"))
-register_figure(Figure(
-    name="fig6_runs", needs=("position_runs",), draw=fig6.draw_runs,
-    title="Fig. 6: the position-control runs side by side, (a) without and (b) with the flow "
-          "model"))
-register_figure(Figure(
-    name="fig7", number=7, needs=("tracking",), draw=fig7.draw,
-    title="Fig. 7: flow tracking, target vs actual flow (delay-shifted), all runs and per run"))
-register_figure(Figure(
-    name="validate_fit", needs=("validation",), draw=_draw_validation,
-    title="Closed-loop validation: measured vs simulated position control, fit % per run "
-          "and overlays"))
-register_figure(Figure(
-    name="discover_residuals", needs=("discovery",), draw=_draw_discovery_residuals,
-    title="Discovery: flow residual (measured - model) before/after the effects found"))
+load_figure_modules()

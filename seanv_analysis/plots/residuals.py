@@ -8,9 +8,10 @@ from typing import Sequence
 
 import numpy as np
 
-from ._style import DEFAULT_FORMATS, new_figure, paper_style, save_figure
+from ._style import DEFAULT_FORMATS, check_formats, new_figure, paper_style, save_figure
+from .registry import Figure, register_figure
 
-__all__ = ["plot_discovery_residuals"]
+__all__ = ["plot_discovery_residuals", "draw"]
 
 #: axis label of each residual variable (also for Discovery.plot)
 LABELS = {"run_index": "Run index (time order)", "dp_mpa": r"Pressure difference $\Delta p$ [MPa]",
@@ -100,3 +101,15 @@ def _draw(discovery, out_dir, stem, variables, formats) -> list[Path]:
                markerscale=1.5)
     fig.tight_layout(rect=(0, 0.1, 1, 0.95))
     return save_figure(fig, out_dir, stem, formats=formats, tight=False)
+
+
+def draw(results, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Residuals before/after discovery as ``folder/discover_residuals.<format>``
+    (:func:`plot_discovery_residuals`)."""
+    return plot_discovery_residuals(results["discovery"], out_dir=folder,
+                                    formats=check_formats(formats))
+
+
+register_figure(Figure(
+    name="discover_residuals", needs=("discovery",), draw=draw, order=50,
+    title="Discovery: flow residual (measured - model) before/after the effects found"))

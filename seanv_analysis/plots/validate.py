@@ -14,6 +14,7 @@ from ._style import (
     DEFAULT_FORMATS,
     SIM_COLOUR,
     TARGET_COLOUR,
+    check_formats,
     high_load_spans,
     new_figure,
     paper_style,
@@ -21,8 +22,9 @@ from ._style import (
     shade_high_load,
     thin,
 )
+from .registry import Figure, register_figure
 
-__all__ = ["plot_overlay", "plot_overlay_run"]
+__all__ = ["plot_overlay", "plot_overlay_run", "draw"]
 
 
 def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = None,
@@ -116,3 +118,15 @@ def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True,
             fig.tight_layout()
             paths += save_figure(fig, out_dir, "validate_fit", formats=formats)
     return paths
+
+
+def draw(results, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+    """Closed-loop validation: the fit % per run (``validate_fit.<format>``)
+    and measured vs simulated overlays, one per run (:func:`plot_overlay`)."""
+    return plot_overlay(results["validation"], folder, formats=check_formats(formats))
+
+
+register_figure(Figure(
+    name="validate_fit", needs=("validation",), draw=draw, order=40,
+    title="Closed-loop validation: measured vs simulated position control, fit % per run "
+          "and overlays"))

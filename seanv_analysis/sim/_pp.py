@@ -1,63 +1,72 @@
-"""Layout of the packed plant parameter vector (units in the comments), and
-of the kernel's outputs.
+"""Layout of the packed plant parameter vector, and of the kernel's outputs.
 
-One definition for the kernel (:mod:`.kernel`), the integrator step
-(:mod:`.rosenbrock`) and the packer (:meth:`.plant.Plant.packed_params`);
-numba reads module globals, not class attributes, so the compiled modules
-of this package import the ``_NAME = PP.NAME`` bindings below.
+The plant's parameters have names (:data:`PLANT`: unit and meaning of each),
+and so have those the effects add outside the valve (each effect's
+``PLANT_PARAMS`` in :mod:`seanv_analysis.models.effects`): one vector holds
+them all, in that order, and this module is the one place that lowers the
+names to indices. :class:`PP` maps a name to its index for the packer
+(:meth:`.plant.Plant.packed_params`, which fills the vector by name); the
+compiled modules read ``pp[_NAME]``, a module-level binding made here for
+every name (numba reads module globals, not class attributes). A new plant
+effect declares its parameter in its class and reads ``pp[_ITS_NAME]`` in
+the kernel: nothing else changes.
 """
 from __future__ import annotations
 
-__all__ = ["PP", "PP_SIZE", "MODE_SCHEDULE", "OUT_FAST", "OUT_SLOW"]  # and the _NAME bindings
+from ..models.effects import plant_param_defaults
 
+__all__ = ["PP", "PP_SIZE", "PLANT", "NAMES", "MODE_SCHEDULE", "OUT_FAST", "OUT_SLOW"]
 
-class PP:
-    """Indices of the packed plant parameter vector (units in the names)."""
+#: the plant's own parameters, in the order of the packed vector
+PLANT: dict[str, str] = {
+    "DT": "integration step [s]",
+    "SUBSTEPS": "plant steps per 1 kHz sample [-]",
+    "CTRL_EVERY": "1 kHz samples per controller tick [-]",
+    "P_SUPPLY": "supply pressure [MPaG]",
+    "RIPPLE_AMP": "pump ripple amplitude [MPa]",
+    "RIPPLE_HZ": "pump ripple frequency [Hz]",
+    "P_TANK": "tank pressure [MPaG]",
+    "N_SEG": "tube segments [-]",
+    "R_SEG": "laminar resistance per segment [MPa s/mm^3]",
+    "I_SEG": "inertance per segment [MPa s^2/mm^3]",
+    "V_SEG": "tube volume per segment [mm^3]",
+    "BULK": "effective bulk modulus [MPa]",
+    "AREA": "piston area [mm^2]",
+    "LOAD_AREA": "load piston area [mm^2]",
+    "DEAD_VOL": "head volume at x = 0 [mm^3]",
+    "STROKE": "stroke [mm]",
+    "MASS": "moving mass [N s^2/mm]",
+    "F_COULOMB": "Coulomb friction [N]",
+    "F_STATIC": "breakaway friction [N]",
+    "V_STRIBECK": "Stribeck velocity [mm/s]",
+    "VISCOUS": "viscous friction [N s/mm]",
+    "LOAD_TAU": "load regulator time constant [s]",
+    "LEAK_G": "leakage conductance per side [mm^3/(s MPa)]",
+    "DP_SMOOTH": "dp smoothing [MPa]",
+    "SERVO_DEAD_TICKS": "servo dead time in controller ticks [-]",
+    "SERVO_TAU": "servo time constant [s]",
+    "SERVO_RATE": "servo rate limit [deg/s]",
+    "SERVO_RES": "servo resolution [deg]",
+    "ENC_RES": "encoder resolution [mm]",
+    "P_CAV": "cavitation floor [MPaG]",
+    "NEUTRAL": "cam angle after a flow step's release [deg]",
+    "X_STOP_LO": "flow step: release when x <= this (drain) [mm]",
+    "X_STOP_HI": "flow step: release when x >= this (supply) [mm]",
+    "SUPPLY_DROOP": "supply pressure drop per unit of extending flow [MPa s/mm^3]",
+    "STOP": "set != 0 while a kernel runs: it returns early (Ctrl-C, SIGTERM) [-]",
+}
 
-    DT = 0                # integration step [s]
-    SUBSTEPS = 1          # plant steps per 1 kHz sample [-]
-    CTRL_EVERY = 2        # 1 kHz samples per controller tick [-]
-    P_SUPPLY = 3          # supply pressure [MPaG]
-    RIPPLE_AMP = 4        # pump ripple amplitude [MPa]
-    RIPPLE_HZ = 5         # pump ripple frequency [Hz]
-    P_TANK = 6            # tank pressure [MPaG]
-    N_SEG = 7             # tube segments [-]
-    R_SEG = 8             # laminar resistance per segment [MPa s/mm^3]
-    I_SEG = 9             # inertance per segment [MPa s^2/mm^3]
-    V_SEG = 10            # tube volume per segment [mm^3]
-    BULK = 11             # effective bulk modulus [MPa]
-    AREA = 12             # piston area [mm^2]
-    LOAD_AREA = 13        # load piston area [mm^2]
-    DEAD_VOL = 14         # head volume at x = 0 [mm^3]
-    STROKE = 15           # stroke [mm]
-    MASS = 16             # moving mass [N s^2/mm]
-    F_COULOMB = 17        # [N]
-    F_STATIC = 18         # [N]
-    V_STRIBECK = 19       # [mm/s]
-    VISCOUS = 20          # [N s/mm]
-    LOAD_TAU = 21         # load regulator time constant [s]
-    LEAK_G = 22           # leakage conductance per side [mm^3/(s MPa)]
-    DP_SMOOTH = 23        # dp smoothing [MPa]
-    SERVO_DEAD_TICKS = 24  # servo dead time in controller ticks [-]
-    SERVO_TAU = 25        # servo time constant [s]
-    SERVO_RATE = 26       # servo rate limit [deg/s]
-    SERVO_RES = 27        # servo resolution [deg]
-    BACKLASH = 28         # backlash width [deg] (effect)
-    DELAY_STEPS = 29      # extra transport delay [plant steps] (effect)
-    ENC_RES = 30          # encoder resolution [mm]
-    GAIN_X = 31           # encoder gain (effect) [-]
-    GAIN_PS = 32          # p_supply sensor gain [-]
-    GAIN_PH = 33          # p_head sensor gain [-]
-    GAIN_PL = 34          # p_load sensor gain [-]
-    P_CAV = 35            # cavitation floor [MPaG]
-    NEUTRAL = 36          # cam angle after a flow step's release [deg]
-    X_STOP_LO = 37        # flow step: release when x <= this (drain) [mm]
-    X_STOP_HI = 38        # flow step: release when x >= this (supply) [mm]
-    SUPPLY_DROOP = 39     # supply pressure drop per unit of extending flow [MPa s/mm^3]
-    STOP = 40             # set != 0 while a kernel runs: it returns early (Ctrl-C, SIGTERM) [-]
+#: every parameter of the packed vector, in order: the plant's, then the
+#: effects' (in the order the effects are registered)
+NAMES: tuple[str, ...] = (*PLANT, *(n for n in plant_param_defaults() if n not in PLANT))
 
+#: name -> index in the packed vector (``PP.BULK``)
+PP = type("PP", (), {"__doc__": "Indices of the packed plant parameter vector, by name "
+                                "(:data:`NAMES`; units in :data:`PLANT` and the effects' "
+                                "``PLANT_PARAMS``).",
+                     **{name: i for i, name in enumerate(NAMES)}})
 
-PP_SIZE = 41
+PP_SIZE = len(NAMES)
 
 #: controller kind of the kernel for an open-loop cam schedule (flow-step runs)
 MODE_SCHEDULE = 0
@@ -67,47 +76,6 @@ OUT_FAST = ("t_s", "position_mm", "p_supply_mpag", "p_head_mpag", "p_load_mpag",
 #: columns of the kernel's 100 Hz output
 OUT_SLOW = ("t_s", "cam_cmd_deg", "cam_deg", "x_ref_mm", "q_ref_mm3_s", "cam_needle_deg")
 
-
-# module-level bindings of the indices, imported by the compiled modules
-# (numba reads module globals, not class attributes)
-_DT = PP.DT
-_SUBSTEPS = PP.SUBSTEPS
-_CTRL_EVERY = PP.CTRL_EVERY
-_P_SUPPLY = PP.P_SUPPLY
-_RIPPLE_AMP = PP.RIPPLE_AMP
-_RIPPLE_HZ = PP.RIPPLE_HZ
-_P_TANK = PP.P_TANK
-_N_SEG = PP.N_SEG
-_R_SEG = PP.R_SEG
-_I_SEG = PP.I_SEG
-_V_SEG = PP.V_SEG
-_BULK = PP.BULK
-_AREA = PP.AREA
-_LOAD_AREA = PP.LOAD_AREA
-_DEAD_VOL = PP.DEAD_VOL
-_STROKE = PP.STROKE
-_MASS = PP.MASS
-_F_COULOMB = PP.F_COULOMB
-_F_STATIC = PP.F_STATIC
-_V_STRIBECK = PP.V_STRIBECK
-_VISCOUS = PP.VISCOUS
-_LOAD_TAU = PP.LOAD_TAU
-_LEAK_G = PP.LEAK_G
-_DP_SMOOTH = PP.DP_SMOOTH
-_SERVO_DEAD_TICKS = PP.SERVO_DEAD_TICKS
-_SERVO_TAU = PP.SERVO_TAU
-_SERVO_RATE = PP.SERVO_RATE
-_SERVO_RES = PP.SERVO_RES
-_BACKLASH = PP.BACKLASH
-_DELAY_STEPS = PP.DELAY_STEPS
-_ENC_RES = PP.ENC_RES
-_GAIN_X = PP.GAIN_X
-_GAIN_PS = PP.GAIN_PS
-_GAIN_PH = PP.GAIN_PH
-_GAIN_PL = PP.GAIN_PL
-_P_CAV = PP.P_CAV
-_NEUTRAL = PP.NEUTRAL
-_X_STOP_LO = PP.X_STOP_LO
-_X_STOP_HI = PP.X_STOP_HI
-_SUPPLY_DROOP = PP.SUPPLY_DROOP
-_STOP = PP.STOP
+# the module-level binding ``_NAME`` of every index, imported by the compiled
+# modules (numba reads module globals, not class attributes)
+globals().update({f"_{name}": i for i, name in enumerate(NAMES)})

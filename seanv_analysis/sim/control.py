@@ -11,9 +11,12 @@ Two P controllers on the position error e = x_ref - x [mm]:
 
 Both hold a fixed cam angle once converged (|e| <= 0.5 mm): 3 deg below
 the supply sealing threshold (with the model) or the neutral angle
-(without). The hold ends when the reference changes, or when |e| grows past
-``release_band_mm`` (not in the paper, which only says the valve was "held";
-``inf`` keeps the hold until the next reference change).
+(without); a band of 0 never holds. The hold ends when the reference
+changes, or when |e| grows past ``release_band_mm`` (not in the paper, which
+only says the valve was "held"; ``inf`` keeps the hold until the next
+reference change, the band itself releases as soon as |e| leaves it).
+``identify`` reads all of these from a rig's logs
+(:mod:`seanv_analysis.identify.controller`).
 
 The controllers are pure: ``step(state, ...)`` returns the output and the
 next state; they know nothing of the simulator, so ``validate`` can run the

@@ -33,6 +33,9 @@ def controller_step(kind, cp, sup, sup_z, sup_th, dr, dr_z, dr_th, state,
                     x_ref_mm, x_mm, p_supply_mpag, p_head_mpag, p_tank_mpag):
     """One step of either controller; updates ``state`` in place.
 
+    The cam is held once |e| <= the band (a band of 0: never held) and
+    released at the next reference or when |e| > the release band.
+
     Returns (cam command [deg], Q_ref [mm^3/s] or NaN, held 0/1).
     """
     e = x_ref_mm - x_mm
@@ -43,7 +46,7 @@ def controller_step(kind, cp, sup, sup_z, sup_th, dr, dr_z, dr_th, state,
         state[_ST_HELD] = 0.0
     if kind == KIND_FLOW_MODEL:
         q_ref = cp[_CP_KP] * e
-        if state[_ST_HELD] < 0.5 and abs(e) <= cp[_CP_BAND]:
+        if state[_ST_HELD] < 0.5 and abs(e) <= cp[_CP_BAND] and cp[_CP_BAND] > 0.0:
             state[_ST_HELD] = 1.0
             # 3 deg below the supply sealing threshold at the measured pressures
             state[_ST_HOLD_DEG] = J.model_cam_for_flow(
@@ -57,7 +60,7 @@ def controller_step(kind, cp, sup, sup_z, sup_th, dr, dr_z, dr_th, state,
                                          -np.inf, np.inf, cp[_CP_MIN_DP])
     else:
         q_ref = np.nan
-        if state[_ST_HELD] < 0.5 and abs(e) <= cp[_CP_BAND]:
+        if state[_ST_HELD] < 0.5 and abs(e) <= cp[_CP_BAND] and cp[_CP_BAND] > 0.0:
             state[_ST_HELD] = 1.0
             state[_ST_HOLD_DEG] = cp[_CP_HOLD]
         if state[_ST_HELD] > 0.5:

@@ -49,7 +49,7 @@ from ._pp import (
     _AREA,
     _BACKLASH,
     _CTRL_EVERY,
-    _DELAY_STEPS,
+    _DELAY,
     _DT,
     _ENC_RES,
     _F_STATIC,
@@ -176,7 +176,7 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th, tw,
     cmd_ring = np.full(ndead + 1, cam0_deg)
     res = pp[_SERVO_RES]
     theta_b = cam0_deg
-    ndelay = int(pp[_DELAY_STEPS])
+    ndelay = int(round(pp[_DELAY] / pp[_DT]))   # the extra delay in whole plant steps
     delay_ring = np.full(ndelay + 1, cam0_deg)
     di = 0
     cstate = np.zeros(3)

@@ -184,15 +184,9 @@ class Plant:
         pp[PP.SERVO_TAU] = servo["time_constant_s"]
         pp[PP.SERVO_RATE] = servo["max_rate_deg_s"]
         pp[PP.SERVO_RES] = servo["resolution_deg"]
-        extra = self.plant_terms()
-        pp[PP.BACKLASH] = extra.backlash_deg
-        pp[PP.DELAY_STEPS] = round(extra.delay_s / dt)
         pp[PP.ENC_RES] = rig["sensors"]["encoder_resolution_mm"]
-        gains = extra.gains
-        pp[PP.GAIN_X] = gains["position_mm"]
-        pp[PP.GAIN_PS] = gains["p_supply_mpag"]
-        pp[PP.GAIN_PH] = gains["p_head_mpag"]
-        pp[PP.GAIN_PL] = gains["p_load_mpag"]
+        for name, value in self.plant_terms().items():   # the effects' parameters, by name
+            pp[getattr(PP, name)] = value
         pp[PP.P_CAV] = s["cavitation_pressure_mpag"]
         pp[PP.NEUTRAL] = neutral_deg
         pp[PP.X_STOP_LO], pp[PP.X_STOP_HI] = x_stop_mm

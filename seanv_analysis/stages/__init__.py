@@ -1,9 +1,10 @@
 """Stages of the analysis, shared by the CLI commands and the pipeline runner.
 
-Each stage is a module with ``NAME``, ``NEEDS``, ``WRITES``, ``OPTIONS``,
-``DESCRIPTION``, ``check_option(key, value)``, ``run(ctx, options) -> result``
-and ``write(result, folder) -> paths`` (see :mod:`.base`). :data:`STAGES`
-lists them in the order a pipeline runs them:
+Each stage is a module that declares itself once (``NAME``, ``ORDER``,
+``FOLDER``, ``RESULTS``, ``run(ctx, options) -> value``, ``write(value,
+folder) -> paths``...; see :mod:`.base`); :data:`STAGES` is the catalogue
+of them (:mod:`.catalogue`), in the order a pipeline runs them
+(``seanv-analyze run --list-stages`` prints it):
 
 ============  ===============================================================
 ``ingest``    read, validate, summarise every run; the paper's filters
@@ -16,6 +17,11 @@ lists them in the order a pipeline runs them:
 ``figures``   the registered figures (Fig. 4, 6, 7, discovery residuals, ...)
 ``report``    one self-contained report.html
 ============  ===============================================================
+
+Every command, the batch runner and :func:`run_stages` run stages through
+one path, :func:`execute`, on a pipeline checked like a pipeline file. The
+stage modules are attributes of this package once the catalogue has found
+them (``stages.flowfit.run(ctx, {})``).
 
 Examples
 --------
@@ -32,49 +38,19 @@ or stage by stage:
 """
 from __future__ import annotations
 
-from types import ModuleType
+from .base import Context, FailedRun, Result, RunMapper, RunOutcome, one_blas_thread, serial_map
+from .catalogue import (
+    STAGES,
+    describe_stages,
+    figures_reading,
+    producers_of,
+    report_sections,
+    result_names,
+    results_of,
+    stage_names,
+)
+from .execute import execute, run_stages
 
-from . import dataset, discover, figures, flowfit, identify, report, tracking, validate
-from .base import Context, FailedRun, RunMapper, RunOutcome, one_blas_thread, serial_map
-
-__all__ = ["STAGES", "Context", "FailedRun", "RunMapper", "RunOutcome", "serial_map", "dataset",
-           "flowfit", "identify", "tracking", "validate", "discover", "figures", "report", "describe_stages",
-           "run_stages"]
-
-#: {name: stage module}, in run order
-STAGES: dict[str, ModuleType] = {m.NAME: m for m in (dataset, flowfit, identify, tracking,
-                                                     validate, discover, figures, report)}
-
-
-def describe_stages() -> str:
-    """One paragraph per stage: name, what it does, needs, options, writes."""
-    lines = []
-    for name, mod in STAGES.items():
-        lines.append(f"{name}: {mod.DESCRIPTION}")
-        lines.append(f"  needs:   {', '.join(mod.NEEDS) or '(the run folders)'}")
-        opts = ", ".join(f"{k}={v!r}" for k, v in mod.OPTIONS.items())
-        lines.append(f"  options: {opts or '(none)'}")
-        lines.append(f"  writes:  {', '.join(mod.WRITES)}")
-    return "\n".join(lines)
-
-
-def run_stages(data, names=("ingest", "flowfit"), *, rig=None, model=None,
-               options: dict | None = None, map_runs: RunMapper = serial_map) -> Context:
-    """Run stages in this process (nothing written) and return the context
-    holding their results (``ctx.result("flowfit")``, ...): the notebook form
-    of a pipeline. ``options``: {stage name: {option: value}}; ``model``: the
-    valve model to start from (default: none, the rig's where one is needed).
-
-    Raises
-    ------
-    DataError, FitError, ConfigError
-        as the stages do; a stage that returns nothing (e.g. tracking without
-        position-control runs) leaves no result.
-    """
-    ctx = Context.for_data(data, rig=rig, model=model, map_runs=map_runs)
-    with one_blas_thread():
-        for name in names:
-            value = STAGES[name].run(ctx, (options or {}).get(name, {}))
-            if value is not None:
-                ctx.add(name, value)
-    return ctx
+__all__ = ["STAGES", "Context", "FailedRun", "Result", "RunMapper", "RunOutcome", "serial_map",
+           "one_blas_thread", "describe_stages", "run_stages", "execute", "stage_names",
+           "result_names", "results_of", "producers_of", "report_sections", "figures_reading"]

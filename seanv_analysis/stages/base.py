@@ -1,14 +1,24 @@
 """What the stages share: the context they run in, the per-run mapper, failed runs.
 
-A stage is a module of this package with
+A stage is a module of this package; it declares itself once, and the
+catalogue (:mod:`.catalogue`) finds it:
 
 ``NAME``         its name in pipelines and on the command line
-``NEEDS``        the results of earlier stages it reads ("dataset", "flowfit", ...)
+``ORDER``        where it runs in a pipeline (stages run in increasing ``ORDER``)
+``DESCRIPTION``  one line (``--list-stages``)
+``NEEDS``        the stages whose results it reads ("ingest", "flowfit", ...)
 ``WRITES``       what :func:`write` puts in its output folder (for ``--list-stages``)
+``FOLDER``       its folder under the output folder ("." for files directly in it)
+``RESULTS``      the results it gives (:class:`Result`: name, type, JSON key; figures
+                 and the report ask for results by name)
+``SECTION``      optional: its section of the report (``report.ReportSection``)
+``RECORD``       optional: {field of the pipeline record: attribute of its value}
 ``OPTIONS``      its options and their defaults (pipeline files are checked against them)
 ``check_option`` ``(key, value) -> value``: type check of one option, ValueError if bad
 ``run(ctx, options) -> result``   the work (a result object, never written by itself)
 ``write(result, folder) -> list[Path]``   its files, each written atomically
+``expected(ds) -> bool``   optional: whether the data set would give its result
+                 (a figure missing it is then worth a note)
 
 Per-run work goes through :attr:`Context.map_runs`: in a notebook or a single
 command it reads and processes the runs here (:func:`serial_map`); the batch
@@ -29,7 +39,33 @@ from ..io.validate import one_line
 from ..models import ValveModel
 
 __all__ = ["Context", "FailedRun", "RunOutcome", "RunMapper", "serial_map", "one_line",
-           "with_path", "find_run_dirs", "one_blas_thread"]
+           "with_path", "find_run_dirs", "one_blas_thread", "Result"]
+
+
+@dataclass(frozen=True)
+class Result:
+    """One result a stage gives, by name: what figures' ``needs`` and the
+    report ask for, ``PipelineResult[name]``, and its key in ``result.json``.
+
+    Attributes
+    ----------
+    name : the result's name ("flowfit", "validation", ...)
+    type : the class it is (for ``--list-stages`` and the docs)
+    get : ``get(value, ctx) -> result`` from the stage's return value (None:
+        the value itself; a result that is None is absent)
+    json : recorded in ``result.json`` under ``name`` (``to_json_dict()``)
+    """
+
+    name: str
+    type: str
+    get: Callable[[Any, Any], Any] | None = None
+    json: bool = True
+
+    def of(self, value: Any, ctx: Any = None) -> Any:
+        """This result from a stage's return value (None when absent)."""
+        if value is None:
+            return None
+        return value if self.get is None else self.get(value, ctx)
 
 
 def with_path(path: str | Path, message: str) -> str:
@@ -222,8 +258,24 @@ class Context:
         self.results[name] = result
 
     def result(self, name: str) -> Any:
-        """The result of stage ``name``, or None when it did not run (or failed)."""
+        """The value of stage ``name``, or None when it did not run (or failed)."""
         return self.results.get(name)
+
+    def result_named(self, name: str) -> Any:
+        """The result called ``name`` (a :class:`Result` of some stage:
+        "flowfit", "validation", "position_runs"...) from the stages run so
+        far, the last stage giving it first; None when none has."""
+        from .catalogue import STAGES
+
+        for stage in reversed(list(STAGES)):
+            if stage not in self.results:
+                continue
+            for res in STAGES[stage].RESULTS:
+                if res.name == name:
+                    value = res.of(self.results[stage], self)
+                    if value is not None:
+                        return value
+        return None
 
     @property
     def plant_rig(self) -> RigConfig:

@@ -21,25 +21,47 @@ import pandas as pd
 
 from ..errors import DataError
 from ..jsonable import JsonResult
-from .base import Context, FailedRun, with_path
+from .base import Context, FailedRun, Result, with_path
 
-__all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DatasetResult", "check_option", "run", "collect",
+__all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DatasetResult", "NoRunsRead", "check_option",
+           "run", "collect",
            "summarize_runs", "summarize_derived",
            "write",
            "summarize", "summary_frame", "position_runs"]
 
 NAME = "ingest"
+ORDER = 10
 NEEDS: tuple[str, ...] = ()
 WRITES = ("summary.parquet",)
+FOLDER = "."
 DESCRIPTION = "read, validate and summarise every run (per-run flow, dp); the paper's filters"
-#: method: per-run flow estimate, 'steady' (robust) or the paper's 'peak'
-OPTIONS: dict[str, Any] = {"method": "steady"}
+#: the data set's position-control runs, read once (figures draw them)
+RESULTS = (Result("position_runs", "list[Run]", get=lambda value, ctx: position_runs(ctx) or None,
+                  json=False),)
+#: what the pipeline record keeps of the per-run summary
+RECORD = {"summary": "summary", "excluded": "excluded", "runs_read": "runs_read",
+          "input_hashes": "input_hashes"}
+#: method: per-run flow estimate, 'steady' (robust) or the paper's 'peak';
+#: derive: also align and derive the samples of the position-control runs, so
+#: a run whose streams cannot be aligned fails here rather than later
+OPTIONS: dict[str, Any] = {"method": "steady", "derive": False}
 
 
 def check_option(key: str, value: Any) -> Any:
     if key == "method" and value not in ("steady", "peak"):
         raise ValueError("'steady' or 'peak'")
+    if key == "derive" and not isinstance(value, bool):
+        raise ValueError("true or false")
     return value
+
+
+class NoRunsRead(DataError):
+    """No run of the data set could be read: the ingest result (every bad run
+    and why) rides along, so a command can list them."""
+
+    def __init__(self, message: str, result: "DatasetResult", **kwargs):
+        super().__init__(message, **kwargs)
+        self.result = result
 
 
 @dataclass(frozen=True)
@@ -209,8 +231,8 @@ def run(ctx: Context, options: Mapping[str, Any]) -> DatasetResult:
     """
     result = collect(ctx, options)
     if result.runs_read == 0:
-        raise DataError("no run could be read; " + (result.failed[0].message if result.failed
-                                                     else ""), path=ctx.data[0])
+        raise NoRunsRead("no run could be read; " + (result.failed[0].message if result.failed
+                                                      else ""), result, path=ctx.data[0])
     return result
 
 
@@ -221,10 +243,13 @@ def collect(ctx: Context, options: Mapping[str, Any], *, func=None) -> DatasetRe
     from ..signals.filters import exclusion_counts
 
     method = options.get("method", OPTIONS["method"])
+    derive = bool(options.get("derive", OPTIONS["derive"]))
+    if func is None:
+        func = summarize_derived if derive else summarize
     ctx.log(f"ingest: reading, checking and summarising {len(ctx.run_dirs)} run folder(s)")
-    res = ctx.map_runs("ingest", func or summarize, ctx.run_dirs, rig=ctx.rig,
-                       params={"method": method}, kwargs={"method": method},
-                       valid=is_summary_entry)
+    res = ctx.map_runs("ingest", func, ctx.run_dirs, rig=ctx.rig,
+                       params={"method": method, **({"derive": True} if derive else {})},
+                       kwargs={"method": method}, valid=is_summary_entry)
     failed: list[FailedRun] = []
     hashes: dict[str, str] = {}
     rows = []

@@ -25,19 +25,25 @@ from typing import Any, Mapping
 
 from ..errors import OutputError
 from .base import Context, one_line, with_path
-from .dataset import position_runs
 from .validate import position_paths
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "FiguresResult", "check_option", "run", "write",
-           "draw_figures", "figures_of", "results_for_figures", "selected_figures", "draw_run_figure"]
+           "draw_figures", "results_for_figures", "selected_figures", "draw_run_figure"]
 
 NAME = "figures"
+ORDER = 90
 NEEDS = ("ingest",)
+FOLDER = "figures"
+RESULTS = ()
+#: the pipeline record's {figure name: files}
+RECORD = {"figures": "paths"}
 WRITES = ("figures/<figure>.png|.svg", "figures/fig6/<run>.png|.svg")
 DESCRIPTION = "paper-style figures (Fig. 4, 6, 7, discovery residuals, ...) as PNG and SVG"
 #: figs: figure numbers or names of :data:`seanv_analysis.plots.FIGURES`, or
-#: "all"; formats: file formats to write
-OPTIONS: dict[str, Any] = {"figs": "all", "formats": ["png", "svg"]}
+#: "all"; formats: file formats to write; layout: 'folders' (the stage's own
+#: folder ``figures/``, per-run figures in ``figures/<figure>/``) or 'flat'
+#: (every file directly in the output folder, as a single command writes them)
+OPTIONS: dict[str, Any] = {"figs": "all", "formats": ["png", "svg"], "layout": "folders"}
 
 
 def check_option(key: str, value: Any) -> Any:
@@ -54,6 +60,8 @@ def check_option(key: str, value: Any) -> Any:
     if key == "formats":
         if not isinstance(value, list) or not value or any(v not in ("png", "svg") for v in value):
             raise ValueError("a non-empty list among 'png', 'svg'")
+    if key == "layout" and value not in ("folders", "flat"):
+        raise ValueError("'folders' or 'flat'")
     return value
 
 
@@ -66,6 +74,11 @@ class FiguresResult:
     #: the figure keys file written beside the figures (None: none)
     keys_file: Path | None = None
 
+    @property
+    def note(self) -> str:
+        """The figures that could not be drawn, one clause each (the stage's note)."""
+        return "; ".join(self.problems)
+
     def all_paths(self) -> list[Path]:
         """Every file written: the figures and the figure keys beside them."""
         return [p for ps in self.paths.values() for p in ps] + (
@@ -76,14 +89,14 @@ class FiguresResult:
                 "problems": list(self.problems)}
 
 
-def results_for_figures(ctx: Context) -> dict[str, Any]:
-    """The results a figure may need, by the names figures use."""
-    val = ctx.result("validate")
-    disc = ctx.result("discover")
-    out = {"flowfit": ctx.result("flowfit"), "tracking": ctx.result("tracking"),
-           "validation": val.validation if val is not None else None,
-           "discovery": disc.discovery if disc is not None else None,
-           "position_runs": position_runs(ctx) or None}
+def results_for_figures(ctx: Context, names=None) -> dict[str, Any]:
+    """The results a figure may need, by name (:meth:`Context.result_named`:
+    the catalogue's results of the stages that ran); ``names``: only these
+    (default: every result of the catalogue)."""
+    from .catalogue import result_names
+
+    wanted = result_names() if names is None else names
+    out = {n: ctx.result_named(n) for n in wanted}
     return {k: v for k, v in out.items() if v is not None}
 
 
@@ -109,13 +122,6 @@ def selected_figures(figs: Any) -> list:
     return [f for f in FIGURES.values() if f.name in figs or (f.number is not None and f.number in figs)]
 
 
-def figures_of(result_name: str) -> list[str]:
-    """Names of the data-set figures drawn from one result ('validation', ...)."""
-    from ..plots import FIGURES
-
-    return [f.name for f in FIGURES.values() if not f.per_run and tuple(f.needs) == (result_name,)]
-
-
 def draw_run_figure(run, *, name: str, folder: str, formats: tuple[str, ...], rig) -> dict[str, Any]:
     """Per-run function: the per-run figure ``name`` of one run."""
     from ..errors import os_error_line
@@ -139,7 +145,10 @@ def run(ctx: Context, options: Mapping[str, Any]) -> FiguresResult:
     from ..io.atomic import claim_folder
 
     opts = {**OPTIONS, **options}
-    folder = claim_folder(Path(ctx.out_dir) / "figures")  # the pipeline's folder, swapped in whole
+    if opts["layout"] == "flat":
+        return draw_figures(ctx, opts["figs"], Path(ctx.out_dir), formats=tuple(opts["formats"]),
+                            per_run_folders=False)
+    folder = claim_folder(Path(ctx.out_dir) / FOLDER)  # the pipeline's folder, swapped in whole
     return draw_figures(ctx, opts["figs"], folder, formats=tuple(opts["formats"]))
 
 
@@ -152,11 +161,12 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
     ctx.log(f"figures: drawing {figs if isinstance(figs, str) else ', '.join(map(str, figs))} "
             f"into {folder}")
     keys = _FigureKeys(folder)
-    have = results_for_figures(ctx)
+    chosen = selected_figures(figs)
+    have = results_for_figures(ctx, {n for f in chosen if not f.per_run for n in f.needs})
     explicit = figs != "all"
     paths: dict[str, tuple[Path, ...]] = {}
     problems: list[str] = []
-    for fig in selected_figures(figs):
+    for fig in chosen:
         if fig.per_run:
             runs = position_paths(ctx) if fig.run_kind == "position_control" else []
             if not runs:
@@ -181,8 +191,7 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
             continue
         missing = [n for n in fig.needs if n not in have]
         if missing:
-            if explicit or any(n in ("flowfit", "tracking") for n in missing) and \
-                    _expected(ctx, missing):
+            if explicit or _expected(ctx, missing):
                 problems.append(f"{fig.name}: no {', '.join(missing)} result "
                                 "(stage absent or failed)")
             continue
@@ -281,14 +290,16 @@ class _FigureKeys:
 
 
 def _expected(ctx: Context, missing: list[str]) -> bool:
-    """Whether the data would have given the missing results (flow steps for
-    a flow fit, position-control runs for tracking)."""
+    """Whether the data would have given one of the missing results: a stage
+    giving it declares ``expected(ds)`` (the flow fit: the data set has flow
+    steps; tracking: position-control runs) and says so."""
+    from .catalogue import STAGES, producers_of
+
     ds = ctx.result("ingest")
     if ds is None:
         return False
-    if "flowfit" in missing and not ds.kind("flow_step").empty:
-        return True
-    return "tracking" in missing and not ds.kind("position_control").empty
+    return any(getattr(STAGES[stage], "expected", lambda ds: False)(ds)
+               for name in missing for stage in producers_of(name))
 
 
 def write(result: FiguresResult, folder: Path) -> list[Path]:

@@ -13,13 +13,18 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from ..errors import DataError
-from .base import Context
+from ..report import ReportSection, sections
+from .base import Context, Result
 from .pipeline import MAX_N_BOOT, MAX_SEED, check_count
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "check_option", "run", "write"]
 
 NAME = "flowfit"
+ORDER = 20
 NEEDS = ("ingest",)
+FOLDER = "flowfit"
+RESULTS = (Result("flowfit", "FlowFit"),)
+SECTION = ReportSection("flowfit", "Identified flow model (eq. 5)", sections.flowfit_section)
 WRITES = ("flowfit/flowfit.json", "flowfit/flowfit_details.json", "flowfit/model.toml",
           "flowfit/model.json", "flowfit/per_run.parquet", "flowfit/per_load.parquet")
 DESCRIPTION = "z0 and C per valve side with 95 % intervals (eq. 3-5)"
@@ -43,6 +48,11 @@ def check_option(key: str, value: Any) -> Any:
     if key == "seed":
         return check_count(value, most=MAX_SEED, what="a seed")
     return value
+
+
+def expected(ds) -> bool:
+    """The data set has flow steps, so a flow fit was to be expected."""
+    return not ds.kind("flow_step").empty
 
 
 def run(ctx: Context, options: Mapping[str, Any]):

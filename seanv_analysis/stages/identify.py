@@ -13,7 +13,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Mapping
 
-from .base import Context
+from ..report import ReportSection, sections
+from .base import Context, Result
 from .dataset import position_runs
 from .pipeline import MAX_N_BOOT, MAX_SEED, check_count
 
@@ -21,7 +22,11 @@ __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DESCRIPTION", "check_option", 
            "rig_toml"]
 
 NAME = "identify"
+ORDER = 30
 NEEDS = ("ingest",)
+FOLDER = "identify"
+RESULTS = (Result("identify", "Identification"),)
+SECTION = ReportSection("identify", "The rig identified from its logs", sections.identify_section)
 WRITES = ("identify/rig-identified.toml", "identify/identify.json", "identify/identify.txt")
 DESCRIPTION = ("identify the rig's unpublished constants (needle geometry, servo, friction, "
                "line) from its logs; later stages simulate the identified twin")

@@ -14,7 +14,7 @@ A pipeline file looks like::
     name = "flowfit"
     sides = ["supply", "drain"]
 
-Each ``[[stages]]`` table has a ``name`` (one of :data:`STAGE_NAMES`) and
+Each ``[[stages]]`` table has a ``name`` (a stage of the catalogue, :mod:`.catalogue`) and
 that stage's options (each stage module's ``OPTIONS``, with their defaults;
 :func:`stage_options`). Unknown stages or options are a :class:`~seanv_analysis.errors.ConfigError`
 naming the file, the stage and the option, so a typo never runs silently with
@@ -31,14 +31,14 @@ from typing import Any, Mapping
 
 from ..errors import ConfigError
 
-__all__ = ["STAGE_NAMES", "stage_options", "Stage", "Pipeline", "load_pipeline",
+__all__ = ["STAGE_NAMES", "stage_options", "Stage", "Pipeline", "load_pipeline",  # noqa: F822
            "parse_pipeline", "shipped_pipelines", "pipelines_dir", "PIPELINE_NAME", "MAX_N_BOOT",
            "MAX_SEED", "check_count"]
 
 
 
 def _stages():
-    from . import STAGES
+    from .catalogue import STAGES
     return STAGES
 
 
@@ -46,8 +46,18 @@ def _stages():
 #: no separator, no "..", nothing a file system or a terminal would take apart.
 PIPELINE_NAME = re.compile(r"[A-Za-z0-9][A-Za-z0-9._-]{0,63}")
 
-#: Stage names in the order they run (a pipeline lists a subset, in this order).
-STAGE_NAMES = ("ingest", "flowfit", "identify", "tracking", "validate", "discover", "figures", "report")
+
+def _names() -> tuple[str, ...]:
+    return tuple(_stages())
+
+
+def __getattr__(name: str) -> Any:
+    """``STAGE_NAMES``: the catalogue's stage names in the order they run (a
+    pipeline lists a subset, in this order); read from the catalogue when
+    first asked (the stage modules import this one)."""
+    if name == "STAGE_NAMES":
+        return tuple(_stages())
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 #: the most bootstrap resamples an option may ask for (each refits the model;
@@ -112,9 +122,6 @@ class Pipeline:
             if s.name == name:
                 return s
         return None
-
-    def has(self, name: str) -> bool:
-        return self.stage(name) is not None
 
     @property
     def stage_names(self) -> list[str]:
@@ -185,15 +192,15 @@ def parse_pipeline(doc: Mapping[str, Any], *, source: str | Path | None = None) 
         raise ConfigError(f"{where}: [pipeline] description = {description!r}; expected a string")
     raw = doc.get("stages")
     if not isinstance(raw, list) or not raw:
-        raise ConfigError(f"{where}: no [[stages]]; expected at least one of {', '.join(STAGE_NAMES)}")
+        raise ConfigError(f"{where}: no [[stages]]; expected at least one of {', '.join(_names())}")
     stages: list[Stage] = []
     for i, item in enumerate(raw):
         if not isinstance(item, Mapping) or "name" not in item:
             raise ConfigError(f"{where}: stage #{i + 1} has no name; expected name = one of "
-                              f"{', '.join(STAGE_NAMES)}")
+                              f"{', '.join(_names())}")
         sname = item["name"]
-        if not isinstance(sname, str) or sname not in STAGE_NAMES:
-            raise ConfigError(f"{where}: unknown stage '{sname}'; expected one of {', '.join(STAGE_NAMES)}")
+        if not isinstance(sname, str) or sname not in _names():
+            raise ConfigError(f"{where}: unknown stage '{sname}'; expected one of {', '.join(_names())}")
         if any(s.name == sname for s in stages):
             raise ConfigError(f"{where}: stage '{sname}' is listed twice")
         known = stage_options()[sname]
@@ -206,10 +213,10 @@ def parse_pipeline(doc: Mapping[str, Any], *, source: str | Path | None = None) 
                                   f"{', '.join(known) or '(none)'}")
             options[key] = _check_option(where, sname, key, value)
         stages.append(Stage(sname, options))
-    order = [STAGE_NAMES.index(s.name) for s in stages]
+    order = [_names().index(s.name) for s in stages]
     if order != sorted(order):
         raise ConfigError(f"{where}: stages out of order ({', '.join(s.name for s in stages)}); "
-                          f"expected the order {' -> '.join(STAGE_NAMES)}")
+                          f"expected the order {' -> '.join(_names())}")
     return Pipeline(name, description, tuple(stages), Path(source) if source else None)
 
 

@@ -18,7 +18,10 @@ from .base import Context
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "ReportResult", "check_option", "run", "write"]
 
 NAME = "report"
+ORDER = 100
 NEEDS = ("ingest",)
+FOLDER = "."
+RESULTS = ()
 WRITES = ("report.html", "manifest.json")
 DESCRIPTION = "one self-contained report.html: numbers, figures, failed runs, provenance"
 #: filename: name of the HTML file inside the output folder
@@ -73,4 +76,6 @@ def write(result: ReportResult, folder: Path) -> list[Path]:
     target = Path(folder).resolve() / name
     if target.parent != Path(folder).resolve():
         raise ConfigError(f"report: {name!r} resolves outside the output folder {folder}")
-    return [Path(write_report(result.record, target))]
+    from .catalogue import report_sections
+
+    return [Path(write_report(result.record, target, report_sections()))]

@@ -12,13 +12,19 @@ import math
 from pathlib import Path
 from typing import Any, Mapping
 
-from .base import Context
+from ..report import ReportSection, sections
+from .base import Context, Result
 from .dataset import position_runs
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "check_option", "run", "write"]
 
 NAME = "tracking"
+ORDER = 40
 NEEDS = ("ingest",)
+FOLDER = "tracking"
+RESULTS = (Result("tracking", "Tracking"),)
+SECTION = ReportSection("tracking", "Flow tracking during position control (Sec. III-C)",
+                        sections.tracking_section, sections.tracking_cards)
 WRITES = ("tracking/tracking.json", "tracking/tracking_details.json", "tracking/tracking.txt",
           "tracking/tracking_runs.parquet", "tracking/tracking_<run>.parquet")
 DESCRIPTION = "flow delay behind Q_ref and tracking RMSE of the position-control runs"
@@ -39,6 +45,11 @@ def check_option(key: str, value: Any) -> Any:
             raise ValueError("[min, max] flow in mm^3/s with min < max")
         return [float(v) for v in value]
     return value
+
+
+def expected(ds) -> bool:
+    """The data set has position-control runs, so a tracking result was to be expected."""
+    return not ds.kind("position_control").empty
 
 
 def run(ctx: Context, options: Mapping[str, Any]):

@@ -16,21 +16,28 @@ from typing import Any, Mapping, Sequence
 
 from ..errors import DataError
 from ..jsonable import JsonResult
-from .base import Context, FailedRun, one_line, with_path
+from ..report import ReportSection, sections
+from .base import Context, FailedRun, Result, one_line, with_path
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "ValidateResult", "check_option", "run", "write",
            "validate_model",
            "validate_one", "controller_numbers"]
 
 NAME = "validate"
+ORDER = 50
 NEEDS = ("ingest",)
+FOLDER = "validate"
+RESULTS = (Result("validation", "Validation", get=lambda value, ctx: value.validation),)
+SECTION = ReportSection("validation", "Closed-loop validation", sections.validation_section)
 WRITES = ("validate/validate.json", "validate/validate.txt", "validate/validate_table.parquet",
           "validate/validate_steps.parquet", "validate/validate_<run>.parquet")
 DESCRIPTION = "re-run each position-control run's controller on the simulated plant; fit %"
 #: threshold_pct: runs whose position fit is below it are flagged [%];
 #: controller_model: the valve model inside the flow-model controller, the
-#: rig config's ('rig', what the rig ran) or the identified one ('plant')
-OPTIONS: dict[str, Any] = {"threshold_pct": 80.0, "controller_model": "rig"}
+#: rig config's ('rig', what the rig ran) or the identified one ('plant');
+#: effects: effects the simulated plant has beside the valve model
+#: (``models.effects`` specs, e.g. a model file's: ``validate --model``)
+OPTIONS: dict[str, Any] = {"threshold_pct": 80.0, "controller_model": "rig", "effects": []}
 
 
 def check_option(key: str, value: Any) -> Any:
@@ -41,6 +48,14 @@ def check_option(key: str, value: Any) -> Any:
         return float(value)
     if key == "controller_model" and value not in ("rig", "plant"):
         raise ValueError("'rig' or 'plant'")
+    if key == "effects":
+        from ..models.effects import parse_effect
+
+        if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+            raise ValueError("a list of effect specs such as \"backlash:width_deg=1.0\"")
+        for spec in value:
+            parse_effect(spec)   # its ValueError says what is wrong
+        return list(value)
     return value
 
 
@@ -146,7 +161,8 @@ def validate_model(ctx: Context, model, effects: Sequence[str] = (), *, seed: in
 
     from ..analysis.validate import Validation
 
-    opts = {**OPTIONS, **(options or {})}
+    base = {k: v for k, v in OPTIONS.items() if k != "effects"}   # effects: the argument
+    opts = {**base, **{k: v for k, v in (options or {}).items() if k != "effects"}}
     paths = position_paths(ctx)
     plant = ctx.plant_rig
     ctx.log(f"{stage}: re-running the controller of {len(paths)} position-control run(s) on "
@@ -156,7 +172,7 @@ def validate_model(ctx: Context, model, effects: Sequence[str] = (), *, seed: in
     params = {"model": model.to_dict(), "effects": list(effects), "seed": seed}
     if plant is not ctx.rig:      # the identified twin: part of the cache key
         params["plant_rig"] = plant.to_dict()
-    if opts != OPTIONS:
+    if opts != base:
         params.update(opts)
     res = ctx.map_runs(stage, validate_one, paths, rig=ctx.rig, params=params,
                        kwargs={"rig": plant, "model": model.to_dict(),
@@ -189,7 +205,9 @@ def run(ctx: Context, options: Mapping[str, Any]):
     runs; None when the data has none."""
     if not position_paths(ctx):
         return None
-    return validate_model(ctx, ctx.valve, options=options)
+    options = dict(options)
+    effects = options.pop("effects", [])
+    return validate_model(ctx, ctx.valve, effects, options=options)
 
 
 def write(result: ValidateResult, folder: Path) -> list[Path]:

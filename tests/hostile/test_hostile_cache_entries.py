@@ -63,8 +63,8 @@ def test_a_wrong_shaped_entry_is_a_miss_in_a_worker_too(hostile_data, tmp_path):
 
 
 def test_a_failed_ingest_is_not_blamed_on_the_pipeline_file(hostile_data, tmp_path, monkeypatch):
-    """After a failed ingest the later stages say they were skipped; no
-    'add an ingest stage first' about a pipeline that has one."""
+    """After a failed ingest the later stages say they had nothing to work
+    on; no 'add an ingest stage first' about a pipeline that has one."""
     import seanv_analysis.stages.dataset as dataset
 
     def boom(*args, **kwargs):
@@ -73,7 +73,8 @@ def test_a_failed_ingest_is_not_blamed_on_the_pipeline_file(hostile_data, tmp_pa
     monkeypatch.setattr(dataset, "collect", boom)
     res = run_pipeline("flowfit", hostile_data, out_dir=tmp_path / "out", workers=1, quiet=True)
     assert "ingest" in res.stage_errors
-    assert res.stage_notes["flowfit"] == "skipped: stage ingest failed"
+    assert "gave no result" in res.stage_errors["flowfit"]
+    assert not any("add an 'ingest' stage" in m for m in res.stage_errors.values())
 
 
 def test_read_back_refuses_links_and_outside_paths(tmp_path):

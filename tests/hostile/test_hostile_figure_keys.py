@@ -88,7 +88,7 @@ def test_a_cached_per_run_figure_outside_its_folder_is_a_miss(tmp_path):
 
 
 def test_the_report_embeds_only_figures_of_the_output_folder(tmp_path):
-    from seanv_analysis.report.html import _figure
+    from seanv_analysis.report._format import _figure
 
     out = tmp_path / "out"
     out.mkdir()

@@ -164,7 +164,7 @@ def test_fuzzed_rig_files_load_valid_or_fail_in_one_line(tmp_path, flat):
         assert "\n" not in str(exc) and str(path) in str(exc)
         return
     for key, spec in _SCHEMA.items():   # whatever loads is within the schema
-        if spec["type"] == "number":
+        if spec["type"] == "number" and not spec.get("inf"):
             d = rig.data
             for part in key.split("."):
                 d = d[part]
