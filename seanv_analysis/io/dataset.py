@@ -76,7 +76,7 @@ def find_runs(dataset: str | Path) -> list[Path]:
     """Every folder at any depth under ``dataset`` (itself included) that holds
     ``run.json``, sorted by path. Hidden folders (name starting with '.') are
     skipped. A folder below ``dataset`` that is a symbolic link is not walked;
-    it is listed (a run folder or a folder of runs alike), and reading it
+    outside run folders it is listed (a run folder or a folder of runs alike), and reading it
     refuses it (:func:`~seanv_analysis.io.validate.check_link`), so it shows
     as a bad run naming the link. ``dataset`` itself may be a link.
 
@@ -98,9 +98,13 @@ def find_runs(dataset: str | Path) -> list[Path]:
         dirnames[:] = sorted(d for d in dirnames if not d.startswith("."))
         if "run.json" in filenames or "run.json" in dirnames:  # a folder: reading says so
             found.append(Path(dirpath))
-        # a linked folder (a run, or a folder of runs) is listed, not walked:
-        # reading it says it is a link (never skipped without a word)
-        found += [Path(dirpath) / d for d in dirnames if os.path.islink(os.path.join(dirpath, d))]
+        # a linked folder of the data set (a run, or a folder of runs) is listed,
+        # not walked: reading it says it is a link (never skipped without a
+        # word); inside a run folder, only a link to a run
+        found += [Path(dirpath) / d for d in dirnames
+                  if os.path.islink(os.path.join(dirpath, d))
+                  and ("run.json" not in filenames
+                       or os.path.lexists(os.path.join(dirpath, d, "run.json")))]
     return sorted(found)
 
 
