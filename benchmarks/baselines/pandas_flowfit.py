@@ -1,7 +1,7 @@
 """Baseline: the flow-model fit as a competent pandas/scipy user writes it
 from the paper alone (Sec. II-C, II-D), for ``benchmarks/bench_commands.py``.
 
-Per run: pandas.read_csv of the three tables, velocity by a Savitzky-Golay
+Per flow-step run (run.json kind; position-control runs are left out): pandas.read_csv of the three tables, velocity by a Savitzky-Golay
 derivative (51 samples, order 2), Q = v x 201.06 mm^2, one steady value per
 run (median over the second half of the cam hold, dp and p1 likewise), the
 measured cam angle (median over the hold). Then the paper's filters and
@@ -81,8 +81,14 @@ def fit_side(df, side):
     return z0, c, rmse, len(d)
 
 
+def is_flow_step(run_dir):
+    """The flow-step runs: what the flow fit reads (a data set may hold
+    position-control runs too)."""
+    return json.loads((run_dir / "run.json").read_text()).get("kind") == "flow_step"
+
+
 def main(data):
-    runs = sorted(p.parent for p in Path(data).rglob("run.json"))
+    runs = sorted(p.parent for p in Path(data).rglob("run.json") if is_flow_step(p.parent))
     df = pd.DataFrame([summarise(r) for r in runs]).sort_values("started")
     keep = (df["q"].abs() > 50) & df["cam_cmd"].between(-40, 10)
     keep &= ~((df["side"] == "drain") & (df["load"] <= 0.2) & (df["q"].abs() <= 500))
