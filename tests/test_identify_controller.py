@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -185,24 +184,6 @@ def test_constants_the_twin_reads(tmp_path, rig):
 
 
 # --------------------------------------------------------------- field data
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="session")
-def field_data(tmp_path_factory):
-    """The field data unpacked once per session (../shared/field-data beside
-    the repo root, or beside the folder of its git worktrees); skipped when absent."""
-    for base in (REPO.parent, REPO.parent.parent):
-        unpack = base / "shared" / "field-data" / "unpack"
-        if unpack.is_file():
-            break
-    else:
-        pytest.skip("no ../shared/field-data next to the repository")
-    dest = tmp_path_factory.mktemp("field-data")
-    subprocess.run(["bash", str(unpack), str(dest)], check=True)
-    return dest
-
 
 @pytest.mark.slow
 def test_field_slow_servo_limit_cycle(field_data, tmp_path):

@@ -17,7 +17,8 @@ from scipy.optimize import least_squares
 from ..models import ValveModel, fluid_force_n, side_pressures
 from ..models import effects as fx
 
-__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static", "geometry_sides"]
+__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static", "geometry_sides",
+           "plausible_geometry", "Y_C_RANGE_MM"]
 
 
 @dataclass(frozen=True)
@@ -245,6 +246,34 @@ class StaticFit:
         return vals
 
 
+#: the range of |y_c| [mm] the needle centre is searched in, on the side of
+#: the cam axis the rig file puts it: from 4 mm (below it eq. (4) turns over
+#: inside the cam range for any x_c of the paper's scale) to 80 mm (4 x the
+#: head radius r of Table II: a centre that far from the cam axis is no
+#: valve of the paper's dimensions). A fit that ends at either edge has not
+#: found a centre: the residual it absorbs is an effect's (:func:`plausible_geometry`).
+Y_C_RANGE_MM = (4.0, 80.0)
+
+
+def plausible_geometry(fit: "StaticFit", *, tol_mm: float = 0.05) -> tuple[str, ...]:
+    """The sides of ``fit.geometry`` whose fitted needle centre is a centre:
+    inside :data:`Y_C_RANGE_MM` (not within ``tol_mm`` of an edge) with eq. (4)
+    invertible over the cam range."""
+    out = []
+    for s in fit.geometry:
+        geom = fit.model.side(s).geometry
+        y = abs(float(geom.needle_y_c_mm))
+        if not Y_C_RANGE_MM[0] + tol_mm < y < Y_C_RANGE_MM[1] - tol_mm:
+            continue
+        try:
+            z, _ = geom.height_table
+        except ValueError:
+            continue
+        if z.size:
+            out.append(s)
+    return tuple(out)
+
+
 def geometry_sides(model: ValveModel, data: FlowData, *, min_force_span_n: float = 1.5
                    ) -> tuple[str, ...]:
     """Sides whose runs span enough fluid force (eq. 1, > ``min_force_span_n``
@@ -293,8 +322,8 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
             y = vs.geometry.needle_y_c_mm
             names.append(f"{s}.y_c_mm")
             x0.append(y)
-            lo.append(-80.0 if y < 0 else 4.0)
-            hi.append(-4.0 if y < 0 else 80.0)
+            lo.append(-Y_C_RANGE_MM[1] if y < 0 else Y_C_RANGE_MM[0])
+            hi.append(-Y_C_RANGE_MM[0] if y < 0 else Y_C_RANGE_MM[1])
     for spec in effects:
         names += [f"{spec.label}.{p}" for p in spec.params]
         x0 += list(spec.x0)
