@@ -121,7 +121,7 @@ def main() -> dict:
                 row[key].update(verdict=doc.get("verdict"), named=_named(doc),
                                 heldout=doc.get("heldout"),
                                 candidates=[(c["name"], c["named"], c.get("p_value"),
-                                             c.get("heldout_p_value"))
+                                             c.get("p_value_heldout"))
                                             for c in (doc.get("position_control") or {})
                                             .get("candidates", [])])
             injected = sorted({EFFECT_NAMES[k] for k in truth.get("effects", {})

@@ -129,7 +129,7 @@ class DynamicFinding:
                 "heldout_before": self.heldout_before, "heldout_after": self.heldout_after,
                 "replay_heldout_before": self.replay_before,
                 "replay_heldout_after": self.replay_after,
-                "heldout_p_value": self.heldout_p_value}
+                "p_value_heldout": self.heldout_p_value}
 
 
 def _heldout_drop_p(before, after) -> float:

@@ -165,7 +165,7 @@ def _twin_search(ctx: Context, summary, runs, held: dict[str, Any]):
 
     def search(train, held_runs, valve, rig, *, seed: int = 0):
         if given is not None:
-            twin_rig = given.rig.with_overrides(_valve_keys(valve), where="discover")
+            twin_rig = given.rig
         else:
             ctx.log("discover: identifying the rig's twin from its logs (servo, controller, "
                     "friction, load regulator, line) to test dynamic effects on")
@@ -204,9 +204,13 @@ def run(ctx: Context, options: Mapping[str, Any]) -> DiscoverResult:
     # the static fit starts from the rig file's geometry (or the --model's):
     # the data's own needle centre is decided there, with the effects
     start = ctx.start_model or ValveModel.from_rig(ctx.rig)
+    # the twin's valve: identify's when that stage ran (fitted with the whole
+    # rig it identified), else the static fit's
+    given = ctx.result("identify")
     disc = discover_dataset(runs, ds.summary, rig=ctx.plant_rig, model=start,
                             holdout=opts["holdout"], seed=opts["seed"],
-                            dynamic_search=_twin_search(ctx, ds.summary, runs, kept))
+                            dynamic_search=_twin_search(ctx, ds.summary, runs, kept),
+                            twin_model=ctx.valve if given is not None else None)
     return closed_loop(ctx, disc, kept.get("twin"))
 
 
