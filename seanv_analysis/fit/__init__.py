@@ -5,6 +5,7 @@
   and per-load tables, ``.report()``, ``.to_json_dict()`` (files are written by
   :mod:`seanv_analysis.stages.flowfit`).
 """
-from .flowfit import PROCEDURES, UNITS, FlowFit, SideFit, fit_flow
+from ._leakage import LeakageFit
+from .flowfit import LEAKAGE_MODES, PROCEDURES, UNITS, FlowFit, SideFit, fit_flow
 
-__all__ = ["FlowFit", "SideFit", "fit_flow", "PROCEDURES", "UNITS"]
+__all__ = ["FlowFit", "SideFit", "LeakageFit", "fit_flow", "PROCEDURES", "LEAKAGE_MODES", "UNITS"]
