@@ -15,9 +15,18 @@ load, which is the threshold's dependence on the pressures (eq. 3): left
 out, it shifts z0 and, with the needle centre free (``identify``), y_c
 (simulator, clean: y_c -20.27 [-20.31, -20.23] mm for -20).
 
+The rig file's conductance enters as a prior, g ~ N(g_rig, s^2) with s =
+the paper's leakage band (+-50 mm^3/s at the supply pressure, 3 mm^3/(s MPa)
+on the paper's rig) / 5, one more residual (g - g_rig) / s beside the runs'
+scaled ones: where the runs tell g (the simulator's 345 flow steps: s.e.
+0.2 mm^3/(s MPa)) it does not matter; where they do not (24 flow steps per
+side at 4 cam angles: the leakage trades off against the threshold's
+pressure dependence and ran to its bound, 15 mm^3/(s MPa)) g stays near the
+rig file's with an interval of about +-2 s.
+
 Its 95 % interval is a cluster-robust sandwich (repeats of one condition,
 load level x commanded cam, share their errors: on the simulator they agree
-to the bit), normal quantile, clipped at 0.
+to the bit; the prior is one more cluster), normal quantile, clipped at 0.
 
 Units: deg, MPa, mm^3/s, mm; g in mm^3/(s MPa).
 """
@@ -33,7 +42,15 @@ from scipy.optimize import least_squares
 from ..models import ValveSide
 from ._joint import _Eq5Residual
 
-__all__ = ["LeakPart", "LeakageFit", "leak_dp_mpa", "fit_leakage", "cluster_covariance"]
+__all__ = ["LeakPart", "LeakageFit", "leak_dp_mpa", "fit_leakage", "cluster_covariance",
+           "soft_l1_weights", "prior_sd_mm3_s_per_mpa"]
+
+
+def prior_sd_mm3_s_per_mpa(leakage_flow_mm3_s: float, p_supply_mpag: float) -> float:
+    """Standard deviation of the seat leakage's prior [mm^3/(s MPa)]: the
+    paper's leakage band (``analysis.leakage_flow_mm3_s`` at the supply
+    pressure) taken as 5 of them."""
+    return float(leakage_flow_mm3_s) / max(float(p_supply_mpag), 0.1) / 5.0
 
 
 def leak_dp_mpa(side: np.ndarray, p1_mpa, dp_mpa, dp_sealed_mpa, *, p_supply_mpag: float,
@@ -140,14 +157,17 @@ def soft_l1_weights(scaled_resid: np.ndarray, f_scale: float) -> np.ndarray:
 
 
 def fit_leakage(parts: Sequence[LeakPart], *, upper_mm3_s_per_mpa: float,
-                default_mm3_s_per_mpa: float, min_runs: int = 12) -> LeakageFit:
+                default_mm3_s_per_mpa: float, prior_sd_mm3_s_per_mpa: float,
+                min_runs: int = 12) -> LeakageFit:
     """Fit the seat-leakage conductance g with (z0, C) of each side in ``parts``.
 
     Parameters
     ----------
     parts : the sides' runs (:class:`LeakPart`)
     upper_mm3_s_per_mpa : bound of g [mm^3/(s MPa)] (g >= 0)
-    default_mm3_s_per_mpa : g kept when it cannot be fitted (the rig file's)
+    default_mm3_s_per_mpa : the rig file's g: the prior's mean, and g kept
+        when it cannot be fitted
+    prior_sd_mm3_s_per_mpa : the prior's standard deviation (module notes)
     min_runs : fewer runs in all: not fitted
 
     Returns
@@ -171,20 +191,23 @@ def fit_leakage(parts: Sequence[LeakPart], *, upper_mm3_s_per_mpa: float,
     models = [_Eq5Residual(p.side, p.theta_deg, p.p1_mpa, p.dp_mpa, p.q_mm3_s, p.sigma_mm3_s)
               for p in parts]
     k = len(parts)
+    g_prior, s_prior = float(default_mm3_s_per_mpa), float(prior_sd_mm3_s_per_mpa)
 
     def fun(x):
         g = x[-1]
         return np.concatenate([m.fun(x[2 * i:2 * i + 2]) - g * p.dp_leak_mpa / p.sigma_mm3_s
-                               for i, (m, p) in enumerate(zip(models, parts))])
+                               for i, (m, p) in enumerate(zip(models, parts))]
+                              + [[(g - g_prior) / s_prior]])
 
     def jac(x):
-        out = np.zeros((n, 2 * k + 1))
+        out = np.zeros((n + 1, 2 * k + 1))
         row = 0
         for i, (m, p) in enumerate(zip(models, parts)):
             rows = slice(row, row + p.q_mm3_s.size)
             out[rows, 2 * i:2 * i + 2] = m.jac(x[2 * i:2 * i + 2])
             out[rows, -1] = -p.dp_leak_mpa / p.sigma_mm3_s
             row += p.q_mm3_s.size
+        out[-1, -1] = 1.0 / s_prior
         return out
 
     g0 = min(max(float(default_mm3_s_per_mpa), 0.0), upper_mm3_s_per_mpa)
@@ -201,9 +224,9 @@ def fit_leakage(parts: Sequence[LeakPart], *, upper_mm3_s_per_mpa: float,
         x = res.x
     r = fun(x)
     clusters = np.concatenate([np.asarray([f"{p.side.side}|{c}" for c in p.clusters], object)
-                               for p in parts])
+                               for p in parts] + [np.asarray(["prior"], object)])
     cov = cluster_covariance(jac(x), r, soft_l1_weights(r, f_scale), clusters)
-    n_c = int(np.unique(clusters.astype(str)).size)
+    n_c = int(np.unique(clusters.astype(str)).size) - 1
     if cov is None or not np.isfinite(cov[-1, -1]):
         keep.message = "the seat leakage's covariance is singular: the rig file's value is kept"
         keep.n_conditions = n_c
@@ -213,6 +236,7 @@ def fit_leakage(parts: Sequence[LeakPart], *, upper_mm3_s_per_mpa: float,
     sides = {p.side.side: (float(x[2 * i]), float(x[2 * i + 1])) for i, p in enumerate(parts)}
     return LeakageFit(g, ci, se, True, n, n_c,
                       "joint fit with (z0, C) of " + " and ".join(sides) + " (soft_l1, "
-                      "per-run noise scale); 95 %: cluster-robust sandwich over conditions "
-                      "(load level x commanded cam), normal quantile, clipped at 0",
+                      f"per-run noise scale; prior N({g_prior:g}, {s_prior:.2g}^2), the rig "
+                      "file's); 95 %: cluster-robust sandwich over conditions (load level x "
+                      "commanded cam), normal quantile, clipped at 0",
                       "" if res.success else str(res.message), sides)

@@ -97,7 +97,7 @@ from ..jsonable import JsonResult, json_num
 from ..models import SIDES, ValveModel, signed_power
 from ..models.valve import MIN_DP_MPA
 from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
-from ._leakage import LeakageFit, LeakPart, fit_leakage, leak_dp_mpa
+from ._leakage import LeakageFit, LeakPart, fit_leakage, leak_dp_mpa, prior_sd_mm3_s_per_mpa
 from ._perload import (
     LOF_P_MAX,
     LOF_RATIO_MIN,
@@ -851,8 +851,10 @@ def _fit_leakage(rows_of: dict, base: ValveModel, rig: Any, *, leakage: str,
                               (res.joint["z0_mm"], res.joint["c_flow"])))
     # the paper's leakage band: a sealed valve's flow stays within +-leakage_flow
     # at the supply pressure, which bounds the conductance
-    upper = float(rig.analysis["leakage_flow_mm3_s"]) / max(p_supply, 0.1)
-    return fit_leakage(parts, upper_mm3_s_per_mpa=upper, default_mm3_s_per_mpa=default), dp_leak
+    band = float(rig.analysis["leakage_flow_mm3_s"])
+    upper = band / max(p_supply, 0.1)
+    return fit_leakage(parts, upper_mm3_s_per_mpa=upper, default_mm3_s_per_mpa=default,
+                       prior_sd_mm3_s_per_mpa=prior_sd_mm3_s_per_mpa(band, p_supply)), dp_leak
 
 
 def _per_run(rows_all: pd.DataFrame, use: np.ndarray, sigma_used: np.ndarray, side_model,

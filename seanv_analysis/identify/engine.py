@@ -107,17 +107,24 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     if base_fit is not None:
         current = take("geometry", geometry_constants(base_fit.per_run, base_fit.model, rig))
         refit = fit_flow(summary, current, n_boot=n_boot, seed=seed)
+        # z0, C and the seat leakage are refitted with y_c held at its value:
+        # its own 95 % interval moves them too (z0 most: it absorbs the
+        # threshold's offset), added in quadrature to theirs
+        spread = _geometry_spread(summary, current, constants, refit)
         added = []
         for side in SIDES:
             sf = refit.sides.get(side)
             if sf is not None and sf.success:
+                dz0, dc = spread.get(side, {}).get("z0", 0.0), spread.get(side, {}).get("c", 0.0)
+                how = "flowfit with the identified geometry" + (
+                    ", interval widened by y_c's" if dz0 or dc else "")
                 added += [
                     Constant(f"valve.{side}.z0_mm", f"{side} z0", sf.z0_mm,
                              float(rig["valve"][side]["z0_mm"]), "mm", True,
-                             "flowfit with the identified geometry", tuple(sf.z0_ci95)),
+                             how, _widen(sf.z0_mm, sf.z0_ci95, dz0)),
                     Constant(f"valve.{side}.c_flow", f"{side} C", sf.c_flow,
                              float(rig["valve"][side]["c_flow"]), "mm^3/(s deg^2 MPa^0.5)", True,
-                             "flowfit with the identified geometry", tuple(sf.c_ci95))]
+                             how, _widen(sf.c_flow, sf.c_ci95, dc))]
                 continue
             # no z0 to go with a new centre: the rig file's centre stays
             for k in constants:
@@ -126,6 +133,8 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
                     k.note = "flowfit with it failed on this side"
             notes.append(f"geometry ({side}): flowfit with the identified geometry failed"
                          + (f": {sf.message}" if sf is not None else ""))
+        if added:
+            added.append(_leak_constant(refit.leakage, rig, spread.get("leak", 0.0)))
         constants += added
         valve_keys = [k for k in constants if k.key and k.key.startswith(("valve.", "supply."))]
         current = rig.with_overrides(nest_constants(valve_keys), where="identify")
@@ -163,6 +172,67 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         fits.update(closed_loop_fits(train_pos, held_pos, valve, rig, current))
     constants.append(_mass(position_runs, rig, current))
     return Identification(constants, current, model, fits, notes)
+
+
+def _widen(x: float, ci, half: float) -> tuple[float, float]:
+    """``ci`` around ``x`` with a half-width ``half`` added in quadrature (NaN stays)."""
+    import math
+
+    lo, hi = (float(v) for v in ci)
+    if not half or not (math.isfinite(lo) and math.isfinite(hi)):
+        return (lo, hi)
+    return (x - math.hypot(x - lo, half), x + math.hypot(hi - x, half))
+
+
+def _geometry_spread(summary, current, constants, refit) -> dict[str, Any]:
+    """How far y_c's 95 % half-width moves each side's z0 [mm] and C and the
+    seat leakage's conductance [mm^3/(s MPa)]: flowfit refitted (no
+    bootstrap) with each identified y_c at its interval's two edges, half
+    the difference; summed in quadrature over the sides' y_c.
+    {side: {'z0', 'c'}, 'leak'}."""
+    import math
+
+    from ..fit import fit_flow
+
+    out: dict[str, Any] = {"leak": 0.0}
+    for c in constants:
+        if not (c.identified and c.key and c.key.endswith(".needle_y_c_mm")):
+            continue
+        side = c.key.split(".")[1]
+        lo, hi = c.ci95
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            continue
+        edge = [fit_flow(summary, current.with_overrides(
+            {"valve": {side: {"needle_y_c_mm": float(v)}}}, where="identify"), n_boot=0)
+            for v in (lo, hi)]
+        for s in refit.sides:
+            a, b = edge[0].sides.get(s), edge[1].sides.get(s)
+            if a is None or b is None or not (a.success and b.success):
+                continue
+            d = out.setdefault(s, {"z0": 0.0, "c": 0.0})
+            d["z0"] = math.hypot(d["z0"], 0.5 * abs(b.z0_mm - a.z0_mm))
+            d["c"] = math.hypot(d["c"], 0.5 * abs(b.c_flow - a.c_flow))
+        if edge[0].leakage.fitted and edge[1].leakage.fitted:
+            out["leak"] = math.hypot(out["leak"], 0.5 * abs(
+                edge[1].leakage.conductance_mm3_s_per_mpa
+                - edge[0].leakage.conductance_mm3_s_per_mpa))
+    return out
+
+
+def _leak_constant(leak, rig, spread: float) -> Constant:
+    """The needles' seat-leakage conductance as a rig constant (the twin's
+    plant leaks with it); not identified when flowfit kept the rig file's."""
+    key = "valve.plant.leakage_conductance_mm3_s_per_mpa"
+    default = float(rig["valve"]["plant"]["leakage_conductance_mm3_s_per_mpa"])
+    name, unit = "seat leakage conductance (per needle)", "mm^3/(s MPa)"
+    if not leak.fitted:
+        return Constant(key, name, default, default, unit, False, "flow steps",
+                        note=leak.message or "not fitted")
+    how = ("flow steps: Q_leak = g (dp_supply - dp_drain) beside eq. (5), fitted with both "
+           "sides' z0 and C" + (", interval widened by y_c's" if spread else ""))
+    lo, hi = _widen(leak.conductance_mm3_s_per_mpa, leak.ci95, spread)
+    return Constant(key, name, leak.conductance_mm3_s_per_mpa, default, unit, True, how,
+                    (max(lo, 0.0), hi))
 
 
 def _mass(runs, rig, current) -> Constant:
