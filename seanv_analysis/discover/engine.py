@@ -43,7 +43,16 @@ from .split import (  # noqa: F401 (permutation_strata re-exported)
     permutation_strata,
     permuted_run_order,
 )
-from .static import FlowData, StaticFit, fit_static, geometry_sides, predict_static
+from .static import (
+    FlowData,
+    LeakPrior,
+    StaticFit,
+    fit_static,
+    geometry_sides,
+    predict_static,
+    seat_leak_of,
+    with_leak_prior,
+)
 from .terms import propose_term
 
 __all__ = ["discover_flow_steps", "noise_model", "residual_variables", "trend_amplitude",
@@ -71,6 +80,20 @@ def noise_model(q_hat: np.ndarray, residual: np.ndarray, *, floor_mm3_s: float =
         a, b = float(coef[0]), float(max(coef[1], 0.0))
     sigma = 1.4826 * (np.maximum(a, 0.0) + b * x)
     return np.maximum(sigma, floor_mm3_s)
+
+
+def _leak_prior(model: ValveModel, data: FlowData, leakage_mm3_s: float) -> LeakPrior:
+    """The seat leakage's prior: mean the model's g (flowfit's fitted one) or
+    0, sd from the leakage band at the runs' median supply pressure
+    (:func:`seanv_analysis.fit._leakage.prior_sd_mm3_s_per_mpa`)."""
+    from ..fit._leakage import prior_sd_mm3_s_per_mpa
+
+    ps = data.p_supply_mpag[np.isfinite(data.p_supply_mpag)]
+    if not ps.size:     # no supply pressure logged: the highest head pressure seen
+        ps = data.p_head_mpag[np.isfinite(data.p_head_mpag)]
+    p_supply = float(np.median(ps) if ps.size and np.isfinite(data.p_supply_mpag).any()
+                     else np.max(ps) if ps.size else 1.0)
+    return LeakPrior(seat_leak_of(model), prior_sd_mm3_s_per_mpa(leakage_mm3_s, p_supply))
 
 
 def _fit_base(model: ValveModel, data: FlowData) -> tuple[StaticFit, np.ndarray]:
@@ -175,6 +198,13 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
     if len(df) < 12:
         raise FitError(f"discover: {len(df)} usable flow_step runs, need >= 12")
     data = FlowData.from_summary(df)
+    # the needles' seat leakage is part of the base model (it moves with the
+    # head pressure from load to load, as the threshold does: left out, it
+    # passed for a needle geometry unlike the rig file's on our own clean
+    # simulated data); its conductance g, one for both needles, is fitted in
+    # every fit, with the prior flowfit has (mean: the model's g if it
+    # carries one, flowfit's, else 0)
+    model = with_leak_prior(model, _leak_prior(model, data, leakage_mm3_s))
     if holdout == "chrono":
         fit_m, held_m = chrono_split(data.run_index, fraction=fraction, groups=data.side)
         splits = [(fit_m, held_m)]

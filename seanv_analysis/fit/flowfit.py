@@ -95,7 +95,7 @@ import pandas as pd
 from ..errors import ConfigError, DataError, FitError
 from ..jsonable import JsonResult, json_num
 from ..models import SIDES, ValveModel, signed_power
-from ..models.valve import MIN_DP_MPA
+from ..models.valve import MIN_DP_MPA, SEAT_LEAK_KEY
 from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
 from ._leakage import LeakageFit, LeakPart, fit_leakage, leak_dp_mpa, prior_sd_mm3_s_per_mpa
 from ._perload import (
@@ -791,7 +791,8 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
         warnings.warn(w, stacklevel=2)
     ok = all(r.success for r in results.values())
     fitted = type(fitted)(fitted.supply, fitted.drain, fitted.cam_min_deg, fitted.cam_max_deg,
-                          {**fitted.extras, "flowfit": {
+                          {**fitted.extras, SEAT_LEAK_KEY: leak.conductance_mm3_s_per_mpa,
+                           "flowfit": {
                               "procedure": procedure, "sides": list(sides),
                               "ci95": {s: {"z0_mm": [json_num(v) for v in r.z0_ci95],
                                            "c_flow": [json_num(v) for v in r.c_ci95]}

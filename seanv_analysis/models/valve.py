@@ -25,7 +25,11 @@ from .sealing import NeedleGeometry, threshold_displacement_mm
 
 __all__ = ["SIDES", "ValveSide", "ValveModel", "side_pressures", "signed_power",
            "signed_power_core", "opening_core", "flow_core", "cam_for_flow_core", "MIN_DP_MPA",
-           "seat_leakage_core", "seat_leakage_mm3_s"]
+           "seat_leakage_core", "seat_leakage_mm3_s", "SEAT_LEAK_KEY"]
+
+#: a fitted :class:`ValveModel`'s seat-leakage conductance [mm^3/(s MPa)] in
+#: its ``extras`` (flowfit and discover write it; eq. 5 itself does not use it)
+SEAT_LEAK_KEY = "seat_leak_mm3_s_per_mpa"
 
 SIDES = ("supply", "drain")
 
