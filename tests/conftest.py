@@ -271,6 +271,21 @@ def golden_data(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def field_root(tmp_path_factory):
+    """The field data (logs from a rig nobody here wrote, with truth;
+    ``tests/field_data.py``) unpacked once per test run into its temporary
+    root, shared by the xdist workers; skipped where the archive
+    (``../shared/field-data``) is not. Read it, do not write into it."""
+    from field_data import unpack_field_data
+
+    with _shared_once(tmp_path_factory, "field-data") as (folder, done):
+        root = folder if done else unpack_field_data(folder)
+    if root is None:
+        pytest.skip("the field data archive (../shared/field-data) is not here")
+    return root
+
+
+@pytest.fixture(scope="session")
 def golden_run(golden_data, tmp_path_factory):
     """The paper pipeline on the golden data set, serial: (result.json
     document, out folder). Run once per test run (read it, do not write)."""
@@ -314,6 +329,7 @@ SLOW_TESTS = (
     "test_cli_flowfit.py::test_no_data_uses_builtin",
     "test_cli_flowfit.py::test_bad_run_exit_1_results_still_written",
     "test_sim.py::test_seed_reproduces_dataset_bit_for_bit",
+    "test_sim_truth.py::test_field_clean_valve_holds_its_truth",
 )
 
 
