@@ -166,7 +166,9 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         current = take("load", load_constants(train_pos, held_pos, current))
     if "flow_path" in parts:
         log("identify: flow-path lag from the position-control runs")
-        current = take("flow_path", flow_path_constants(train_pos, held_pos, current, valve))
+        spread = {c.key: tuple(c.ci95) for c in constants if c.key and c.identified}
+        current = take("flow_path", flow_path_constants(train_pos, held_pos, current, valve,
+                                                        spread=spread))
     if position_runs and {"servo", "flow_path", "friction", "load"} & set(parts):
         log("identify: closed-loop check on the training and held-out runs")
         fits.update(closed_loop_fits(train_pos, held_pos, valve, rig, current))
