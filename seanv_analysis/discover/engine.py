@@ -86,7 +86,7 @@ def _leak_prior(model: ValveModel, data: FlowData, leakage_mm3_s: float) -> Leak
     """The seat leakage's prior: mean the model's g (flowfit's fitted one) or
     0, sd from the leakage band at the runs' median supply pressure
     (:func:`seanv_analysis.fit._leakage.prior_sd_mm3_s_per_mpa`)."""
-    from ..fit._leakage import prior_sd_mm3_s_per_mpa
+    from ..fit import prior_sd_mm3_s_per_mpa
 
     ps = data.p_supply_mpag[np.isfinite(data.p_supply_mpag)]
     if not ps.size:     # no supply pressure logged: the highest head pressure seen

@@ -36,7 +36,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..fit._leakage import cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
+from ..fit import cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
 from ..fit.flowfit import C_KEY
 from ..models import ValveSide, fluid_force_n
 from .result import Constant
