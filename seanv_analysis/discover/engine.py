@@ -96,6 +96,29 @@ def _leak_prior(model: ValveModel, data: FlowData, leakage_mm3_s: float) -> Leak
     return LeakPrior(seat_leak_of(model), prior_sd_mm3_s_per_mpa(leakage_mm3_s, p_supply))
 
 
+#: the leakage is fitted when the runs alone tell g to better than this
+#: fraction of its prior's standard deviation
+LEAK_TOLD_FRACTION = 0.5
+
+
+def _with_leakage(model: ValveModel, data: FlowData, leakage_mm3_s: float) -> ValveModel:
+    """``model`` with the seat leakage's prior (:func:`with_leak_prior`)
+    when the runs ``data`` alone (a flat prior) give g a standard error below
+    :data:`LEAK_TOLD_FRACTION` of the prior's; else ``model`` (g stays what
+    it carries, 0 without). Measured: the simulator's 345 flow steps 0.19
+    mm^3/(s MPa) (prior 3.3): fitted; 48 foreign-rig steps with the rig
+    file's needle centres unlike the rig's 12.9: not (the leakage took the
+    geometry's mismatch, g = 63, and the centre then failed its test)."""
+    prior = _leak_prior(model, data, leakage_mm3_s)
+    probe = fit_static(with_leak_prior(model, LeakPrior(prior.mean, 1e6)), data,
+                       np.full(len(data), max(robust_scale(data.q_mm3_s), 1.0)))
+    if "seat_leak.g" not in probe.param_names or probe.covariance is None:
+        return model
+    k = list(probe.param_names).index("seat_leak.g")
+    se = float(np.sqrt(max(probe.covariance[k, k], 0.0)))
+    return with_leak_prior(model, prior) if se < LEAK_TOLD_FRACTION * prior.sd else model
+
+
 def _fit_base(model: ValveModel, data: FlowData) -> tuple[StaticFit, np.ndarray]:
     """Two-pass base fit: unweighted-robust, then with the fitted noise model."""
     first = fit_static(model, data, np.full(len(data), max(robust_scale(data.q_mm3_s), 1.0)))
@@ -198,13 +221,6 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
     if len(df) < 12:
         raise FitError(f"discover: {len(df)} usable flow_step runs, need >= 12")
     data = FlowData.from_summary(df)
-    # the needles' seat leakage is part of the base model (it moves with the
-    # head pressure from load to load, as the threshold does: left out, it
-    # passed for a needle geometry unlike the rig file's on our own clean
-    # simulated data); its conductance g, one for both needles, is fitted in
-    # every fit, with the prior flowfit has (mean: the model's g if it
-    # carries one, flowfit's, else 0)
-    model = with_leak_prior(model, _leak_prior(model, data, leakage_mm3_s))
     if holdout == "chrono":
         fit_m, held_m = chrono_split(data.run_index, fraction=fraction, groups=data.side)
         splits = [(fit_m, held_m)]
@@ -215,6 +231,13 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
 
     fit_m, held_m = splits[0]
     fit_data = data.subset(fit_m)
+    # the needles' seat leakage is part of the base model where the runs tell
+    # it (it moves with the head pressure from load to load, as the threshold
+    # does: left out, it passed for a needle geometry unlike the rig file's on
+    # our own clean simulated data); its conductance g, one for both needles,
+    # is then fitted in every fit, with the prior flowfit has (mean: the
+    # model's g if it carries one, flowfit's, else 0)
+    model = _with_leakage(model, fit_data, leakage_mm3_s)
     floor = practical_floor_mm3_s(fit_data, leakage_mm3_s)
     selection = _select(model, fit_data, df[fit_m], alpha=alpha, alpha_perm=alpha_perm,
                         min_improvement=min_improvement, n_perm=n_perm,
