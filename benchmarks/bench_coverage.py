@@ -31,9 +31,10 @@ processors), or from the command line::
 
     python -m benchmarks.bench_coverage --seeds 3 --foreign-seeds 1 --sources sim,field
 
-One seed of ``sim`` takes about 45 s of one core (simulation 6 s, ingest
-4 s, identify 30 s, flowfit 3 s, discover 7 s); a ``foreign`` seed about
-40 s; a field set about 45 s.
+Measured on the shared 2-core machine, 2 workers (load 5-6): one ``sim``
+seed 69 s of wall time (median of 20: simulation 9 s, ingest 4 s, identify
+46 s, flowfit 6 s, discover 2 s), a ``foreign`` seed 67-78 s, a field set
+36-66 s; 20 + 4 + 3 runs: 15 min.
 """
 from __future__ import annotations
 
@@ -90,8 +91,9 @@ REASONS = {
         "field-clean and field-drift-backlash: 0.0355 s for 0.045 (time constant 0.051 for "
         "0.05 inside); field-slow-servo's 0.068 for 0.07 inside: no cause found"),
     ("field", "tube.effective_bulk_modulus_mpa"): (
-        "field-slow-servo has no flow steps: the twin's valve is the rig file's (z0, C and "
-        "needle centres all unlike this rig's) and B takes its misfit"),
+        "field-clean holds it; field-drift-backlash's position runs carry an undeclared 1.5 deg "
+        "backlash the twin has not (264 MPa); field-slow-servo has no flow steps, so the twin's "
+        "valve is the rig file's, unlike this rig's (352 MPa): B takes the twin's misfit"),
     ("field", "valve.supply.c_flow"): (
         "field-drift-backlash: its supply C falls 4 % every third sweep (an undeclared "
         "effect): one C cannot hold it (discover's job)"),
