@@ -28,7 +28,6 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 REPO = HERE.parent
-SETS = ("field-clean", "field-drift-backlash", "field-slow-servo")
 
 #: truth key of each identified constant the truth gives (identify's rig key)
 TRUTH_KEYS = {
@@ -52,13 +51,14 @@ EFFECT_NAMES = {"drift_supply": ("drift", "supply"), "drift_drain": ("drift", "d
 
 
 def _unpacked() -> Path:
-    for base in (REPO.parent, REPO.parent.parent):
-        unpack = base / "shared" / "field-data" / "unpack"
-        if unpack.is_file():
-            dest = Path(tempfile.gettempdir()) / "seanv-bench-field"
-            subprocess.run(["bash", str(unpack), str(dest)], check=True)
-            return dest
-    raise FileNotFoundError("no ../shared/field-data next to the repository")
+    """The field data unpacked (tests/field_data.py finds the archive)."""
+    sys.path.insert(0, str(REPO / "tests"))
+    from field_data import unpack_field_data
+
+    root = unpack_field_data(Path(tempfile.gettempdir()) / "seanv-bench-field")
+    if root is None:
+        raise FileNotFoundError("no ../shared/field-data next to the repository")
+    return root
 
 
 def _cli(*args: str) -> tuple[int, dict | None, str, float]:
@@ -95,6 +95,7 @@ def _coverage(doc: dict, truth: dict) -> dict[str, dict]:
 
 def main() -> dict:
     data = _unpacked()
+    from field_data import FIELD_SETS as SETS
     out: dict = {"sets": {}, "confusion": {}, "coverage": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for name in SETS:

@@ -373,39 +373,3 @@ def flowfit_out(hostile_data, tmp_path_factory):
                                            str(folder / "out"), "-q", "--workers", "1"])
             assert res.exit_code == 0, res.output
     return folder / "out"
-
-
-# --------------------------------------------------------------- field data
-
-REPO = Path(__file__).resolve().parents[1]
-
-
-def field_data_unpacker() -> Path | None:
-    """``../shared/field-data/unpack`` beside the repository (or beside the
-    folder of its git worktrees); None when absent."""
-    for base in (REPO.parent, REPO.parent.parent):
-        unpack = base / "shared" / "field-data" / "unpack"
-        if unpack.is_file():
-            return unpack
-    return None
-
-
-@pytest.fixture(scope="session")
-def field_data(tmp_path_factory):
-    """The field data (logs of a rig nobody here wrote, with their truth in
-    ``_truth/<set>.json``) unpacked once per session; skipped when absent."""
-    import subprocess
-
-    unpack = field_data_unpacker()
-    if unpack is None:
-        pytest.skip("no ../shared/field-data next to the repository")
-    dest = tmp_path_factory.mktemp("field-data")
-    subprocess.run(["bash", str(unpack), str(dest)], check=True)
-    return dest
-
-
-def field_truth(field_data: Path, name: str) -> dict:
-    """The truth of field data set ``name`` (the rig's constants and effects)."""
-    import json
-
-    return json.loads((field_data / "_truth" / f"{name}.json").read_text())

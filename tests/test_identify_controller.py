@@ -186,7 +186,7 @@ def test_constants_the_twin_reads(tmp_path, rig):
 # --------------------------------------------------------------- field data
 
 @pytest.mark.slow
-def test_field_slow_servo_limit_cycle(field_data, tmp_path):
+def test_field_slow_servo_limit_cycle(field_root, tmp_path):
     """field-slow-servo: its controller releases the hold as soon as |e|
     leaves the band, so the run without the flow model hunts for the whole
     run. identify reads that from the logs; validate on the identified twin
@@ -198,7 +198,7 @@ def test_field_slow_servo_limit_cycle(field_data, tmp_path):
 
     from seanv_analysis.cli import cli
 
-    data = field_data / "field-slow-servo"
+    data = field_root / "field-slow-servo"
     res = CliRunner().invoke(cli, ["identify", str(data), "--out", str(tmp_path / "id"), "--json"])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
