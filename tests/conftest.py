@@ -271,6 +271,21 @@ def golden_data(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
+def field_root(tmp_path_factory):
+    """The field data (logs from a rig nobody here wrote, with truth;
+    ``tests/field_data.py``) unpacked once per test run into its temporary
+    root, shared by the xdist workers; skipped where the archive
+    (``../shared/field-data``) is not. Read it, do not write into it."""
+    from field_data import unpack_field_data
+
+    with _shared_once(tmp_path_factory, "field-data") as (folder, done):
+        root = folder if done else unpack_field_data(folder)
+    if root is None:
+        pytest.skip("the field data archive (../shared/field-data) is not here")
+    return root
+
+
+@pytest.fixture(scope="session")
 def golden_run(golden_data, tmp_path_factory):
     """The paper pipeline on the golden data set, serial: (result.json
     document, out folder). Run once per test run (read it, do not write)."""
@@ -293,7 +308,7 @@ def golden_run(golden_data, tmp_path_factory):
 # ---------------------------------------------------------------------------
 SLOW_MODULES = {"test_batch.py", "test_batch_signals.py", "test_discover_sim.py", "test_wheel.py",
                 "test_discover_twin.py", "test_foreign_rig.py", "test_golden.py",
-                "test_identify.py", "test_discover_terms.py"}
+                "test_identify.py", "test_discover_terms.py", "test_sim_truth.py"}
 SLOW_TESTS = (
     "test_cli_run.py::test_run_json_and_cache", "test_cli_run.py::test_run_end_to_end_subprocess",
     "test_cli_run.py::test_run_shipped_pipeline_by_name", "test_cli_run.py::test_plots_command",

@@ -8,7 +8,6 @@ effect, clean data, two effects together and the paper's drain drift.
 """
 from __future__ import annotations
 
-import numpy as np
 import pytest
 from json_schemas import check_schema, keys_without_unit
 
@@ -69,63 +68,11 @@ def test_paper_drain_drift_every_three_runs():
     assert "drain side falls by" in res.report()
 
 
-def test_delay_on_position_control_and_closed_loop_error_drops():
-    from seanv_analysis.analysis.validate import validate_runs
-    from seanv_analysis.models import ValveModel
-
-    runs = list(iter_scenario_runs("paper-position-model", effects=["delay:delay_s=0.15"], rig=RIG))
-    summary, _ = summarize_runs(runs, RIG)
-    res = discover_runs(runs, summary, rig=RIG)
-    assert res.verdict == "effect_found"
-    delay = [e for e in res.effects if e.name == "delay"][0]
-    # the extra lag is measured against the nominal 0.25 s; the plant's own
-    # lag is ~0.28 s, so the estimate is the injected 0.15 s plus ~0.03 s
-    assert 0.13 <= delay.params["delay_s"] <= 0.23
-    # closed loop (validate): the augmented model re-runs the controller on
-    # the plant far closer to the data than the base model
-    model, specs = res.augmented_model_and_effects(RIG)
-    assert specs and specs[0].startswith("delay:")
-    before = validate_runs(runs, ValveModel.from_rig(RIG), rig=RIG).table.iloc[0]
-    after = validate_runs(runs, model, rig=RIG, effects=specs).table.iloc[0]
-    assert after["rmse_flow_mm3_s"] <= 0.7 * before["rmse_flow_mm3_s"]
-    assert after["fit_position_pct"] > before["fit_position_pct"] + 5.0
-
-
-def test_delay_found_when_q_ref_was_not_logged():
-    """A flow-model run whose logger left q_ref empty: the target is Kp e, as
-    tracking rebuilds it, and the delay is still found."""
-    runs = list(iter_scenario_runs("paper-position-model", effects=["delay:delay_s=0.15"], rig=RIG))
-    for run in runs:
-        run.tables["controller"]["q_ref_mm3_s"] = np.nan
-    summary, _ = summarize_runs(runs, RIG)
-    res = discover_runs(runs, summary, rig=RIG)
-    delay = [e for e in res.effects if e.name == "delay"]
-    assert delay and 0.13 <= delay[0].params["delay_s"] <= 0.23
-
-
-def test_clean_position_control_says_none():
-    res = discover_sim(["paper-position"], seed=3)
-    assert res.verdict == "none"
-    assert res.position_control["lag_s"] == pytest.approx(0.27, abs=0.04)
-
-
-def test_two_effects_drift_and_delay():
-    res = discover_sim(["paper-flowsteps", "paper-position"],
-                       ["drift:side=drain,step=0.02,every=3", "delay:delay_s=0.15"], seed=4)
-    names = {(e.name, e.side) for e in res.effects}
-    assert ("drift", "drain") in names and ("delay", "both") in names
-
-
-def test_two_static_effects():
-    res = discover_sim(["paper-flowsteps"], ["drift:side=drain,step=0.02,every=3",
-                                              "pressure_law:side=supply,exponent=0.7"], seed=5)
-    names = {(e.name, e.side) for e in res.effects}
-    assert {("drift", "drain"), ("pressure_law", "supply")} <= names
-
-
-def test_discover_cli_on_position_only_data(tmp_path):
-    """Position-control data only: delay found, no traceback, and the held-out
-    error is the closed-loop one from validate (base vs augmented model)."""
+def test_plain_discover_identifies_its_twin_and_names_the_delay(tmp_path):
+    """Position-control data only, ``seanv-analyze discover`` alone (no
+    identify stage): the twin is identified from the logs and the extra delay
+    named against it, never against the rig file's nominal lag; the
+    held-out error is the closed-loop one, no traceback."""
     import json
 
     from click.testing import CliRunner
@@ -133,13 +80,50 @@ def test_discover_cli_on_position_only_data(tmp_path):
     from seanv_analysis.cli import cli
     from seanv_analysis.sim import simulate_scenario
 
-    data = simulate_scenario("paper-position-model", tmp_path / "pos", effects=["delay:delay_s=0.15"])
-    res = CliRunner().invoke(cli, ["discover", str(data), "--out", str(tmp_path / "out"), "--json"])
+    data = simulate_scenario("paper-position", tmp_path / "pos", seed=3,
+                             effects=["delay:delay_s=0.1"])
+    res = CliRunner().invoke(cli, ["discover", str(data), "--out", str(tmp_path / "out"), "--json",
+                                   "--no-figures"])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
-    assert [e["name"] for e in doc["effects"]] == ["delay"]
     check_schema("discover", doc)  # data_schema/json/discover.schema.json
     assert keys_without_unit(doc) == []
-    assert doc["heldout_source"] == "closed_loop"
+    assert [e["name"] for e in doc["effects"]] == ["delay"]
+    delay = doc["effects"][0]
+    lo, hi = delay["params_ci95"]["delay_s"]
+    assert delay["params"]["delay_s"] == pytest.approx(0.1, abs=0.02) and lo <= 0.1 <= hi
+    assert doc["heldout_source"] == "closed_loop_heldout"
     assert doc["heldout"]["rmse_after_mm3_s"] <= 0.7 * doc["heldout"]["rmse_before_mm3_s"]
-    assert (tmp_path / "out" / "discover.json").exists()
+    assert "nominal" not in json.dumps(doc["position_control"])
+
+
+def test_clean_position_control_says_none():
+    """Clean position-control runs: a twin identified, no dynamic effect named."""
+    runs = list(iter_scenario_runs("paper-position", seed=3, rig=RIG))
+    summary, _ = summarize_runs(runs, RIG)
+    from seanv_analysis.identify import identify_rig
+    from seanv_analysis.identify.dynamic import closed_loop_effects
+
+    twin = identify_rig(summary, RIG, position_runs=runs, parts=("servo", "flow_path"), n_boot=0)
+    res = discover_runs(runs, summary, rig=twin.rig, seed=3, dynamic_search=closed_loop_effects)
+    assert res.verdict == "none", res.report()
+    assert res.position_control["candidates"] and not res.position_control["found"]
+
+
+def test_position_runs_without_a_twin_say_so():
+    """Without a dynamic search (no twin the logs identify), position-control
+    runs are untested, said in words; nothing is named."""
+    runs = list(iter_scenario_runs("paper-position", seed=3, rig=RIG,
+                                   effects=["delay:delay_s=0.15"]))
+    summary, _ = summarize_runs(runs, RIG)
+    res = discover_runs(runs, summary, rig=RIG, twin_note="no cam feedback")
+    assert res.verdict == "none" and res.effects == []
+    assert res.position_control["tested"] is False
+    assert "dynamic effects not tested: no cam feedback" in res.report()
+
+
+def test_two_static_effects():
+    res = discover_sim(["paper-flowsteps"], ["drift:side=drain,step=0.02,every=3",
+                                              "pressure_law:side=supply,exponent=0.7"], seed=5)
+    names = {(e.name, e.side) for e in res.effects}
+    assert {("drift", "drain"), ("pressure_law", "supply")} <= names

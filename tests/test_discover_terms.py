@@ -215,6 +215,8 @@ def test_a_proposal_is_checked_in_closed_loop(tmp_path):
     (c,) = term["coefficients"]
     # within 3 %: the plant's own small leak path (linear in dp) is not in eq. (5) either
     assert c["feature"] == "dp**2" and abs(c["value"] - 60.0) < 1.8
+    # before: eq. (5) fitted on the same data (z0, C), not the paper's valve;
+    # both on the twin discover identified from the position-control logs
     for ctrl in ("cam", "flow_model"):
         before, after = (doc["validation"][k][ctrl]["rmse_flow_mm3_s"] for k in ("before", "after"))
-        assert after < 0.3 * before, (ctrl, before, after)
+        assert after < 0.35 * before, (ctrl, before, after)

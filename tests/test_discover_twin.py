@@ -57,6 +57,7 @@ def test_closed_loop_check_survives_effects_that_cannot_be_simulated(monkeypatch
         effects = [SimpleNamespace(name="delay")]
         proposed_term = None
         model = "base model"
+        base_model = "start model"
         twin_overrides = {"tube": {"effective_bulk_modulus_mpa": 120.0}}
 
         def augmented_model_and_effects(self, rig):
@@ -77,5 +78,6 @@ def test_closed_loop_check_survives_effects_that_cannot_be_simulated(monkeypatch
     res = stage.closed_loop(ctx, Disc())
     assert "effects not simulated in the closed-loop check" in res.note
     assert "-0.038" in res.note
+    assert seen["validate"][0] == "start model"
     assert seen["validate_augmented"] == ("base model", [], Disc.twin_overrides)
     assert seen["checked"] == ("validate", "validate_augmented")

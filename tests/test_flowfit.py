@@ -96,7 +96,11 @@ def test_per_run_residual_is_measured_minus_model(paper_fit, paper_summary):
     assert float(np.median(np.abs(used["theta_d_implied_deg"] - used["theta_d_model_deg"]))) < 0.3
     row = pr[pr["used"]].iloc[0]
     side = paper_fit.model.side(row["side"])
-    assert_allclose(row["q_model_mm3_s"], side.flow(row["cam_deg"], row["p1_mpa"], row["dp_mpa"]))
+    # the model's flow: eq. (5) of the side plus the fitted seat leakage g (dp_s - dp_d)
+    g = paper_fit.leakage.conductance_mm3_s_per_mpa
+    assert_allclose(row["q_leak_mm3_s"], g * row["dp_leak_mpa"])
+    assert_allclose(row["q_model_mm3_s"], side.flow(row["cam_deg"], row["p1_mpa"], row["dp_mpa"])
+                    + row["q_leak_mm3_s"])
 
 
 # exclusions and robustness --------------------------------------------------------

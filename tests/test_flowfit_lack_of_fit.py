@@ -149,9 +149,10 @@ def test_clean_simulated_data_no_lack_of_fit(clean_fit):
         f = clean_fit.sides[side]
         assert f.c_flow == pytest.approx(truth.side(side).c_flow, rel=0.01)   # eq. (5) holds
         assert f.lack_of_fit is False, f.lack_of_fit_line()
-        # the simulator's repeats agree to ~1 mm^3/s, so even its ~4 mm^3/s
-        # departures from eq. (5) are significant; they are 0.1 % of the flow
-        assert f.lack_of_fit_p < 0.01 and f.lack_of_fit_ratio > 1.5
+        # the simulator's repeats agree to ~1 mm^3/s; with its seat leakage in
+        # the model (fitted beside eq. 5) its departures are ~1-3 mm^3/s
+        # (4-6 without: the leakage moves with the load), significant or
+        # not, 0.1 % of the flow
         assert f.lack_of_fit_detail["systematic_pct"] < 0.3
         assert f.lack_of_fit_detail["n_repeated"] >= 9
         assert "none material" in f.lack_of_fit_line()
@@ -164,7 +165,13 @@ def test_drain_drift_is_lack_of_fit_on_drain_only(drift_fit, clean_fit):
     truth = ValveModel.from_rig(_rig())
     d, s = drift_fit.sides["drain"], drift_fit.sides["supply"]
     assert s.lack_of_fit is False                       # the supply side does not drift
-    assert s.lack_of_fit_ratio == clean_fit.sides["supply"].lack_of_fit_ratio
+    # the sides share only the seat leakage's conductance (one per needle,
+    # fitted on both sides' runs, robustly): the drain's drift moves it a
+    # little (3.21 -> 3.26 mm^3/(s MPa)), the supply's fit hardly
+    assert s.lack_of_fit_ratio == pytest.approx(clean_fit.sides["supply"].lack_of_fit_ratio,
+                                                rel=0.1)
+    assert drift_fit.leakage.conductance_mm3_s_per_mpa == pytest.approx(
+        clean_fit.leakage.conductance_mm3_s_per_mpa, rel=0.1)
     assert d.lack_of_fit is True
     assert d.lack_of_fit_p < 1e-5 and d.lack_of_fit_ratio > 3.0
     assert d.lack_of_fit_detail["systematic_pct"] > 3.0           # C falls ~0.5 % / 3 runs

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -186,26 +185,8 @@ def test_constants_the_twin_reads(tmp_path, rig):
 
 # --------------------------------------------------------------- field data
 
-REPO = Path(__file__).resolve().parents[1]
-
-
-@pytest.fixture(scope="session")
-def field_data(tmp_path_factory):
-    """The field data unpacked once per session (../shared/field-data beside
-    the repo root, or beside the folder of its git worktrees); skipped when absent."""
-    for base in (REPO.parent, REPO.parent.parent):
-        unpack = base / "shared" / "field-data" / "unpack"
-        if unpack.is_file():
-            break
-    else:
-        pytest.skip("no ../shared/field-data next to the repository")
-    dest = tmp_path_factory.mktemp("field-data")
-    subprocess.run(["bash", str(unpack), str(dest)], check=True)
-    return dest
-
-
 @pytest.mark.slow
-def test_field_slow_servo_limit_cycle(field_data, tmp_path):
+def test_field_slow_servo_limit_cycle(field_root, tmp_path):
     """field-slow-servo: its controller releases the hold as soon as |e|
     leaves the band, so the run without the flow model hunts for the whole
     run. identify reads that from the logs; validate on the identified twin
@@ -217,7 +198,7 @@ def test_field_slow_servo_limit_cycle(field_data, tmp_path):
 
     from seanv_analysis.cli import cli
 
-    data = field_data / "field-slow-servo"
+    data = field_root / "field-slow-servo"
     res = CliRunner().invoke(cli, ["identify", str(data), "--out", str(tmp_path / "id"), "--json"])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)

@@ -144,9 +144,14 @@ def test_geometry_fit_ending_where_eq4_cannot_be_inverted(monkeypatch):
     assert not geometry._valid(base, bad_y)
     theta, p1, dp, q, load = _flow_steps(base, (0.1, 0.3, 0.5))
 
-    def stuck(side, theta, p1, dp, q, sigma, x0, lo, hi, f_scale, free_y):
-        sol = type("Sol", (), {"fun": np.ones(q.size), "jac": np.ones((q.size, 3))})()
-        return np.array([x0[0], x0[1], bad_y if free_y else x0[2]]), sol
+    def stuck(runs, x0, lo, hi, f_scale, layout, y_fixed, g_fixed, g_prior_sd=None):
+        n = sum(r.q_mm3_s.size for r in runs.values())
+        sol = type("Sol", (), {"fun": np.ones(n), "jac": np.ones((n, x0.size)), "cost": 1.0})()
+        x = np.array(x0, float)
+        for name, free in zip(layout.names, layout.free):
+            if free:
+                x[layout.slices[name].stop - 1] = bad_y
+        return x, sol, lambda p: np.ones(n)
 
     monkeypatch.setattr(geometry, "_fit", stuck)
     g = fit_geometry(base, theta, p1, dp, q, 0.02 * np.abs(q) + 5.0, load,

@@ -6,12 +6,12 @@ and never reads ``_truth.json``. Closed-loop checks go through ``validate``.
 The candidate effects are the registered effects of
 :mod:`seanv_analysis.models.effects` that have a static form.
 """
-from .assemble import MIN_FLOW_RUNS, discover_dataset
+from .assemble import MIN_FLOW_RUNS, NoTwin, discover_dataset
 from .engine import discover_flow_steps, noise_model, residual_variables
 from .result import Discovery, EffectFinding
 from .split import chrono_split, kfold_splits, split_position_runs
 from .static import FlowData, predict_static
 
-__all__ = ["discover_dataset", "MIN_FLOW_RUNS", "discover_flow_steps", "noise_model",
+__all__ = ["discover_dataset", "MIN_FLOW_RUNS", "NoTwin", "discover_flow_steps", "noise_model",
            "residual_variables", "Discovery", "EffectFinding", "FlowData", "predict_static",
            "chrono_split", "kfold_splits", "split_position_runs"]

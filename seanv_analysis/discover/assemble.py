@@ -1,11 +1,11 @@
 """Discovery on a whole data set, assembled here: the static candidates on
-the flow steps (:func:`.engine.discover_flow_steps`) and, on the
-position-control runs, either the delay check against the nominal lag
-(:func:`.dynamic.discover_delay`) or the dynamic candidates a twin search
-fits (passed in by the caller: the package's is
-:func:`seanv_analysis.identify.dynamic.closed_loop_effects`, fitted on the
-identified twin replaying the logged cam command), in one
-:class:`~.result.Discovery`. A plain result: no stage or identify type.
+the flow steps (:func:`.engine.discover_flow_steps`, the needle geometry
+decided with them) and, on the position-control runs, the dynamic
+candidates a twin search fits on a twin of the rig identified from the same
+data (passed in by the caller: the package's is
+:func:`seanv_analysis.identify.dynamic.closed_loop_effects`, replaying the
+logged cam command), in one :class:`~.result.Discovery`. No effect is named
+against a rig file's nominal value. A plain result: no stage or identify type.
 """
 from __future__ import annotations
 
@@ -16,7 +16,12 @@ from ..errors import FitError
 from .result import Discovery, EffectFinding
 from .split import split_position_runs
 
-__all__ = ["discover_dataset", "MIN_FLOW_RUNS", "CLOSED_LOOP_EVIDENCE", "DynamicSearch"]
+__all__ = ["discover_dataset", "MIN_FLOW_RUNS", "CLOSED_LOOP_EVIDENCE", "DynamicSearch", "NoTwin"]
+
+
+class NoTwin(FitError):
+    """A dynamic search found no twin of the rig to test effects on (the logs
+    cannot tell its servo, say): the position-control runs are untested."""
 
 #: fewest usable flow-step runs for the static discovery
 MIN_FLOW_RUNS = 12
@@ -40,74 +45,77 @@ def _usable_flow_steps(summary) -> int:
     return int(ok.sum())
 
 
-def discover_dataset(runs, summary, *, rig, model=None, holdout: str = "chrono",
-                     nominal_lag_s: float | None = None, seed: int = 0,
-                     dynamic_search: DynamicSearch | None = None) -> Discovery:
-    """Discovery on runs already read and summarised: the static candidates on
-    the flow steps; on the position-control runs the delay check, or with a
-    ``dynamic_search`` (``rig`` is then the twin it searches on, e.g. the
-    identified one) the dynamic effects it fits (:data:`DynamicSearch`).
+def discover_dataset(runs, summary, *, rig, model=None, holdout: str = "chrono", seed: int = 0,
+                     dynamic_search: DynamicSearch | None = None, twin_model=None,
+                     twin_note: str = "") -> Discovery:
+    """Discovery on runs already read and summarised: the static candidates
+    on the flow steps (the needle geometry decided with them); on the
+    position-control runs, the dynamic candidates ``dynamic_search`` fits on
+    the twin ``rig`` (an identified one: a dynamic effect is only ever named
+    against a twin the data identified, never against a rig file's nominal).
+    Without a search (no twin could be identified) the position-control runs
+    are said to be untested, with ``twin_note`` saying why.
+
+    ``model``: the valve to start the static fit from (its geometry is the one
+    the data's own is compared with: the rig file's); ``twin_model``: the
+    twin's valve for the dynamic search (default: the static fit's model).
 
     Raises
     ------
     FitError
-        neither >= 12 usable flow-step runs nor a position-control run with Q_ref.
+        neither >= 12 usable flow-step runs nor a position-control run.
     """
     from ..models import ValveModel
-    from .dynamic import discover_delay
     from .engine import discover_flow_steps
 
     model = model or ValveModel.from_rig(rig)
-    analysis = rig.analysis
-    lag0 = float(analysis.get("nominal_flow_lag_s", 0.25) if nominal_lag_s is None else nominal_lag_s)
     position = [r for r in runs if r.kind == "position_control"]
-    if dynamic_search is not None and position:
-        return _closed_loop_dynamic(position, summary, rig=rig, model=model, holdout=holdout,
-                                    seed=seed, search=dynamic_search)
-    delay = discover_delay(position, nominal_lag_s=lag0, seed=seed) if position else None
-    if _usable_flow_steps(summary) >= MIN_FLOW_RUNS:
-        result = discover_flow_steps(summary, model=model, holdout=holdout, seed=seed,
-                                     leakage_mm3_s=float(analysis.get("leakage_flow_mm3_s", 50.0)))
-    elif delay is not None:
-        result = Discovery(verdict="none", effects=[], n_heldout_runs=delay.n_runs,
-                           rmse_before_mm3_s=delay.rmse_before_mm3_s,
-                           rmse_after_mm3_s=delay.rmse_before_mm3_s, trend_variable=None,
-                           base_model=model, model=model, holdout="chrono (last 30 % of each run)",
-                           heldout_source="position_control_shift")
-    else:
-        raise FitError(f"discover: {_usable_flow_steps(summary)} usable flow_step runs (need "
-                       f">= {MIN_FLOW_RUNS}) and no position_control run with q_ref_mm3_s")
-    if delay is None:
+    n_steps = _usable_flow_steps(summary)
+    if n_steps < MIN_FLOW_RUNS and not position:
+        raise FitError(f"discover: {n_steps} usable flow_step runs (need >= {MIN_FLOW_RUNS}) and "
+                       "no position_control run")
+    result = None
+    if n_steps >= MIN_FLOW_RUNS:
+        result = discover_flow_steps(
+            summary, model=model, holdout=holdout, seed=seed,
+            leakage_mm3_s=float(rig.analysis.get("leakage_flow_mm3_s", 50.0)))
+    if not position:
         return result
-    change: dict[str, Any] = {"position_control": {**delay.to_json_dict(), "message": delay.message}}
-    if delay.finding is not None:
-        change["effects"] = [*result.effects, delay.finding]
-        if result.verdict != "effect_found":
-            change["verdict"], change["trend_variable"] = "effect_found", None
-        if result.heldout_source == "position_control_shift":
-            # the shift's held-out error, until the closed-loop check gives its own
-            change["rmse_after_mm3_s"] = delay.rmse_after_mm3_s
-    return dataclasses.replace(result, **change)
+    if dynamic_search is None:
+        note = {"n_runs": len(position), "found": False, "tested": False,
+                "message": ("dynamic effects not tested: " + (twin_note or "no identified twin of "
+                            "the rig to test them on"))}
+        if result is None:
+            return Discovery(verdict="none", effects=[], n_heldout_runs=0,
+                             rmse_before_mm3_s=float("nan"), rmse_after_mm3_s=float("nan"),
+                             trend_variable=None, base_model=model, model=model,
+                             holdout="position-control runs: not tested",
+                             heldout_source="closed_loop_heldout", position_control=note)
+        return dataclasses.replace(result, position_control=note)
+    valve = twin_model or (result.model if result is not None else model)
+    try:
+        return _closed_loop_dynamic(position, result, rig=rig, model=model, valve=valve,
+                                    seed=seed, search=dynamic_search)
+    except NoTwin as exc:
+        return discover_dataset(runs, summary, rig=rig, model=model, holdout=holdout, seed=seed,
+                                twin_note=str(exc)) if result is None else dataclasses.replace(
+            result, position_control={"n_runs": len(position), "found": False, "tested": False,
+                                      "message": f"dynamic effects not tested: {exc}"})
 
 
-def _closed_loop_dynamic(position, summary, *, rig, model, holdout, seed, search: DynamicSearch):
-    """Static discovery on the flow steps (if enough) plus the dynamic
-    candidates fitted on the identified twin (logged cam command replayed); a dynamic effect
-    found makes the held-out closed-loop flow RMSE the headline."""
-    from .engine import discover_flow_steps
-
-    analysis = rig.analysis
+def _closed_loop_dynamic(position, result, *, rig, model, valve, seed, search: DynamicSearch):
+    """The dynamic candidates fitted on the identified twin (logged cam
+    command replayed) beside the static ``result`` (None: no flow steps); a
+    dynamic effect found makes the held-out closed-loop flow RMSE the
+    headline."""
     train, held = split_position_runs(position)
-    findings, base_held = search(train, held, model, rig, seed=seed)
+    findings, base_held = search(train, held, valve, rig, seed=seed)
     named = [f for f in findings if f.named]
-    if _usable_flow_steps(summary) >= MIN_FLOW_RUNS:
-        result = discover_flow_steps(summary, model=model, holdout=holdout, seed=seed,
-                                     leakage_mm3_s=float(analysis.get("leakage_flow_mm3_s", 50.0)))
-    else:
+    if result is None:
         rmse = base_held.get("rmse_flow_mm3_s", float("nan"))
         result = Discovery(verdict="none", effects=[], n_heldout_runs=len(held),
                            rmse_before_mm3_s=rmse, rmse_after_mm3_s=rmse, trend_variable=None,
-                           base_model=model, model=model,
+                           base_model=model, model=valve,
                            holdout="position-control runs: every other one held out",
                            heldout_source="closed_loop_heldout")
     msg = "; ".join(f"{f.name} {f.param} {f.value:g} (p = {f.p_value:.2g}"

@@ -26,7 +26,8 @@ Procedure:
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -43,7 +44,17 @@ from .split import (  # noqa: F401 (permutation_strata re-exported)
     permutation_strata,
     permuted_run_order,
 )
-from .static import FlowData, StaticFit, fit_static, geometry_sides, predict_static
+from .static import (
+    FlowData,
+    LeakPrior,
+    StaticFit,
+    fit_static,
+    geometry_sides,
+    plausible_geometry,
+    predict_static,
+    seat_leak_of,
+    with_leak_prior,
+)
 from .terms import propose_term
 
 __all__ = ["discover_flow_steps", "noise_model", "residual_variables", "trend_amplitude",
@@ -71,6 +82,43 @@ def noise_model(q_hat: np.ndarray, residual: np.ndarray, *, floor_mm3_s: float =
         a, b = float(coef[0]), float(max(coef[1], 0.0))
     sigma = 1.4826 * (np.maximum(a, 0.0) + b * x)
     return np.maximum(sigma, floor_mm3_s)
+
+
+def _leak_prior(model: ValveModel, data: FlowData, leakage_mm3_s: float) -> LeakPrior:
+    """The seat leakage's prior: mean the model's g (flowfit's fitted one) or
+    0, sd from the leakage band at the runs' median supply pressure
+    (:func:`seanv_analysis.fit._leakage.prior_sd_mm3_s_per_mpa`)."""
+    from ..fit import prior_sd_mm3_s_per_mpa
+
+    ps = data.p_supply_mpag[np.isfinite(data.p_supply_mpag)]
+    if not ps.size:     # no supply pressure logged: the highest head pressure seen
+        ps = data.p_head_mpag[np.isfinite(data.p_head_mpag)]
+    p_supply = float(np.median(ps) if ps.size and np.isfinite(data.p_supply_mpag).any()
+                     else np.max(ps) if ps.size else 1.0)
+    return LeakPrior(seat_leak_of(model), prior_sd_mm3_s_per_mpa(leakage_mm3_s, p_supply))
+
+
+#: the leakage is fitted when the runs alone tell g to better than this
+#: fraction of its prior's standard deviation
+LEAK_TOLD_FRACTION = 0.5
+
+
+def _with_leakage(model: ValveModel, data: FlowData, leakage_mm3_s: float) -> ValveModel:
+    """``model`` with the seat leakage's prior (:func:`with_leak_prior`)
+    when the runs ``data`` alone (a flat prior) give g a standard error below
+    :data:`LEAK_TOLD_FRACTION` of the prior's; else ``model`` (g stays what
+    it carries, 0 without). Measured: the simulator's 345 flow steps 0.19
+    mm^3/(s MPa) (prior 3.3): fitted; 48 foreign-rig steps with the rig
+    file's needle centres unlike the rig's 12.9: not (the leakage took the
+    geometry's mismatch, g = 63, and the centre then failed its test)."""
+    prior = _leak_prior(model, data, leakage_mm3_s)
+    probe = fit_static(with_leak_prior(model, LeakPrior(prior.mean, 1e6)), data,
+                       np.full(len(data), max(robust_scale(data.q_mm3_s), 1.0)))
+    if "seat_leak.g" not in probe.param_names or probe.covariance is None:
+        return model
+    k = list(probe.param_names).index("seat_leak.g")
+    se = float(np.sqrt(max(probe.covariance[k, k], 0.0)))
+    return with_leak_prior(model, prior) if se < LEAK_TOLD_FRACTION * prior.sd else model
 
 
 def _fit_base(model: ValveModel, data: FlowData) -> tuple[StaticFit, np.ndarray]:
@@ -145,6 +193,16 @@ def trend_amplitude(residual: np.ndarray, variable: np.ndarray, *, bins: int = 8
     return float(np.sqrt(np.sum(counts * (meds - centre) ** 2) / counts.sum()))
 
 
+def practical_size(change_mm3_s: np.ndarray) -> float:
+    """How much an effect moves the prediction where it acts [mm^3/s]: the
+    90th percentile of |change| over the runs. Not the RMS over all runs: a
+    drift is zero until its first step, and small at small openings, so an
+    RMS would average a material change away."""
+    change = np.abs(np.asarray(change_mm3_s, float))
+    change = change[np.isfinite(change)]
+    return float(np.percentile(change, 90)) if change.size else 0.0
+
+
 def practical_floor_mm3_s(data: FlowData, leakage_mm3_s: float = 50.0) -> float:
     """Smallest residual trend that matters [mm^3/s]: max(leakage, 2 % of median |Q|)."""
     return max(float(leakage_mm3_s), 0.02 * float(np.median(np.abs(data.q_mm3_s))))
@@ -185,6 +243,13 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
 
     fit_m, held_m = splits[0]
     fit_data = data.subset(fit_m)
+    # the needles' seat leakage is part of the base model where the runs tell
+    # it (it moves with the head pressure from load to load, as the threshold
+    # does: left out, it passed for a needle geometry unlike the rig file's on
+    # our own clean simulated data); its conductance g, one for both needles,
+    # is then fitted in every fit, with the prior flowfit has (mean: the
+    # model's g if it carries one, flowfit's, else 0)
+    model = _with_leakage(model, fit_data, leakage_mm3_s)
     floor = practical_floor_mm3_s(fit_data, leakage_mm3_s)
     selection = _select(model, fit_data, df[fit_m], alpha=alpha, alpha_perm=alpha_perm,
                         min_improvement=min_improvement, n_perm=n_perm,
@@ -282,25 +347,45 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
             rmse_new_w = _rmse((d_val.q_mm3_s - predict_static(new_in.model, d_val, new_in.effects)) / s_val)
             improvement = 1.0 - rmse_new_w / rmse_cur_w if rmse_cur_w > 0 else 0.0
             # practical size: how much the effect moves the prediction [mm^3/s]
-            size = _rmse(predict_static(fit.model, data, fit.effects) - q_cur)
+            size = practical_size(predict_static(fit.model, data, fit.effects) - q_cur)
             if size <= floor_mm3_s:
                 improvement = min(improvement, 0.0)
             scored.append((f, p, improvement, spec_c, fit))
+        geo = None
         if geom_sides and not current.geometry:
-            # the rig's unpublished needle geometry competes with the effects:
-            # what it explains is a constant of the rig, not an effect
-            g = _geometry_candidate(current, cur_in, data, d_in, d_val, sigma, s_in, s_val,
-                                    selected, geom_sides, rmse_cur_w)
-            scored.append(g)
+            # the rig's unpublished needle geometry competes with the effects,
+            # and is decided with them: alone (what it explains is a constant
+            # of the rig, not an effect) and together with each effect (an
+            # effect may hide the geometry's signal as much as the geometry
+            # may absorb an effect's); a geometry at its bound is no fit
+            geo = _geometry_candidate(current, cur_in, data, d_in, d_val, sigma, s_in, s_val,
+                                      selected, geom_sides, rmse_cur_w)
+            if geo is not None:
+                scored.append(geo)
+                scored += _joint_candidates(current, cur_in, data, d_in, d_val, sigma, s_in, s_val,
+                                            selected, geo, specs, rmse_cur_w, floor_mm3_s, q_cur)
         m = len(scored)
-        passing = [s for s in scored if s[1] < alpha / m and s[2] >= min_improvement]
+        # an effect is one of many candidates (Bonferroni) and must lower the
+        # inner validation error materially; the geometry is one constant of
+        # the rig, asked once (is it the rig file's?), and must lower it at all
+        passing = [s for s in scored
+                   if (s[1] < alpha and s[2] > 0.0 if s[3] is GEOMETRY
+                       else s[1] < alpha / m and s[2] >= min_improvement)]
         if not passing:
             break
         f, p, improvement, spec_c, fit = max(passing, key=lambda s: s[0])
         if spec_c is GEOMETRY:
             current = fit
             continue
-        p_perm = _permutation_check(current, data, sigma, spec_c, selected, f, n_perm=n_perm, rng=rng)
+        against = current
+        if isinstance(spec_c, _Joint):
+            # the effect is checked against the model with the geometry
+            # identified: the constant is the rig's, the effect what is left
+            against, spec_c = geo[4], spec_c.spec
+            f, _ = _f_test(against.rss_weighted, against.n_params, fit.rss_weighted,
+                           fit.n_params, len(data))
+        p_perm = _permutation_check(against, data, sigma, spec_c, selected, f, n_perm=n_perm,
+                                    rng=rng)
         if p_perm >= alpha_perm:
             break
         selected.append(spec_c)
@@ -322,15 +407,57 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
 GEOMETRY = "needle_geometry"
 
 
+@dataclass(frozen=True)
+class _Joint:
+    """A candidate effect fitted together with the needle geometry."""
+
+    spec: Any
+
+
 def _geometry_candidate(current, cur_in, data, d_in, d_val, sigma, s_in, s_val, selected,
                         sides, rmse_cur_w):
-    """(F, p, inner improvement, GEOMETRY, fit) of freeing the needle centre y_c."""
+    """(F, p, inner improvement, GEOMETRY, fit) of freeing the needle centre y_c
+    of the ``sides`` whose fitted centre is plausible (:func:`plausible_geometry`);
+    None when none is."""
     fit = fit_static(current.model, data, sigma, effects=selected, geometry=sides)
+    ok = plausible_geometry(fit)
+    if not ok:
+        return None
+    if ok != fit.geometry:
+        fit = fit_static(current.model, data, sigma, effects=selected, geometry=ok)
     f, p = _f_test(current.rss_weighted, current.n_params, fit.rss_weighted, fit.n_params, len(data))
-    new_in = fit_static(cur_in.model, d_in, s_in, effects=selected, geometry=sides)
+    new_in = fit_static(cur_in.model, d_in, s_in, effects=selected, geometry=ok)
     rmse_new_w = _rmse((d_val.q_mm3_s - predict_static(new_in.model, d_val, new_in.effects)) / s_val)
     improvement = 1.0 - rmse_new_w / rmse_cur_w if rmse_cur_w > 0 else 0.0
     return f, p, improvement, GEOMETRY, fit
+
+
+def _joint_candidates(current, cur_in, data, d_in, d_val, sigma, s_in, s_val, selected, geo,
+                      specs, rmse_cur_w, floor_mm3_s, q_cur):
+    """(F, p, inner improvement, _Joint(spec), fit) of each effect fitted with
+    the needle geometry of ``geo`` free, scored against ``current`` (the
+    geometry as the rig file has it); a fit whose geometry leaves the
+    plausible range is left out."""
+    out = []
+    sides = geo[4].geometry
+    with_geo = replace(current, geometry=sides)
+    with_geo_in = replace(cur_in, geometry=sides)
+    for spec in specs:
+        fit, spec_c = fit_candidate(with_geo, data, sigma, spec, selected)
+        if plausible_geometry(fit) != sides:
+            continue
+        f, p = _f_test(current.rss_weighted, current.n_params, fit.rss_weighted, fit.n_params,
+                       len(data))
+        new_in, _ = fit_candidate(with_geo_in, d_in, s_in, spec_c, selected)
+        rmse_new_w = _rmse((d_val.q_mm3_s - predict_static(new_in.model, d_val, new_in.effects))
+                           / s_val)
+        improvement = 1.0 - rmse_new_w / rmse_cur_w if rmse_cur_w > 0 else 0.0
+        size = practical_size(predict_static(fit.model, data, fit.effects)
+                              - predict_static(geo[4].model, data, geo[4].effects))
+        if size <= floor_mm3_s:     # the effect itself moves the prediction too little
+            improvement = min(improvement, 0.0)
+        out.append((f, p, improvement, _Joint(spec_c), fit))
+    return out
 
 
 def _prune_geometry(base, current, selected, findings, data, d_in, d_val, sigma, s_in, s_val,

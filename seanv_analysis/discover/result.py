@@ -191,8 +191,8 @@ class Discovery(JsonResult):
     validation: dict | None = None   # closed-loop fit % before/after (with_closed_loop)
     position_control: dict | None = None  # delay check on position-control runs (dynamic.py)
     #: where the held-out error comes from: "flow_step" (static model on held-out
-    #: runs), "position_control_shift" (shifted-flow RMSE on held-out run tails,
-    #: position-only data) or "closed_loop" (validate's flow RMSE, base vs augmented)
+    #: runs), "closed_loop_heldout" (held-out position-control runs re-run on
+    #: the identified twin) or "replay_heldout" (replayed on it, open loop)
     heldout_source: str = "flow_step"
     #: sides whose needle centre y_c (eq. 4, not published) the data moved from
     #: the rig file's: part of the base model, never an effect
@@ -245,21 +245,8 @@ class Discovery(JsonResult):
     def with_closed_loop(self, before: dict | None, after: dict | None) -> "Discovery":
         """A copy holding the closed-loop check (``validation``: mean fit per
         controller with the base model ``before`` and the augmented one
-        ``after``). Position-control-only data also takes its before/after
-        error from it (flow-model controller runs, else all) instead of the
-        shifted-flow RMSE, which a delay in the loop makes a poor predictor
-        (see :mod:`.dynamic`); flow-step held-out numbers stay as they are."""
-        changes: dict[str, Any] = {"validation": {"before": before, "after": after}}
-        if self.heldout_source == "position_control_shift":
-            b_, a_ = before or {}, after or {}
-            ctrl = "flow_model" if "flow_model" in b_ else next(iter(b_), None)
-            try:
-                changes.update(rmse_before_mm3_s=float(b_[ctrl]["rmse_flow_mm3_s"]),
-                               rmse_after_mm3_s=float(a_[ctrl]["rmse_flow_mm3_s"]),
-                               heldout_source="closed_loop")
-            except (KeyError, TypeError, ValueError):
-                pass
-        return replace(self, **changes)
+        ``after``); the held-out numbers stay as they are."""
+        return replace(self, validation={"before": before, "after": after})
 
     def augmented_model_and_effects(self, rig=None) -> tuple[ValveModel, list[str]]:
         """The refitted valve and the effects found as ``models.effects``
@@ -343,9 +330,7 @@ class Discovery(JsonResult):
                                        "segment from the logged state)",
                 "replay_heldout": "flow RMSE on held-out position-control runs replayed on the "
                                   "identified twin (its logged cam command in, open loop)",
-                "position_control_shift": "flow RMSE of actual flow shifted by the nominal "
-                                          "vs the estimated lag"}.get(self.heldout_source,
-                                                                     "flow RMSE")
+                }.get(self.heldout_source, "flow RMSE")
         # with a proposed term and no named effect, "after" is the named
         # effects' (none): say so, the term's own figure is above
         after = "after the named effects (none)" if self.proposed_term and not self.effects \
@@ -360,17 +345,14 @@ class Discovery(JsonResult):
                          f"{pc.get('n_heldout_runs', 0)} held out): {pc['method']}: "
                          f"{pc.get('message', '')}; "
                          + ("an effect is added to the twin." if pc.get("found") else
-                            "none kept (significant on training runs and >= 20 % lower held-out "
-                            "replayed flow error are both needed)."))
+                            "none kept (significant on training runs, and on held-out runs a "
+                            "significant and >= 10 % lower replayed flow error, are both "
+                            "needed)."))
         elif self.position_control:
             pc = self.position_control
             n = int(pc["n_runs"])
-            lines.append(f"Position control ({n} run{'s' if n != 1 else ''} with a target flow; "
-                         "lag from the first 70 % of each, confirmed on the last 30 %): "
-                         f"{pc.get('message', '')}; "
-                         + ("an extra delay is added to the model." if pc.get("found") else
-                            "no extra delay.")
-                         + " The closed-loop error before/after comes from validate.")
+            lines.append(f"Position control ({n} run{'s' if n != 1 else ''}): "
+                         f"{pc.get('message', '')}.")
         if self.validation:
             before, after = self.validation.get("before") or {}, self.validation.get("after") or {}
             for ctrl, b in before.items():

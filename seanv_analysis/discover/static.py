@@ -1,7 +1,10 @@
 """Per-run (static) flow model of both valve sides with optional effects.
 
 The base model is eq. (5) with the sealing threshold of eq. (3)+(4):
-Q = C (theta - theta_d(p1, dp; z0))^2 dp^0.5 per side. Each candidate effect
+Q = C (theta - theta_d(p1, dp; z0))^2 dp^0.5 per side, plus the needles'
+seat leakage g (dp_supply - dp_drain) (:func:`seanv_analysis.models.seat_leakage_mm3_s`;
+g one parameter for both sides, with a prior as flowfit has it, carried in
+the fitted model's ``extras['seat_leak_mm3_s_per_mpa']``). Each candidate effect
 adds a few parameters and changes the terms of that equation through its
 static form (:meth:`seanv_analysis.models.effects.Effect.apply_static` on
 :class:`~seanv_analysis.models.effects.FlowTerms`), and the whole thing is
@@ -14,10 +17,45 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..models import ValveModel, fluid_force_n, side_pressures
+from ..models import ValveModel, fluid_force_n, seat_leakage_mm3_s, side_pressures
 from ..models import effects as fx
+from ..models.valve import SEAT_LEAK_KEY
 
-__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static", "geometry_sides"]
+__all__ = ["FlowData", "EffectSpec", "StaticFit", "fit_static", "predict_static", "geometry_sides",
+           "plausible_geometry", "Y_C_RANGE_MM", "LEAK_KEY", "LEAK_PRIOR_KEY", "LeakPrior",
+           "seat_leak_of", "leak_dp_mpa", "with_leak_prior"]
+
+#: the seat leakage's conductance [mm^3/(s MPa)] in a fitted model's ``extras``
+LEAK_KEY = SEAT_LEAK_KEY
+#: its prior [mean, sd] [mm^3/(s MPa)] in a model's ``extras``: fit_static fits g with it
+LEAK_PRIOR_KEY = "seat_leak_prior_mm3_s_per_mpa"
+
+
+@dataclass(frozen=True)
+class LeakPrior:
+    """Prior of the seat leakage's conductance g ~ N(mean, sd^2) [mm^3/(s MPa)]
+    (:func:`seanv_analysis.fit._leakage.prior_sd_mm3_s_per_mpa`)."""
+
+    mean: float
+    sd: float
+
+
+def with_leak_prior(model: ValveModel, prior: LeakPrior) -> ValveModel:
+    """``model`` whose fits (:func:`fit_static`) fit the seat leakage with ``prior``."""
+    return replace(model, extras={**model.extras, LEAK_PRIOR_KEY: [float(prior.mean),
+                                                                     float(prior.sd)]})
+
+
+def seat_leak_of(model: ValveModel) -> float:
+    """The seat leakage's conductance a model carries [mm^3/(s MPa)] (0 without)."""
+    return float(model.extras.get(LEAK_KEY, 0.0)) if model.extras else 0.0
+
+
+def leak_dp_mpa(data: "FlowData") -> np.ndarray:
+    """dp_supply - dp_drain of each run [MPa] (0 where a pressure is unknown)."""
+    dp_s = data.p_supply_mpag - data.p_head_mpag
+    dp_d = data.p_head_mpag - data.p_tank_mpag
+    return np.nan_to_num(dp_s - dp_d)
 
 
 @dataclass(frozen=True)
@@ -180,6 +218,9 @@ def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[E
             q[m] = flow_at(theta_d)
     if any(c.mode == "add" for c in terms.corrections):
         q += _sealed_valve_flow(model, data, terms)
+    g = seat_leak_of(model)
+    if g:
+        q = q + seat_leakage_mm3_s(leak_dp_mpa(data), 0.0, conductance_mm3_s_per_mpa=g)
     return q
 
 
@@ -239,10 +280,39 @@ class StaticFit:
             side = self.model.side(s)
             base.update({f"{s}.z0_mm": side.z0_mm, f"{s}.C": side.c_flow,
                          f"{s}.y_c_mm": side.geometry.needle_y_c_mm})
+        base["seat_leak.g"] = seat_leak_of(self.model)
         vals = [float(base[n]) for n in self.param_names if n in base]
         for _spec, v in self.effects.values():
             vals.extend(float(x) for x in v)
         return vals
+
+
+#: the range of |y_c| [mm] the needle centre is searched in, on the side of
+#: the cam axis the rig file puts it: from 4 mm (below it eq. (4) turns over
+#: inside the cam range for any x_c of the paper's scale) to 80 mm (4 x the
+#: head radius r of Table II: a centre that far from the cam axis is no
+#: valve of the paper's dimensions). A fit that ends at either edge has not
+#: found a centre: the residual it absorbs is an effect's (:func:`plausible_geometry`).
+Y_C_RANGE_MM = (4.0, 80.0)
+
+
+def plausible_geometry(fit: "StaticFit", *, tol_mm: float = 0.05) -> tuple[str, ...]:
+    """The sides of ``fit.geometry`` whose fitted needle centre is a centre:
+    inside :data:`Y_C_RANGE_MM` (not within ``tol_mm`` of an edge) with eq. (4)
+    invertible over the cam range."""
+    out = []
+    for s in fit.geometry:
+        geom = fit.model.side(s).geometry
+        y = abs(float(geom.needle_y_c_mm))
+        if not Y_C_RANGE_MM[0] + tol_mm < y < Y_C_RANGE_MM[1] - tol_mm:
+            continue
+        try:
+            z, _ = geom.height_table
+        except ValueError:
+            continue
+        if z.size:
+            out.append(s)
+    return tuple(out)
 
 
 def geometry_sides(model: ValveModel, data: FlowData, *, min_force_span_n: float = 1.5
@@ -267,11 +337,15 @@ def geometry_sides(model: ValveModel, data: FlowData, *, min_force_span_n: float
 def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
                effects: list[EffectSpec] = (), loss: str = "soft_l1",
                fit_sides: tuple[str, ...] = ("supply", "drain"),
-               geometry: tuple[str, ...] = ()) -> StaticFit:
+               geometry: tuple[str, ...] = (), leak: LeakPrior | None = None) -> StaticFit:
     """Fit z0 and C of both sides (and the effects' parameters) to ``data``;
     with them the needle centre y_c (eq. 4) of the ``geometry`` sides (the
     rig's unpublished geometry; :func:`geometry_sides` tells which sides the
-    data can say it for).
+    data can say it for) and, with ``leak`` (default: the prior the model
+    carries, ``extras[LEAK_PRIOR_KEY]``, :func:`with_leak_prior`), the seat
+    leakage's conductance g (one more residual (g - mean) / sd; g >= 0; the
+    fitted model carries it, ``extras[LEAK_KEY]``; without a prior the
+    model's own g stays).
 
     Residuals are weighted by ``sigma`` (flow noise model [mm^3/s]); the loss
     is robust (``soft_l1`` with f_scale = 2, i.e. residuals beyond ~2 sigma
@@ -293,8 +367,16 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
             y = vs.geometry.needle_y_c_mm
             names.append(f"{s}.y_c_mm")
             x0.append(y)
-            lo.append(-80.0 if y < 0 else 4.0)
-            hi.append(-4.0 if y < 0 else 80.0)
+            lo.append(-Y_C_RANGE_MM[1] if y < 0 else Y_C_RANGE_MM[0])
+            hi.append(-Y_C_RANGE_MM[0] if y < 0 else Y_C_RANGE_MM[1])
+    if leak is None and model.extras and LEAK_PRIOR_KEY in model.extras:
+        leak = LeakPrior(*(float(v) for v in model.extras[LEAK_PRIOR_KEY]))
+    fit_leak = leak is not None and len(data) > 0 and bool(np.ptp(leak_dp_mpa(data)) >= 0.2)
+    if fit_leak:
+        names.append("seat_leak.g")
+        x0.append(seat_leak_of(model) or leak.mean)
+        lo.append(0.0)
+        hi.append(max(leak.mean + 5.0 * leak.sd, 1e-9))
     for spec in effects:
         names += [f"{spec.label}.{p}" for p in spec.params]
         x0 += list(spec.x0)
@@ -312,6 +394,9 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
                 change["geometry"] = replace(model.side(s).geometry, needle_y_c_mm=float(x[k]))
                 k += 1
             sides[s] = replace(model.side(s), **change)
+        if fit_leak:
+            sides["extras"] = {**model.extras, LEAK_KEY: float(x[k])}
+            k += 1
         m = replace(model, **sides)      # one copy per call (the residual is called often)
         eff = {}
         for spec in effects:
@@ -330,8 +415,22 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
             far_off.append(True)
             return np.full(len(data), 1e3)
 
-    fun, jac = _grouped_jacobian(resid, _jacobian_structure(data, present, with_geom, effects),
-                                 (lo, hi), far_off)
+    objective = resid
+    structure = _jacobian_structure(data, present, with_geom, effects, fit_leak)
+    known = {}
+    if fit_leak:       # the prior: one more residual, moved by g alone
+        k_g = names.index("seat_leak.g")
+
+        def objective(x):
+            return np.append(resid(x), (x[k_g] - leak.mean) / leak.sd)
+
+        if structure is not None:
+            prior_row = np.zeros((1, structure.shape[1]), bool)
+            prior_row[0, k_g] = True
+            structure = np.vstack([structure, prior_row])
+            # the flow is linear in g: its column is known, no evaluation for it
+            known[k_g] = np.append(-leak_dp_mpa(data) / sigma, 1.0 / leak.sd)
+    fun, jac = _grouped_jacobian(objective, structure, (lo, hi), far_off, known=known)
     sol = least_squares(fun, x0, jac=jac, bounds=(lo, hi), loss=loss, f_scale=2.0,
                         x_scale="jac", max_nfev=400)
     m, eff = unpack(sol.x)
@@ -351,18 +450,21 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
 
 
 def _jacobian_structure(data: FlowData, present: list[str], with_geom: list[str],
-                        effects) -> np.ndarray | None:
+                        effects, leak: bool = False) -> np.ndarray | None:
     """Which runs each fitted parameter moves (runs x parameters, bool), where
     the model's form says so: a side's z0, C and y_c and a one-sided effect's
     parameters move that side's runs only (the effects' static forms change
-    their ``rows`` only). None when every parameter may move every run: with
-    a closed-form term (an 'add' term moves the other side's sealed valve)."""
+    their ``rows`` only), the seat leakage every run. None when every
+    parameter may move every run: with a closed-form term (an 'add' term
+    moves the other side's sealed valve)."""
     if any(spec.effect.name == "term" for spec in effects):
         return None
     cols = []
     for s in present:
         rows = np.asarray(data.side == s)
         cols += [rows] * (3 if s in with_geom else 2)
+    if leak:
+        cols.append(np.ones(len(data), bool))
     for spec in effects:
         cols += [np.asarray(_side_mask(data, spec.side))] * len(spec.params)
     return np.column_stack(cols)
@@ -419,18 +521,23 @@ def _dense_forward(fun, x: np.ndarray, f0: np.ndarray, h: np.ndarray) -> np.ndar
     return jt.T
 
 
-def _grouped_jacobian(resid, structure: np.ndarray | None, bounds, far_off: list):
+def _grouped_jacobian(resid, structure: np.ndarray | None, bounds, far_off: list, *,
+                      known: dict[int, np.ndarray] | None = None):
     """(residual, jac) for ``least_squares``: the forward-difference Jacobian
     that ``jac='2-point'`` makes (the same steps, bounds handling, quotients
     and memory layout), with parameters that move disjoint runs perturbed in
-    one evaluation: a fit of both sides costs about half the evaluations, for
-    the same matrix bit for bit. A step that lands where eq. (4) fails
-    (``far_off``: the residual is the sentinel) is redone column by column,
-    as the dense difference does it. Without a ``structure``, or nothing to
-    group: ``(resid, '2-point')``."""
+    one evaluation: a fit of both sides costs
+    about half the evaluations, for the same matrix bit for bit. ``known``
+    {column: values}: columns of parameters the residual is linear in (the
+    seat leakage's g), given, not differenced. A step that lands where eq.
+    (4) fails (``far_off``: the residual is the sentinel) is redone column
+    by column, as the dense difference does it. Without a ``structure``, or
+    nothing to group: ``(resid, '2-point')``."""
+    known = known or {}
     if structure is None:
         return resid, "2-point"
-    members = _column_groups(np.asarray(structure, bool))
+    free = np.array([j for j in range(structure.shape[1]) if j not in known], int)
+    members = [free[g] for g in _column_groups(np.asarray(structure, bool)[:, free])]
     if len(members) == structure.shape[1]:
         return resid, "2-point"
     last: dict[str, np.ndarray] = {}
@@ -452,6 +559,8 @@ def _grouped_jacobian(resid, structure: np.ndarray | None, bounds, far_off: list
             df = fun(x1) - f0
             for j in cols:   # runs a column does not move: exactly 0 in the dense difference too
                 jt[j] = np.where(structure[:, j], df, 0.0) / ((x[j] + h[j]) - x[j])
+        for j, col in known.items():
+            jt[j] = col
         if far_off:
             return _dense_forward(fun, x, f0, h)
         return jt.T

@@ -113,18 +113,25 @@ def _quadratic(theta_deg, theta_d_deg, alpha, opens_upward: bool) -> np.ndarray:
     return alpha * np.maximum(d if opens_upward else -d, 0.0) ** 2
 
 
-def fit_load(theta_deg, q_mm3_s, *, opens_upward: bool, sigma_mm3_s=None) -> LoadFit:
-    """Fit Q = alpha max(+-(theta - theta_d), 0)^2 to one load level.
+def fit_load(theta_deg, q_mm3_s, *, opens_upward: bool, sigma_mm3_s=None,
+             theta_shift_deg=None) -> LoadFit:
+    """Fit Q = alpha max(+-(theta - theta_d - s), 0)^2 to one load level.
 
-    Start from a line through sqrt|Q| vs theta, then a soft_l1 least-squares
-    fit of Q itself (residuals divided by ``sigma_mm3_s`` when given).
-    Needs 3 runs at >= 2 distinct cam angles.
+    ``theta_shift_deg`` s [deg] (default 0): each run's threshold offset from
+    the one fitted (e.g. its threshold at its own pressures less the one at
+    the load's median pressures, eq. 3+4), so theta_d is the threshold at a
+    common reference. Start from a line through sqrt|Q| vs theta - s, then a
+    soft_l1 least-squares fit of Q itself (residuals divided by
+    ``sigma_mm3_s`` when given). Needs 3 runs at >= 2 distinct cam angles
+    (of ``theta_deg`` itself: the shifts do not make repeats distinct).
     """
-    theta = np.asarray(theta_deg, dtype=float)
+    theta_raw = np.asarray(theta_deg, dtype=float)
     q = np.asarray(q_mm3_s, dtype=float)
-    if theta.size < 3 or np.unique(theta).size < 2:
-        return LoadFit(message=f"{theta.size} run(s) at {np.unique(theta).size} cam angle(s); "
-                               "need 3 runs at >= 2 angles")
+    if theta_raw.size < 3 or np.unique(theta_raw).size < 2:
+        return LoadFit(message=f"{theta_raw.size} run(s) at {np.unique(theta_raw).size} cam "
+                               "angle(s); need 3 runs at >= 2 angles")
+    theta = theta_raw if theta_shift_deg is None else \
+        theta_raw - np.asarray(theta_shift_deg, dtype=float)
     sig = np.ones_like(q) if sigma_mm3_s is None else np.asarray(sigma_mm3_s, dtype=float)
     slope, icpt = np.polyfit(theta, np.sqrt(np.abs(q)), 1)
     if slope == 0 or (slope > 0) != opens_upward:

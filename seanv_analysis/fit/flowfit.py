@@ -17,12 +17,33 @@ Why joint is the default: it uses every run with its own p1 and dp (the
 two-step fit uses one median dp per load and needs enough runs per load for
 a quadratic), it weights runs by their noise, it does not throw away the
 correlation between theta_d and alpha of each per-load fit, and the robust
-loss bounds the pull of a bad run. When dp changes with the opening within a
-load (it does on the rig and in the simulator: the head pressure follows
-the flow), each run has its own threshold theta_d(p1, dp) and no single
-per-load theta_d exists; on the simulator's ``paper-flowsteps`` the
-two-step C is then 4-8 % off while the joint fit is within 0.4 %. Both
-results are reported (:attr:`SideFit.joint`, :attr:`SideFit.two_step`).
+loss bounds the pull of a bad run. Both results are reported
+(:attr:`SideFit.joint`, :attr:`SideFit.two_step`).
+
+dp changes with the opening within a load (it does on the rig and in the
+simulator: the head pressure follows the flow), so each run has its own
+threshold theta_d(p1, dp). The per-load fits take that movement out
+(each run's cam angle less its threshold's offset, eq. 3+4, from the
+threshold at the load's median p1 and dp), so each load's theta_d is the
+threshold at the load's median pressures, the point of Fig. 4(b) and of the
+two-step fit. (Without it, one quadratic through runs whose thresholds move
+0.2-0.8 deg with their flow put each load's theta_d 0.1-0.6 deg above the
+eq. 3+4 line, 5-40 standard errors, on the simulator's ``paper-flowsteps``,
+and the two-step C 4-8 % off; with it, within 0.01 deg and 1 s.e., the
+two-step C within 0.02 % of the joint one.)
+
+Seat leakage: each needle leaks past its seat, open or sealed, g dp
+(:func:`seanv_analysis.models.seat_leakage_mm3_s`), so a run's flow is the
+open side's eq. (5) plus g (dp_supply - dp_drain). It is a few mm^3/s, but
+it changes with the head pressure from load to load, the very dependence
+the threshold's eq. (3) has: left in, it shifts z0 and C and (with the
+needle centre free, ``identify``) the geometry. The conductance g, one for
+both needles, is fitted with the sides' z0 and C on all their runs
+(:mod:`._leakage`, ``leakage='fit'``, the default; 'rig' takes the rig
+file's ``valve.plant.leakage_conductance_mm3_s_per_mpa``, 'none' leaves it
+out), then each side is fitted to its runs' flow less the leakage
+(:attr:`FlowFit.leakage`). The other needle's dp comes from the summary's
+``dp_sealed_mpa`` (else the rig's supply and tank pressures).
 
 Theta is the measured cam angle (servo feedback), the command where it is
 missing. Per-load fits use each run's flow scaled to the load's median dp
@@ -34,8 +55,9 @@ repeats resampled together because they share systematic errors such as
 the servo's quantised position), with calibration (Type B) uncertainties
 added in quadrature: flow scale (``flow_scale_u95``, 0.5 %: C scales with
 the piston area and the velocity estimate) and cam zero (``cam_u95_deg``,
-0.05 deg: shifts every theta_d). The statistical part alone is kept
-(``z0_ci95_stat``, ``c_ci95_stat``). When the fit's covariance is singular
+0.05 deg: shifts every theta_d), and the seat leakage's conductance (its
+95 % half-width moved through the fit: z0 and C refitted at g -+ half). The
+statistical part alone is kept (``z0_ci95_stat``, ``c_ci95_stat``). When the fit's covariance is singular
 (e.g. the runs do not pin down the threshold) the intervals are NaN
 (``null`` in JSON) and the message says so.
 
@@ -73,8 +95,9 @@ import pandas as pd
 from ..errors import ConfigError, DataError, FitError
 from ..jsonable import JsonResult, json_num
 from ..models import SIDES, ValveModel, signed_power
-from ..models.valve import MIN_DP_MPA
+from ..models.valve import MIN_DP_MPA, SEAT_LEAK_KEY
 from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
+from ._leakage import LeakageFit, LeakPart, fit_leakage, leak_dp_mpa, prior_sd_mm3_s_per_mpa
 from ._perload import (
     LOF_P_MAX,
     LOF_RATIO_MIN,
@@ -87,11 +110,15 @@ from ._perload import (
     two_step,
 )
 
-__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "UNITS", "C_KEY",
+__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "LEAKAGE_MODES", "UNITS", "C_KEY",
            "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
 
 #: Fit procedures: 'joint' (default, eq. 5 on all runs) and the paper's 'two_step'.
 PROCEDURES = ("joint", "two_step")
+
+#: Seat leakage beside eq. (5): 'fit' (default: its conductance fitted with the
+#: sides' z0 and C), 'rig' (the rig file's conductance), 'none' (eq. 5 alone).
+LEAKAGE_MODES = ("fit", "rig", "none")
 
 #: Units of the JSON contract.
 #: the flow coefficient C of eq. (5) in JSON, its unit in its key
@@ -110,7 +137,8 @@ CAM_SOURCES = ("measured", "commanded")
 
 _PER_RUN_COLUMNS = ("run_id", "side", "run_index", "load_mpag", "load_level_mpag", "cam_deg",
                     "theta_deg",
-                    "q_mm3_s", "p1_mpa", "dp_mpa", "excluded", "excluded_detail", "used",
+                    "q_mm3_s", "p1_mpa", "dp_mpa", "dp_leak_mpa", "q_leak_mm3_s",
+                    "excluded", "excluded_detail", "used",
                     "theta_d_model_deg", "theta_d_implied_deg", "q_model_mm3_s",
                     "residual_mm3_s", "sigma_mm3_s",
                     "z_score")
@@ -250,19 +278,25 @@ class FlowFit(JsonResult):
     sides : {'supply': SideFit, 'drain': SideFit} (the sides asked for)
     model : the rig's valve with the fitted z0 and C (sides not fitted keep the rig's)
     per_run : one row per flow-step run of the sides asked for (excluded ones too):
-        cam_deg (commanded) and theta_deg (used) [deg], q_mm3_s, q_model_mm3_s,
-        residual_mm3_s (measured - model) [mm^3/s], theta_d_model_deg (eq. 3+4 at the
+        cam_deg (commanded) and theta_deg (used) [deg], q_mm3_s, q_model_mm3_s (eq. 5
+        plus the seat leakage), q_leak_mm3_s (the leakage, g dp_leak_mpa),
+        residual_mm3_s (measured - model) [mm^3/s], dp_leak_mpa (dp_supply -
+        dp_drain) [MPa], theta_d_model_deg (eq. 3+4 at the
         run's pressures) and theta_d_implied_deg (theta minus the opening that gives the
         measured flow with the fitted C, eq. 6) [deg], sigma_mm3_s (noise scale),
         z_score, used
     per_load : one row per side and load level: theta_d_deg +- theta_d_se_deg [deg],
         alpha +- alpha_se [mm^3/(s deg^2)], p1_mpa, dp_mpa (medians of the runs used),
-        p1/dp_threshold_mpa (interpolated at theta_d over the level's runs), n_runs,
+        p1/dp_threshold_mpa (the pressures theta_d refers to: the same medians; each
+        run's threshold movement about them is taken out), n_runs,
         theta_d_model_deg and alpha_model (the fitted model at those pressures)
     excluded : runs excluded per reason {'leakage', 'friction', 'cam_range', 'invalid'}
     success, message : True when every side asked for was fitted
     warnings : recoverable oddities met on the way
     settings : options used
+    leakage : the needles' seat-leakage conductance g [mm^3/(s MPa)] with its
+        95 % interval (:class:`~._leakage.LeakageFit`; ``fitted`` False: the
+        rig file's, or 0 with ``leakage='none'``)
     """
 
     sides: dict[str, SideFit]
@@ -274,6 +308,7 @@ class FlowFit(JsonResult):
     message: str = ""
     warnings: list[str] = field(default_factory=list)
     settings: dict[str, Any] = field(default_factory=dict)
+    leakage: LeakageFit = field(default_factory=lambda: LeakageFit(0.0))
 
     def to_json_dict(self) -> dict[str, Any]:
         """The stable JSON contract of ``flowfit --json``."""
@@ -315,7 +350,7 @@ class FlowFit(JsonResult):
         return {"sides": {s: f.to_dict() for s, f in self.sides.items()},
                 "excluded": self.to_json_dict()["excluded"], "units": dict(UNITS),
                 "success": self.success, "message": self.message, "warnings": self.warnings,
-                "settings": self.settings,
+                "settings": self.settings, "seat_leakage": self.leakage.to_dict(),
                 "per_load": json.loads(self.per_load.to_json(orient="records"))}
 
     def skipped_runs(self) -> dict[str, str]:
@@ -355,6 +390,14 @@ class FlowFit(JsonResult):
                              f"{f.noise['rel']:.3f} |Q| mm^3/s")
             if f.lack_of_fit_line() and not f.lack_of_fit:  # flagged: said above
                 lines.append(f"  {f.lack_of_fit_line()}")
+        lk = self.leakage
+        if lk.fitted:
+            lines.append(f"seat leakage: g = {lk.conductance_mm3_s_per_mpa:.3g} mm^3/(s MPa)  95% "
+                         f"[{lk.ci95[0]:.3g}, {lk.ci95[1]:.3g}] (Q_leak = g (dp_supply - "
+                         "dp_drain), taken off each run's flow before eq. (5))")
+        elif lk.conductance_mm3_s_per_mpa or lk.message:
+            lines.append(f"seat leakage: g = {lk.conductance_mm3_s_per_mpa:.3g} mm^3/(s MPa)"
+                         + (f" ({lk.message})" if lk.message else ""))
         ex = ", ".join(f"{k} {v}" for k, v in self.excluded.items())
         lines.append(f"excluded runs: {ex}")
         for w in self.warnings:
@@ -382,45 +425,44 @@ def _cam_angle(rows: pd.DataFrame, cam: str) -> np.ndarray:
     return theta
 
 
-def _pressures_at(theta_d: float, context: tuple[np.ndarray, ...]) -> tuple[float, float]:
-    """(p1, dp) [MPa] at cam angle ``theta_d`` [deg], interpolated in theta over a
-    load level's runs (all with finite pressures, sealed ones too): dp falls
-    as the valve opens, so the threshold's pressures are those of the nearly
-    closed valve, not the load's median. NaN when fewer than 2 angles."""
-    theta_c, p1_c, dp_c = context
-    if not math.isfinite(theta_d) or np.unique(theta_c).size < 2:
-        return math.nan, math.nan
-    frame = pd.DataFrame({"t": np.round(theta_c, 3), "p1": p1_c, "dp": dp_c})
-    med = frame.groupby("t", sort=True).median()
-    t = med.index.to_numpy(float)
-    return (float(np.interp(theta_d, t, med["p1"].to_numpy())),
-            float(np.interp(theta_d, t, med["dp"].to_numpy())))
-
-
-def _context(theta, p1, dp, level, lv) -> tuple[np.ndarray, ...]:
-    m = level == lv
-    return theta[m], p1[m], dp[m]
+def _load_shift(side, theta_d_fn, p1, dp, groups) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each run's threshold relative to its load's median pressures, eq. (3)+(4)
+    [deg], and the load's median (p1, dp) [MPa] per run: dp falls as the valve
+    opens (the head pressure follows the flow), so within one load every run
+    has its own theta_d(p1, dp); taking that movement out of theta lets one
+    quadratic per load give the threshold at the load's median pressures."""
+    shift = np.zeros(p1.shape)
+    p1_ref, dp_ref = np.full(p1.shape, np.nan), np.full(p1.shape, np.nan)
+    for g in groups:
+        p1_ref[g], dp_ref[g] = np.median(p1[g]), np.median(dp[g])
+    ok = np.isfinite(p1_ref)
+    with np.errstate(invalid="ignore"):
+        shift[ok] = theta_d_fn(p1[ok], dp[ok]) - theta_d_fn(p1_ref[ok], dp_ref[ok])
+    return shift, p1_ref, dp_ref
 
 
 def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure: str,
               n_boot: int, seed: int, load_tol_mpag: float, cam: str,
-              flow_scale_u95: float, cam_u95_deg: float, context_rows: pd.DataFrame
+              flow_scale_u95: float, cam_u95_deg: float, q_leak: np.ndarray | None = None,
+              dp_leak: np.ndarray | None = None, leak_half95: float = math.nan,
               ) -> tuple[SideFit, pd.DataFrame, np.ndarray, list[str]]:
-    """Fit one side. Returns (SideFit, per-load table, sigma per used row, warnings)."""
+    """Fit one side to its runs' flow less the seat leakage ``q_leak`` [mm^3/s]
+    (eq. 5 is the valve's own flow). ``dp_leak`` [MPa] and ``leak_half95``
+    [mm^3/(s MPa)]: the leakage's pressure term and its conductance's 95 %
+    half-width, whose effect on z0 and C is added to their intervals.
+    Returns (SideFit, per-load table, sigma per used row, warnings)."""
     side = base.side(side_name)
     up = side.opens_upward
     warns: list[str] = []
     result = SideFit(side_name, procedure=procedure, n_runs=len(rows))
     theta = _cam_angle(rows, cam)
     q = rows["q_mm3_s"].to_numpy(float)
+    if q_leak is not None:
+        q = q - q_leak
     p1 = rows["p1_mpa"].to_numpy(float)
     dp = rows["dp_mpa"].to_numpy(float)
     level = group_loads(rows["load_mpag"].to_numpy(float), tol_mpag=load_tol_mpag)
     sigma = np.full(q.shape, np.nan)
-    ctx_theta = _cam_angle(context_rows, cam)
-    ctx = (ctx_theta, context_rows["p1_mpa"].to_numpy(float),
-           context_rows["dp_mpa"].to_numpy(float),
-           group_loads(context_rows["load_mpag"].to_numpy(float), tol_mpag=load_tol_mpag))
     if len(rows) < 3 or np.unique(theta).size < 2:
         result.message = (f"{len(rows)} usable run(s) at {np.unique(theta).size} cam angle(s); "
                           "need >= 3 runs at >= 2 angles")
@@ -435,23 +477,28 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
     q_load = q.copy()
     for g in groups:
         q_load[g] = q[g] * signed_power(np.median(dp[g]), side.dp_exponent) / dp_pow[g]
+    # ... and its cam angle moved by its threshold's offset from the one at the
+    # load's median pressures (eq. 3+4 with the side's geometry), so theta_d
+    # of each load is the threshold at the load's median pressures
+    shift, p1_ref, dp_ref = _load_shift(side, side.threshold_deg, p1, dp, groups)
     q_hat = np.abs(q).copy()
     resid1 = np.full(q.shape, np.nan)
     for g in groups:
-        lf = fit_load(theta[g], q_load[g], opens_upward=up)
+        lf = fit_load(theta[g], q_load[g], opens_upward=up, theta_shift_deg=shift[g])
         if lf.success and math.isfinite(lf.theta_d_deg):
-            pred = lf.predict(theta[g], opens_upward=up)
+            pred = lf.predict(theta[g] - shift[g], opens_upward=up)
             q_hat[g], resid1[g] = np.abs(pred), q_load[g] - pred
     noise = fit_noise_model(resid1, q_hat)
     sigma = noise.sigma(q_hat)
     result.noise = {"floor_mm3_s": noise.floor_mm3_s, "rel": noise.rel}
     load_rows = []
     for lv, g in zip(levels, groups):
-        lf = fit_load(theta[g], q_load[g], opens_upward=up, sigma_mm3_s=sigma[g])
-        p1_thr, dp_thr = _pressures_at(lf.theta_d_deg, _context(*ctx[:3], ctx[3], lv))
+        lf = fit_load(theta[g], q_load[g], opens_upward=up, sigma_mm3_s=sigma[g],
+                      theta_shift_deg=shift[g])
+        p1_med, dp_med = float(np.median(p1[g])), float(np.median(dp[g]))
         load_rows.append({"side": side_name, "load_level_mpag": float(lv), "n_runs": int(g.size),
-                          "p1_mpa": float(np.median(p1[g])), "dp_mpa": float(np.median(dp[g])),
-                          "p1_threshold_mpa": p1_thr, "dp_threshold_mpa": dp_thr,
+                          "p1_mpa": p1_med, "dp_mpa": dp_med,
+                          "p1_threshold_mpa": p1_med, "dp_threshold_mpa": dp_med,
                           "theta_d_deg": lf.theta_d_deg, "theta_d_se_deg": lf.theta_d_se_deg,
                           "alpha": lf.alpha, "alpha_se": lf.alpha_se,
                           "rmse_mm3_s": lf.rmse_mm3_s, "success": lf.success,
@@ -514,8 +561,8 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
     elif n_boot > 0:
         boot = _bootstrap(side, theta, p1, dp, q_load, q, sigma, level, procedure=procedure,
                           x_hat=(result.z0_mm, result.c_flow), f_scale=jf.f_scale,
-                          n_boot=n_boot, seed=seed, load_tol_mpag=load_tol_mpag,
-                          clusters=clusters, ctx=ctx)
+                          n_boot=n_boot, seed=seed, clusters=clusters,
+                          per_load=(shift, p1_ref, dp_ref))
         result.n_boot_ok = len(boot)
         result.ci_method = (f"bootstrap over conditions (load level x commanded cam; repeats "
                             f"resampled together), percentile, {len(boot)}/{n_boot} "
@@ -527,11 +574,20 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
             # calibration (Type B) half-widths: cam zero -> z0, flow scale -> C
             dz0 = cam_u95_deg / _threshold_slope(side, result.z0_mm, p1, dp)
             dc = flow_scale_u95 * abs(result.c_flow)
-            result.z0_ci95 = _widen(result.z0_mm, result.z0_ci95_stat, dz0)
-            result.c_ci95 = _widen(result.c_flow, result.c_ci95_stat, dc)
+            # the seat leakage's conductance, fitted beside: its 95 % half-width
+            # moved through the fit (z0, C refitted at g -+ half)
+            dz0_leak, dc_leak = _leak_sensitivity(
+                side, theta, p1, dp, q, sigma, dp_leak, leak_half95, procedure=procedure,
+                x_hat=(result.z0_mm, result.c_flow))
+            result.z0_ci95 = _widen(result.z0_mm, result.z0_ci95_stat, math.hypot(dz0, dz0_leak))
+            result.c_ci95 = _widen(result.c_flow, result.c_ci95_stat, math.hypot(dc, dc_leak))
             if cam_u95_deg or flow_scale_u95:
                 result.ci_method += (f" (+) calibration: cam zero {cam_u95_deg:g} deg, flow "
                                      f"scale {flow_scale_u95:.2%} (95 %, in quadrature)")
+            if dz0_leak or dc_leak:
+                result.ci_method += (f" (+) seat leakage: its conductance's 95 % half-width "
+                                     f"{leak_half95:.3g} mm^3/(s MPa) through the fit (z0 "
+                                     f"{dz0_leak:.2g} mm, C {dc_leak:.2g}, in quadrature)")
         else:
             msg = f"only {len(boot)}/{n_boot} bootstrap fits converged: no intervals"
             result.message = (result.message + "; " if result.message else "") + msg
@@ -570,13 +626,29 @@ def _widen(x: float, ci: tuple[float, float], half: float) -> tuple[float, float
     return (x - math.hypot(x - ci[0], half), x + math.hypot(ci[1] - x, half))
 
 
+def _leak_sensitivity(side, theta, p1, dp, q, sigma, dp_leak, half, *, procedure,
+                      x_hat) -> tuple[float, float]:
+    """(|dz0| [mm], |dC|) of the joint fit when the seat leakage's conductance
+    moves by its 95 % half-width ``half`` [mm^3/(s MPa)] either way (half the
+    difference of the two refits); (0, 0) without a fitted leakage or for the
+    two-step procedure (whose per-load fits see the same flows)."""
+    if dp_leak is None or not (math.isfinite(half) and half > 0) or procedure != "joint":
+        return 0.0, 0.0
+    fits = [fit_joint(side, theta, p1, dp, q - sgn * half * dp_leak, sigma,
+                      z0_start_mm=x_hat[0]) for sgn in (1.0, -1.0)]
+    if not all(math.isfinite(f.z0_mm) and math.isfinite(f.c_flow) for f in fits):
+        return 0.0, 0.0
+    return 0.5 * abs(fits[0].z0_mm - fits[1].z0_mm), 0.5 * abs(fits[0].c_flow - fits[1].c_flow)
+
+
 def _bootstrap(side, theta, p1, dp, q_load, q, sigma, level, *, procedure, x_hat, f_scale, n_boot,
-               seed, load_tol_mpag, clusters, ctx) -> np.ndarray:
+               seed, clusters, per_load) -> np.ndarray:
     if procedure == "joint":
         return bootstrap_joint(side, theta, p1, dp, q, sigma, x_hat=x_hat, f_scale=f_scale,
                                n_boot=n_boot, seed=seed, clusters=clusters)
     rng = np.random.default_rng(seed)
     members = _cluster_members(q.size, clusters)
+    shift, p1_ref, dp_ref = per_load
     out = []
     up = side.opens_upward
     for _ in range(n_boot):
@@ -584,10 +656,11 @@ def _bootstrap(side, theta, p1, dp, q_load, q, sigma, level, *, procedure, x_hat
         rows = []
         for lv in np.unique(level[idx]):
             g = idx[level[idx] == lv]
-            lf = fit_load(theta[g], q_load[g], opens_upward=up, sigma_mm3_s=sigma[g])
+            lf = fit_load(theta[g], q_load[g], opens_upward=up, sigma_mm3_s=sigma[g],
+                          theta_shift_deg=shift[g])
             if lf.success:
                 rows.append((lf.theta_d_deg, lf.theta_d_se_deg, lf.alpha, lf.alpha_se,
-                             np.median(p1[g]), np.median(dp[g])))
+                             np.median(p1_ref[g]), np.median(dp_ref[g])))
         if not rows:
             continue
         a = np.array(rows, dtype=float)
@@ -602,7 +675,7 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
              load_tol_mpag: float = 0.02, cam: str = "measured",
              flow_scale_u95: float = DEFAULT_FLOW_SCALE_U95,
              cam_u95_deg: float = DEFAULT_CAM_U95_DEG,
-             model: ValveModel | None = None) -> FlowFit:
+             model: ValveModel | None = None, leakage: str = "fit") -> FlowFit:
     """Identify z0 and C of each side from a per-run summary (paper Sec. II-D.2).
 
     Q = C (theta - theta_d(p1, dp; z0))^2 dp^0.5, eq. (5), with theta_d from
@@ -634,6 +707,10 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
         it shifts every theta_d, so it is added in quadrature to z0's interval
         as cam_u95_deg / |d theta_d / d z0|
     model : valve whose geometry is used (default ``ValveModel.from_rig(rig)``)
+    leakage : the needles' seat leakage beside eq. (5): 'fit' (default; its
+        conductance fitted with both sides' z0 and C, the rig file's where the
+        runs cannot tell it), 'rig' (the rig file's
+        ``valve.plant.leakage_conductance_mm3_s_per_mpa``) or 'none'
 
     Returns
     -------
@@ -642,7 +719,7 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
     Raises
     ------
     ConfigError
-        ``sides`` or ``procedure`` not known.
+        ``sides``, ``procedure`` or ``leakage`` not known.
     DataError
         ``summary`` lacks a needed column.
     FitError
@@ -665,6 +742,8 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
         raise ConfigError(f"cam: expected one of {CAM_SOURCES}, got {cam!r}")
     if procedure not in PROCEDURES:
         raise ConfigError(f"procedure: expected one of {PROCEDURES}, got {procedure!r}")
+    if leakage not in LEAKAGE_MODES:
+        raise ConfigError(f"leakage: expected one of {LEAKAGE_MODES}, got {leakage!r}")
     _check_summary(summary)
     from ..signals.filters import exclusion_counts
 
@@ -675,19 +754,27 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
     fitted = base
     results: dict[str, SideFit] = {}
     per_runs, per_loads, warns = [], [], []
+    opts = dict(procedure=procedure, seed=seed, load_tol_mpag=load_tol_mpag, cam=cam,
+                flow_scale_u95=flow_scale_u95, cam_u95_deg=cam_u95_deg)
+    rows_of = {}
     for s in sides:
         rows_all = asked[asked["side"] == s]
         use = (rows_all["excluded"].fillna("").astype(str) == "").to_numpy()
+        rows_of[s] = (rows_all, use)
+    leak, dp_leak = _fit_leakage(rows_of, base, rig, leakage=leakage, opts=opts)
+    for s in sides:
+        rows_all, use = rows_of[s]
         rows = rows_all[use]
-        res, pl, sigma, w = _fit_side(s, rows, base, procedure=procedure, n_boot=n_boot,
-                                      seed=seed, load_tol_mpag=load_tol_mpag, cam=cam,
-                                      flow_scale_u95=flow_scale_u95, cam_u95_deg=cam_u95_deg,
-                                      context_rows=rows_all[_finite_pressures(rows_all)])
+        g = leak.conductance_mm3_s_per_mpa
+        res, pl, sigma, w = _fit_side(s, rows, base, n_boot=n_boot, q_leak=g * dp_leak[s][use],
+                                      dp_leak=dp_leak[s][use],
+                                      leak_half95=leak.half_width95, **opts)
         results[s], warns = res, warns + w
         if math.isfinite(res.z0_mm) and math.isfinite(res.c_flow):
             fitted = fitted.with_side(s, z0_mm=res.z0_mm, c_flow=res.c_flow)
         side_model = fitted.side(s) if res.success else None
-        per_runs.append(_per_run(rows_all, use, sigma, side_model, load_tol_mpag, cam))
+        per_runs.append(_per_run(rows_all, use, sigma, side_model, load_tol_mpag, cam,
+                                 dp_leak=dp_leak[s], conductance=g))
         if len(pl):
             if side_model is not None:
                 pl["theta_d_model_deg"] = side_model.threshold_deg(pl["p1_mpa"].to_numpy(),
@@ -695,6 +782,8 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
                 pl["alpha_model"] = side_model.c_flow * signed_power(pl["dp_mpa"].to_numpy(),
                                                                      side_model.dp_exponent)
             per_loads.append(pl)
+    if leak.message and leakage == "fit":
+        warns.append(f"seat leakage: {leak.message}")
     if not any(r.success for r in results.values()):
         raise FitError("no side could be fitted: " + "; ".join(
             f"{s}: {r.message}" for s, r in results.items()))
@@ -702,7 +791,8 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
         warnings.warn(w, stacklevel=2)
     ok = all(r.success for r in results.values())
     fitted = type(fitted)(fitted.supply, fitted.drain, fitted.cam_min_deg, fitted.cam_max_deg,
-                          {**fitted.extras, "flowfit": {
+                          {**fitted.extras, SEAT_LEAK_KEY: leak.conductance_mm3_s_per_mpa,
+                           "flowfit": {
                               "procedure": procedure, "sides": list(sides),
                               "ci95": {s: {"z0_mm": [json_num(v) for v in r.z0_ci95],
                                            "c_flow": [json_num(v) for v in r.c_ci95]}
@@ -716,17 +806,61 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
                    warns, {"procedure": procedure, "n_boot": n_boot, "seed": seed,
                            "sides": list(sides), "load_tol_mpag": load_tol_mpag, "cam": cam,
                            "flow_scale_u95": flow_scale_u95, "cam_u95_deg": cam_u95_deg,
-                           "loss": "soft_l1", "ci": "bootstrap percentile 95 %"})
+                           "loss": "soft_l1", "ci": "bootstrap percentile 95 %",
+                           "leakage": leakage},
+                   leak)
 
 
-def _finite_pressures(rows: pd.DataFrame) -> np.ndarray:
-    cols = ("cam_deg", "p1_mpa", "dp_mpa", "load_mpag")
-    return np.logical_and.reduce([np.isfinite(rows[c].to_numpy(float)) for c in cols]) \
-        & (rows["excluded"].fillna("").astype(str) != "cam_range").to_numpy()
+def _fit_leakage(rows_of: dict, base: ValveModel, rig: Any, *, leakage: str,
+                 opts: dict) -> tuple[LeakageFit, dict[str, np.ndarray]]:
+    """The seat leakage's conductance (:func:`._leakage.fit_leakage`: fitted
+    with the sides' z0 and C, each side's noise scale and start from its fit
+    without leakage; 'rig': the rig file's; 'none': 0) and each side's
+    leakage pressure term dp_supply - dp_drain per row [MPa]."""
+    plant = rig["valve"]["plant"]
+    default = float(plant["leakage_conductance_mm3_s_per_mpa"])
+    p_supply = float(rig["supply"]["pressure_mpag"])
+    p_tank = float(rig["supply"]["tank_pressure_mpag"])
+    dp_leak = {}
+    for s, (rows_all, _) in rows_of.items():
+        sealed = (rows_all["dp_sealed_mpa"].to_numpy(float) if "dp_sealed_mpa" in rows_all
+                  else np.full(len(rows_all), np.nan))
+        dp_leak[s] = leak_dp_mpa(np.full(len(rows_all), s), rows_all["p1_mpa"].to_numpy(float),
+                                 rows_all["dp_mpa"].to_numpy(float), sealed,
+                                 p_supply_mpag=p_supply, p_tank_mpag=p_tank)
+    if leakage == "none":
+        return LeakageFit(0.0, message="not modelled (leakage='none')"), dp_leak
+    if leakage == "rig":
+        return LeakageFit(default, message="the rig file's (leakage='rig')"), dp_leak
+    parts = []
+    for s, (rows_all, use) in rows_of.items():
+        rows = rows_all[use]
+        ok = np.isfinite(dp_leak[s][use])
+        if len(rows) < 3:
+            continue
+        res, _, sigma, _ = _fit_side(s, rows, base, n_boot=0, **opts)
+        if not (math.isfinite(res.joint.get("z0_mm", math.nan))
+                and math.isfinite(res.joint.get("c_flow", math.nan))) or not ok.all():
+            continue
+        theta = _cam_angle(rows, opts["cam"])
+        level = group_loads(rows["load_mpag"].to_numpy(float), tol_mpag=opts["load_tol_mpag"])
+        clusters = np.asarray([f"{lv:.4g}|{c:.3f}" for lv, c in
+                               zip(level, rows["cam_deg"].to_numpy(float))], dtype=object)
+        parts.append(LeakPart(base.side(s), theta, rows["p1_mpa"].to_numpy(float),
+                              rows["dp_mpa"].to_numpy(float), rows["q_mm3_s"].to_numpy(float),
+                              sigma, dp_leak[s][use], clusters,
+                              (res.joint["z0_mm"], res.joint["c_flow"])))
+    # the paper's leakage band: a sealed valve's flow stays within +-leakage_flow
+    # at the supply pressure, which bounds the conductance
+    band = float(rig.analysis["leakage_flow_mm3_s"])
+    upper = band / max(p_supply, 0.1)
+    return fit_leakage(parts, upper_mm3_s_per_mpa=upper, default_mm3_s_per_mpa=default,
+                       prior_sd_mm3_s_per_mpa=prior_sd_mm3_s_per_mpa(band, p_supply)), dp_leak
 
 
 def _per_run(rows_all: pd.DataFrame, use: np.ndarray, sigma_used: np.ndarray, side_model,
-             load_tol_mpag: float, cam: str) -> pd.DataFrame:
+             load_tol_mpag: float, cam: str, *, dp_leak: np.ndarray,
+             conductance: float) -> pd.DataFrame:
     cols = [c for c in ("run_id", "side", "run_index", "load_mpag", "cam_deg", "q_mm3_s",
                         "p1_mpa", "dp_mpa", "excluded", "excluded_detail") if c in rows_all]
     df = rows_all[cols].reset_index(drop=True).copy()
@@ -739,13 +873,19 @@ def _per_run(rows_all: pd.DataFrame, use: np.ndarray, sigma_used: np.ndarray, si
     df["used"] = use
     df.insert(6, "theta_deg", _cam_angle(rows_all, cam))
     theta, p1, dp = (df[c].to_numpy(float) for c in ("theta_deg", "p1_mpa", "dp_mpa"))
+    df["dp_leak_mpa"] = dp_leak
+    q_leak = conductance * dp_leak
+    df["q_leak_mm3_s"] = q_leak
     if side_model is not None:
         with np.errstate(invalid="ignore"):
             df["theta_d_model_deg"] = side_model.threshold_deg(p1, dp)
-            df["q_model_mm3_s"] = side_model.flow(theta, p1, dp)
-            # threshold implied by each run's flow with the fitted C (eq. 6 inverted):
-            # theta_i - opening_i, opening from the model's cam_for_flow
-            opening = side_model.cam_for_flow(df["q_mm3_s"].to_numpy(float), p1, dp) \
+            # the model's flow: eq. (5) of the side and the seat leakage
+            df["q_model_mm3_s"] = side_model.flow(theta, p1, dp) + np.nan_to_num(q_leak)
+            # threshold implied by each run's flow less the leakage with the
+            # fitted C (eq. 6 inverted): theta_i - opening_i, opening from the
+            # model's cam_for_flow
+            opening = side_model.cam_for_flow(df["q_mm3_s"].to_numpy(float)
+                                              - np.nan_to_num(q_leak), p1, dp) \
                 - side_model.threshold_deg(p1, np.maximum(dp, MIN_DP_MPA))
             df["theta_d_implied_deg"] = theta - opening
     else:

@@ -845,6 +845,19 @@ def controller_constants(runs: Sequence[Any], valve, rig) -> tuple[list[Constant
                                note="validate's twin uses the identified gains, not run.json's"))
     fits = {"runs": {w.run_id: w.to_json_dict() for w in laws}}
     fits.update(_replay_fit(runs, laws, rig, consts, valve))
+    worse = fits.get("train", math.nan) > 1.05 * fits.get("train_default", math.inf)
+    if worse:
+        # the law read off the runs one by one replays the logged commands
+        # worse than the rig file's (runs that disagree, pooled): not a law of
+        # this controller; the rig file's stays
+        notes.append(f"controller: the law read from the logs replays the logged commands worse "
+                     f"than the rig file's ({fits['train']:.3g} vs {fits['train_default']:.3g} "
+                     "deg RMSE): the rig file's law is kept")
+        for c in consts:
+            if c.identified and c.key != "controller.kp_from_logs":
+                c.identified, c.value, c.ci95 = False, c.default, (math.nan, math.nan)
+                c.note = "kept: the identified law replays the logs worse than the rig file's"
+        consts = [c for c in consts if c.key != "controller.kp_from_logs"]
     for w in laws:
         notes += [f"controller ({w.run_id}): {m}" for m in w.messages
                   if not m.startswith(w.run_id)]

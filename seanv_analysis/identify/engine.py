@@ -102,17 +102,24 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     if base_fit is not None:
         current = take("geometry", geometry_constants(base_fit.per_run, base_fit.model, rig))
         refit = fit_flow(summary, current, n_boot=n_boot, seed=seed)
+        # z0, C and the seat leakage are refitted with y_c held at its value:
+        # its own 95 % interval moves them too (z0 most: it absorbs the
+        # threshold's offset), added in quadrature to theirs
+        spread = _geometry_spread(summary, current, constants, refit)
         added = []
         for side in SIDES:
             sf = refit.sides.get(side)
             if sf is not None and sf.success:
+                dz0, dc = spread.get(side, {}).get("z0", 0.0), spread.get(side, {}).get("c", 0.0)
+                how = "flowfit with the identified geometry" + (
+                    ", interval widened by y_c's" if dz0 or dc else "")
                 added += [
                     Constant(f"valve.{side}.z0_mm", f"{side} z0", sf.z0_mm,
                              float(rig["valve"][side]["z0_mm"]), "mm", True,
-                             "flowfit with the identified geometry", tuple(sf.z0_ci95)),
+                             how, _widen(sf.z0_mm, sf.z0_ci95, dz0)),
                     Constant(f"valve.{side}.c_flow", f"{side} C", sf.c_flow,
                              float(rig["valve"][side]["c_flow"]), "mm^3/(s deg^2 MPa^0.5)", True,
-                             "flowfit with the identified geometry", tuple(sf.c_ci95))]
+                             how, _widen(sf.c_flow, sf.c_ci95, dc))]
                 continue
             # no z0 to go with a new centre: the rig file's centre stays
             for k in constants:
@@ -121,6 +128,8 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
                     k.note = "flowfit with it failed on this side"
             notes.append(f"geometry ({side}): flowfit with the identified geometry failed"
                          + (f": {sf.message}" if sf is not None else ""))
+        if added:
+            added.append(_leak_constant(refit.leakage, rig, spread.get("leak", 0.0)))
         constants += added
         valve_keys = [k for k in constants if k.key and k.key.startswith(("valve.", "supply."))]
         current = rig.with_overrides(nest_constants(valve_keys), where="identify")
@@ -152,12 +161,75 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         current = take("load", load_constants(train_pos, held_pos, current))
     if "flow_path" in parts:
         log("identify: flow-path lag from the position-control runs")
-        current = take("flow_path", flow_path_constants(train_pos, held_pos, current, valve))
+        spread = {c.key: tuple(c.ci95) for c in constants if c.key and c.identified}
+        current = take("flow_path", flow_path_constants(train_pos, held_pos, current, valve,
+                                                        spread=spread))
     if position_runs and {"servo", "flow_path", "friction", "load"} & set(parts):
         log("identify: closed-loop check on the training and held-out runs")
         fits.update(closed_loop_fits(train_pos, held_pos, valve, rig, current))
     constants.append(_mass(position_runs, rig, current))
     return Identification(constants, current, model, fits, notes)
+
+
+def _widen(x: float, ci, half: float) -> tuple[float, float]:
+    """``ci`` around ``x`` with a half-width ``half`` added in quadrature (NaN stays)."""
+    import math
+
+    lo, hi = (float(v) for v in ci)
+    if not half or not (math.isfinite(lo) and math.isfinite(hi)):
+        return (lo, hi)
+    return (x - math.hypot(x - lo, half), x + math.hypot(hi - x, half))
+
+
+def _geometry_spread(summary, current, constants, refit) -> dict[str, Any]:
+    """How far y_c's 95 % half-width moves each side's z0 [mm] and C and the
+    seat leakage's conductance [mm^3/(s MPa)]: flowfit refitted (no
+    bootstrap) with each identified y_c at its interval's two edges, half
+    the difference; summed in quadrature over the sides' y_c.
+    {side: {'z0', 'c'}, 'leak'}."""
+    import math
+
+    from ..fit import fit_flow
+
+    out: dict[str, Any] = {"leak": 0.0}
+    for c in constants:
+        if not (c.identified and c.key and c.key.endswith(".needle_y_c_mm")):
+            continue
+        side = c.key.split(".")[1]
+        lo, hi = c.ci95
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            continue
+        edge = [fit_flow(summary, current.with_overrides(
+            {"valve": {side: {"needle_y_c_mm": float(v)}}}, where="identify"), n_boot=0)
+            for v in (lo, hi)]
+        for s in refit.sides:
+            a, b = edge[0].sides.get(s), edge[1].sides.get(s)
+            if a is None or b is None or not (a.success and b.success):
+                continue
+            d = out.setdefault(s, {"z0": 0.0, "c": 0.0})
+            d["z0"] = math.hypot(d["z0"], 0.5 * abs(b.z0_mm - a.z0_mm))
+            d["c"] = math.hypot(d["c"], 0.5 * abs(b.c_flow - a.c_flow))
+        if edge[0].leakage.fitted and edge[1].leakage.fitted:
+            out["leak"] = math.hypot(out["leak"], 0.5 * abs(
+                edge[1].leakage.conductance_mm3_s_per_mpa
+                - edge[0].leakage.conductance_mm3_s_per_mpa))
+    return out
+
+
+def _leak_constant(leak, rig, spread: float) -> Constant:
+    """The needles' seat-leakage conductance as a rig constant (the twin's
+    plant leaks with it); not identified when flowfit kept the rig file's."""
+    key = "valve.plant.leakage_conductance_mm3_s_per_mpa"
+    default = float(rig["valve"]["plant"]["leakage_conductance_mm3_s_per_mpa"])
+    name, unit = "seat leakage conductance (per needle)", "mm^3/(s MPa)"
+    if not leak.fitted:
+        return Constant(key, name, default, default, unit, False, "flow steps",
+                        note=leak.message or "not fitted")
+    how = ("flow steps: Q_leak = g (dp_supply - dp_drain) beside eq. (5), fitted with both "
+           "sides' z0 and C" + (", interval widened by y_c's" if spread else ""))
+    lo, hi = _widen(leak.conductance_mm3_s_per_mpa, leak.ci95, spread)
+    return Constant(key, name, leak.conductance_mm3_s_per_mpa, default, unit, True, how,
+                    (max(lo, 0.0), hi))
 
 
 def _mass(runs, rig, current) -> Constant:
@@ -203,7 +275,11 @@ def _supply_pressure(summary, runs, rig) -> list[Constant]:
     is taken when the slope is negative beyond 3.3 standard errors (p <
     0.001), else the rig file's stays and p_0 is the median below. Without
     them, p_0 is the median of the logged p_supply over the position-control
-    runs and the supply flow steps (95 % interval: bootstrap over runs)."""
+    runs and the supply flow steps (95 % interval: bootstrap over runs,
+    spanned with the position-control records' mean over their whole
+    seconds: a flow step's short window keeps part of a pump-ripple period)."""
+    import math
+
     import numpy as np
     from scipy import stats
 
@@ -228,14 +304,21 @@ def _supply_pressure(summary, runs, rig) -> list[Constant]:
                              (float(-fit.slope - z * fit.stderr),
                               float(-fit.slope + z * fit.stderr)),
                              note=f"{-fit.slope * 5000.0:.3f} MPa less at 5000 mm^3/s")]
-    per_run = []
+    per_run, blocks = [], []
     for r in runs:
         p = r.tables.get("pressure")
         if p is not None and "p_supply_mpag" in p:
             v = p["p_supply_mpag"].to_numpy(float)
-            v = v[np.isfinite(v)]
+            t = p["t_s"].to_numpy(float) if "t_s" in p else np.arange(v.size, dtype=float)
+            ok = np.isfinite(v) & np.isfinite(t)
+            v, t = v[ok], t[ok]
             if v.size:
                 per_run.append(float(np.median(v)))
+                # whole seconds of the record: their means carry the pump ripple's
+                # few leftover periods and the sensor noise
+                sec = np.floor((t - t[0]) / 1.0).astype(int)
+                blocks += [float(np.mean(v[sec == k])) for k in np.unique(sec)
+                           if np.sum(sec == k) >= 10]
     if "p1_mpa" in summary:
         sup = summary[(summary["kind"] == "flow_step") & (summary["side"] == "supply")]
         per_run += [float(v) for v in sup["p1_mpa"].to_numpy(float) if np.isfinite(v)]
@@ -244,6 +327,16 @@ def _supply_pressure(summary, runs, rig) -> list[Constant]:
     x = np.asarray(per_run)
     rng = np.random.default_rng(0)
     boot = [float(np.median(rng.choice(x, x.size))) for _ in range(400)]
+    lo, hi = float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))
+    by = f"logged p_supply of {x.size} runs"
+    if len(blocks) >= 10:
+        # the span of both estimators: each flow step's window (a few tenths of
+        # a second) keeps part of a ripple period, with the same sign where the
+        # ripple's phase is locked to the run's start (our simulator: +4e-5 MPa
+        # over 180 steps, interval +-2e-5), the long records' seconds do not
+        b = np.asarray(blocks)
+        half = 1.96 * float(np.std(b, ddof=1)) / math.sqrt(b.size)
+        lo, hi = min(lo, float(np.mean(b)) - half), max(hi, float(np.mean(b)) + half)
+        by += " (interval: also the position-control records' mean)"
     return [Constant("supply.pressure_mpag", "supply pressure", float(np.median(x)), default,
-                     "MPaG", True, f"logged p_supply of {x.size} runs",
-                     (float(np.percentile(boot, 2.5)), float(np.percentile(boot, 97.5))))]
+                     "MPaG", True, by, (lo, hi))]

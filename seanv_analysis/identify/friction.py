@@ -41,6 +41,8 @@ _HOLD_STEPS = 2
 _HOLD_S = 0.15
 #: the force at breakaway: median over this window before the first move [s]
 _FORCE_WINDOW_S = 0.01
+#: the force's rate of rise before a start: a line over this window [s]
+_RATE_WINDOW_S = 0.02
 
 
 def fit_friction(v_mm_s, f_net_n) -> dict[str, Any]:
@@ -69,11 +71,14 @@ def fit_friction(v_mm_s, f_net_n) -> dict[str, Any]:
             "rmse_n": float(np.sqrt(np.mean((A @ sol.x - f) ** 2)))}
 
 
-def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S) -> list[float]:
+def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S,
+                     with_rate: bool = False) -> list:
     """|p_head A - p_load A_load| [N] at each start from a hold (the position
     held within 2 encoder steps for >= 0.15 s, then leaving by > 3 steps),
     the median over the ``window_s`` before the start (0: the samples at the
-    last held instant)."""
+    last held instant). With ``with_rate``: (force [N], its rate of rise
+    [N/s] over the :data:`_RATE_WINDOW_S` before the start (a line through
+    |force|), the held position [mm]) per start."""
     from ..errors import DataError
     from ..signals.align import align_run
 
@@ -110,8 +115,13 @@ def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S) -> list[flo
                 w = (t_arr >= t[j] - window_s - 1e-9) & (t_arr <= t[j])
                 fw = f[w]
                 fw = fw[np.isfinite(fw)]
-                if fw.size:
+                if fw.size and not with_rate:
                     out.append(float(abs(np.median(fw))))
+                elif fw.size:
+                    wr = (t_arr >= t[j] - _RATE_WINDOW_S - 1e-9) & (t_arr <= t[j]) & np.isfinite(f)
+                    rate = (float(np.polyfit(t_arr[wr], np.abs(f[wr]), 1)[0])
+                            if wr.sum() > 3 else 0.0)
+                    out.append((float(abs(np.median(fw))), rate, float(ref)))
         i = j + 1
     return out
 
@@ -123,16 +133,18 @@ def _breakaway(runs, rig, coulomb: float) -> dict[str, Any] | None:
     instant. The estimate is the median of the two's midpoint per event; the
     95 % interval spans both estimators' bootstrap intervals (the method's
     systematic part: on 8 foreign-rig seeds one of the two alone missed
-    the truth in 1 and 2 seeds, their span in none)."""
-    win, end = [], []
+    the truth in 1 and 2 seeds, their span in none), and reaches down by
+    the valve-side pressure's lead (:func:`_line_lead_n`)."""
+    win, end, lead = [], [], []
     for r in runs:
-        a, b = breakaway_events(r, rig), breakaway_events(r, rig, window_s=0.0)
+        a, b = breakaway_events(r, rig), breakaway_events(r, rig, window_s=0.0, with_rate=True)
         if len(a) == len(b):
             win += a
-            end += b
-    win, end = np.asarray(win), np.asarray(end)
+            end += [e[0] for e in b]
+            lead += [_line_lead_n(rig, rate, x) for _, rate, x in b]
+    win, end, lead = np.asarray(win), np.asarray(end), np.asarray(lead)
     keep = (win >= 0.5 * coulomb) & (end >= 0.5 * coulomb)
-    win, end = win[keep], end[keep]
+    win, end, lead = win[keep], end[keep], lead[keep]
     if win.size < 3:
         return None
     mid = 0.5 * (win + end)
@@ -142,7 +154,29 @@ def _breakaway(runs, rig, coulomb: float) -> dict[str, Any] | None:
     for f in (win, end):
         boot = np.median(f[picks], axis=1)
         lo, hi = min(lo, float(np.percentile(boot, 2.5))), max(hi, float(np.percentile(boot, 97.5)))
-    return {"static_n": float(np.median(mid)), "ci95": (lo, hi), "n_events": int(win.size)}
+    down = float(np.median(lead))
+    return {"static_n": float(np.median(mid)), "ci95": (lo - down, hi), "n_events": int(win.size),
+            "lead_n": down}
+
+
+def _line_lead_n(rig, rate_n_s: float, x_mm: float) -> float:
+    """How far the force read at the valve leads the piston's [N] while it
+    rises at ``rate_n_s`` [N/s] with the piston held at ``x_mm``: the head
+    pressure is logged at the valve end of the line, which fills the tube
+    and the head chamber through its resistance, so the piston's pressure
+    lags by about R (C_tube / 2 + C_chamber) (the rig file's tube and bulk
+    modulus: identify fits B later, from the twin that needs this friction).
+    On our simulator (20 m, 150 MPa: 8 ms) the force read at the true start
+    was 158-190 N for 160, +6-16 ms x its rate of rise (300-2500 N/s); a
+    ringing line (its water column) makes the lead vary from start to
+    start, so it widens the interval (downwards) rather than correcting
+    the estimate."""
+    tc = tube_constants(rig)
+    bulk = float(rig["tube"]["effective_bulk_modulus_mpa"])
+    chamber = (float(rig["actuator"]["dead_volume_mm3"])
+               + rig.piston_area_mm2 * max(float(x_mm), 0.0)) / bulk
+    tau = tc["R"] * (0.5 * tc["C"] + chamber)
+    return max(float(rate_n_s), 0.0) * tau
 
 
 def _steady_rows(df):
@@ -237,7 +271,11 @@ def friction_constants(summary, rig, runs=()) -> tuple[list[Constant], dict[str,
     if brk is not None and brk["static_n"] >= (coulomb if ok_c else 0.0):
         consts.append(Constant(keys[2][0], keys[2][1], brk["static_n"], d_s, "N", True,
                                f"force at {brk['n_events']} starts after a hold (position-control "
-                               "runs)", brk["ci95"]))
+                               "runs)", brk["ci95"],
+                               note=(f"read at the valve, which leads the piston while the force "
+                                     f"rises: the interval reaches {brk['lead_n']:.2g} N lower "
+                                     "(the line's R (C_tube/2 + C_chamber) x the median rate of "
+                                     "rise)") if brk["lead_n"] > 0 else ""))
     elif ok_c:
         lo, hi = fr["coulomb_ci95"]
         consts.append(Constant(keys[2][0], keys[2][1], coulomb * ratio, d_s, "N", True,

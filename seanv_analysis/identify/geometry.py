@@ -12,9 +12,16 @@ x_c kept at the rig file's value: with z0 it reproduces the threshold over
 the tested pressures whatever the true (x_c, y_c) (the acceptance is on the
 threshold angle, not on the centre itself).
 
-Per side, Q = C (theta - theta_d(p1, dp; z0, y_c))^2 dp^0.5 (eq. 5) is
-fitted to the flow steps flowfit used, (z0, C, y_c) together, with the same
-per-run noise scale and robust loss as flowfit's joint fit. y_c is
+Q = C (theta - theta_d(p1, dp; z0, y_c))^2 dp^0.5 (eq. 5) plus the needles'
+seat leakage g (dp_supply - dp_drain) (:func:`seanv_analysis.models.seat_leakage_mm3_s`)
+is fitted to the flow steps flowfit used, both sides at once: (z0, C, y_c)
+of each side and the one leakage conductance g, with the same per-run noise
+scale and robust loss as flowfit's joint fit. The leakage must be in it: it
+moves with the head pressure from load to load as the threshold does, and
+left out it put y_c 0.27 mm (7 standard errors) off on the simulator's own
+clean flow steps (supply -20.27 [-20.31, -20.23] for -20; drain 19.2 for 20).
+The 95 % interval of y_c is a cluster-robust sandwich (the repeats of a
+condition, load level x commanded cam, share their errors). y_c is
 identified only when the runs span different fluid forces (>= 2 load levels
 whose thresholds differ by more than the threshold's own scatter) and its
 95 % interval is finite and narrower than +-50 % of the value; otherwise the
@@ -23,23 +30,27 @@ rig file's value stays.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
-from typing import Any
+from dataclasses import dataclass, field, replace
+from typing import Any, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..fit import cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
 from ..fit.flowfit import C_KEY
 from ..models import ValveSide, fluid_force_n
 from .result import Constant
 
-__all__ = ["GeometryFit", "fit_geometry", "geometry_constants", "threshold_span"]
+__all__ = ["GeometryFit", "SideRuns", "fit_geometry", "fit_geometry_sides", "geometry_constants",
+           "threshold_span"]
 
 
 @dataclass
 class GeometryFit:
-    """(z0, C, y_c) of one side with 95 % intervals (Jacobian, scaled by the
-    residual variance); ``identified`` False with ``note`` when y_c cannot be told."""
+    """(z0, C, y_c) of one side with 95 % intervals (cluster-robust sandwich);
+    ``identified`` False with ``note`` when y_c cannot be told; the seat
+    leakage's conductance g [mm^3/(s MPa)] of the fit (shared by the sides
+    fitted together) with its interval."""
 
     side: str
     z0_mm: float
@@ -53,6 +64,36 @@ class GeometryFit:
     n_runs: int
     n_loads: int
     force_span_n: float
+    leak_mm3_s_per_mpa: float = 0.0
+    leak_ci95: tuple[float, float] = (math.nan, math.nan)
+
+
+@dataclass
+class SideRuns:
+    """One side's flow steps for :func:`fit_geometry_sides`: its model
+    (geometry, exponent, z0 and C to start from) and per run the cam [deg],
+    p1 and dp [MPa], flow [mm^3/s], noise scale [mm^3/s], the seat leakage's
+    pressure term dp_supply - dp_drain [MPa], load level [MPaG] and condition
+    label (repeats share it); ``heldout``: (theta, p1, dp, q, dp_leak) of
+    runs kept out of the fit, for the RMSEs."""
+
+    side: ValveSide
+    theta_deg: np.ndarray
+    p1_mpa: np.ndarray
+    dp_mpa: np.ndarray
+    q_mm3_s: np.ndarray
+    sigma_mm3_s: np.ndarray
+    dp_leak_mpa: np.ndarray
+    load_level: np.ndarray
+    clusters: np.ndarray = field(default=None)
+    heldout: tuple | None = None
+
+    def __post_init__(self):
+        for name in ("theta_deg", "p1_mpa", "dp_mpa", "q_mm3_s", "sigma_mm3_s", "dp_leak_mpa",
+                     "load_level"):
+            setattr(self, name, np.asarray(getattr(self, name), float))
+        if self.clusters is None:
+            self.clusters = np.arange(self.q_mm3_s.size)
 
 
 def _with(side: ValveSide, z0, c, y_c) -> ValveSide:
@@ -77,85 +118,257 @@ def _predict(side: ValveSide, x, theta, p1, dp):
         return np.full(theta.shape, np.nan)
 
 
-def _fit(side, theta, p1, dp, q, sigma, x0, lo, hi, f_scale, free_y: bool):
-    y_fixed = x0[2]
+def _bounds(side: ValveSide, z0: float, c: float) -> tuple[list[float], list[float]]:
+    """Bounds of (z0 [mm], C, y_c [mm]): z0 +-1 mm, C within 20x of its sign,
+    y_c on the rig file's side of the cam, 4-80 mm from it."""
+    y0 = float(side.geometry.needle_y_c_mm)
+    sgn = math.copysign(1.0, y0) if y0 != 0 else -1.0
+    return ([z0 - 1.0, min(0.0, 20 * c), -80.0 if sgn < 0 else 4.0],
+            [z0 + 1.0, max(0.0, 20 * c), -4.0 if sgn < 0 else 80.0])
 
-    def full(p):
-        return p if free_y else [p[0], p[1], y_fixed]
+
+class _Layout:
+    """Parameter vector of the joint fit: per side z0, C (and y_c when free),
+    then the leakage conductance g when fitted."""
+
+    def __init__(self, names, free_y, fit_leak):
+        self.names = list(names)
+        self.free = [n in free_y for n in self.names]
+        self.fit_leak = fit_leak
+        self.slices = {}
+        i = 0
+        for n, f in zip(self.names, self.free):
+            self.slices[n] = slice(i, i + (3 if f else 2))
+            i += 3 if f else 2
+        self.size = i + (1 if fit_leak else 0)
+
+    def side_x(self, x, name, y_fixed):
+        p = x[self.slices[name]]
+        return (p[0], p[1], p[2] if len(p) == 3 else y_fixed)
+
+    def leak(self, x, fixed):
+        return x[-1] if self.fit_leak else fixed
+
+
+def _fit(runs: dict[str, SideRuns], x0, lo, hi, f_scale, layout: _Layout, y_fixed, g_fixed,
+         g_prior_sd: float = math.inf):
+    """least_squares from ``x0`` (a few starts of the free y_c); returns (x,
+    solution, residual function). A fitted leakage conductance has the prior
+    N(``g_fixed``, ``g_prior_sd``^2): one more residual."""
+    prior = layout.fit_leak and math.isfinite(g_prior_sd)
 
     def resid(p):
-        r = (q - _predict(side, full(p), theta, p1, dp)) / sigma
-        return np.where(np.isfinite(r), r, 1e3)
+        out = []
+        g = layout.leak(p, g_fixed)
+        for n in layout.names:
+            r = runs[n]
+            q = _predict(r.side, layout.side_x(p, n, y_fixed[n]), r.theta_deg, r.p1_mpa, r.dp_mpa)
+            z = (r.q_mm3_s - q - g * r.dp_leak_mpa) / r.sigma_mm3_s
+            out.append(np.where(np.isfinite(z), z, 1e3))
+        if prior:
+            out.append(np.array([(g - g_fixed) / g_prior_sd]))
+        return np.concatenate(out)
 
-    n = 3 if free_y else 2
-    starts = [x0[2], x0[2] * 0.75, x0[2] * 1.3] if free_y else [x0[2]]
+    x_scale = []
+    for n, free in zip(layout.names, layout.free):
+        x_scale += [0.01, max(abs(runs[n].side.c_flow), 1e-3)] + ([1.0] if free else [])
+    x_scale += [1.0] if layout.fit_leak else []
     best = None
-    for y_start in starts:     # a few starts: the threshold is piecewise in the parameters
-        p0 = np.clip([x0[0], x0[1], y_start][:n], np.add(lo[:n], 1e-9), np.subtract(hi[:n], 1e-9))
-        sol = least_squares(resid, p0, bounds=(lo[:n], hi[:n]), loss="soft_l1", f_scale=f_scale,
-                            x_scale=[0.01, max(abs(x0[1]), 1e-3), 1.0][:n], diff_step=1e-5)
+    factors = (1.0, 0.75, 1.3) if any(layout.free) else (1.0,)
+    for k in factors:   # a few starts: the threshold is piecewise in the parameters
+        p0 = np.array(x0, float)
+        for n, free in zip(layout.names, layout.free):
+            if free:
+                p0[layout.slices[n].stop - 1] *= k
+        p0 = np.clip(p0, np.add(lo, 1e-9), np.subtract(hi, 1e-9))
+        sol = least_squares(resid, p0, bounds=(lo, hi), loss="soft_l1", f_scale=f_scale,
+                            x_scale=x_scale, diff_step=1e-5)
         if best is None or sol.cost < best.cost:
             best = sol
-    return np.asarray(full(best.x), float), best
+    return np.asarray(best.x, float), best, resid
+
+
+def _raw_jacobian(fun, x, lo, hi) -> np.ndarray:
+    """Central-difference Jacobian of ``fun`` at ``x`` (one-sided at a bound)."""
+    f0 = fun(x)
+    jac = np.empty((f0.size, x.size))
+    for j in range(x.size):
+        h = 1e-5 * max(abs(x[j]), 1e-2)
+        xp, xm = x.copy(), x.copy()
+        xp[j] = min(x[j] + h, hi[j])
+        xm[j] = max(x[j] - h, lo[j])
+        jac[:, j] = (fun(xp) - fun(xm)) / (xp[j] - xm[j])
+    return jac
+
+
+@dataclass
+class JointGeometry:
+    """Result of :func:`fit_geometry_sides`: per side (z0, C, y_c) with y_c's
+    95 % interval (NaN when not free or singular), the fit with the rig
+    file's y_c (``default``), the leakage conductance g with its interval."""
+
+    sides: dict[str, tuple[float, float, float]]
+    y_ci95: dict[str, tuple[float, float]]
+    default: dict[str, tuple[float, float, float]]
+    leak_mm3_s_per_mpa: float
+    leak_ci95: tuple[float, float]
+    leak_default_mm3_s_per_mpa: float
+
+
+def fit_geometry_sides(runs: dict[str, SideRuns], *, free_y: Sequence[str],
+                       leak_mm3_s_per_mpa: float = 0.0, fit_leak: bool = True,
+                       leak_upper_mm3_s_per_mpa: float = 15.0,
+                       leak_prior_sd_mm3_s_per_mpa: float = math.inf) -> JointGeometry:
+    """Fit (z0, C, y_c) of each side in ``runs`` (y_c only for ``free_y``)
+    and the seat leakage's conductance g (``fit_leak``, with the prior
+    N(``leak_mm3_s_per_mpa``, ``leak_prior_sd_mm3_s_per_mpa``^2) as flowfit
+    has it; else held at ``leak_mm3_s_per_mpa``) to the flow steps, eq.
+    (3)-(5) + leakage, all at once.
+
+    First with the rig file's y_c (the ``default`` fit), then from it with
+    y_c free (a few starts). 95 % intervals of y_c and g: cluster-robust
+    sandwich over ``SideRuns.clusters``, normal quantile.
+    """
+    names = [n for n in runs]
+    y_fixed = {n: float(runs[n].side.geometry.needle_y_c_mm) for n in names}
+    z = np.concatenate([(runs[n].q_mm3_s - _predict(runs[n].side, (runs[n].side.z0_mm,
+                                                                    runs[n].side.c_flow,
+                                                                    y_fixed[n]),
+                                                     runs[n].theta_deg, runs[n].p1_mpa,
+                                                     runs[n].dp_mpa)
+                         - leak_mm3_s_per_mpa * runs[n].dp_leak_mpa) / runs[n].sigma_mm3_s
+                        for n in names])
+    f_scale = max(1.4826 * float(np.nanmedian(np.abs(z))), 1e-6)
+    fit_leak = bool(fit_leak and np.ptp(np.concatenate([runs[n].dp_leak_mpa for n in names]))
+                    >= 0.2)
+    g0 = min(max(float(leak_mm3_s_per_mpa), 0.0), leak_upper_mm3_s_per_mpa)
+
+    def setup(free):
+        layout = _Layout(names, free, fit_leak)
+        x0, lo, hi = [], [], []
+        for n in names:
+            s = runs[n].side
+            b_lo, b_hi = _bounds(s, s.z0_mm, s.c_flow)
+            k = 3 if n in free else 2
+            x0 += [s.z0_mm, s.c_flow, y_fixed[n]][:k]
+            lo += b_lo[:k]
+            hi += b_hi[:k]
+        if fit_leak:
+            x0.append(g0)
+            lo.append(0.0)
+            hi.append(float(leak_upper_mm3_s_per_mpa))
+        return layout, np.array(x0, float), np.array(lo, float), np.array(hi, float)
+
+    lay_d, x0_d, lo_d, hi_d = setup(())
+    sd = float(leak_prior_sd_mm3_s_per_mpa)
+    x_def, _, _ = _fit(runs, x0_d, lo_d, hi_d, f_scale, lay_d, y_fixed, g0, sd)
+    default = {n: lay_d.side_x(x_def, n, y_fixed[n]) for n in names}
+    g_def = float(lay_d.leak(x_def, g0))
+    lay, x0, lo, hi = setup(tuple(free_y))
+    for n in names:     # start from the default fit
+        sl = lay.slices[n]
+        x0[sl.start:sl.start + 2] = default[n][:2]
+    if fit_leak:
+        x0[-1] = g_def
+    x, best, resid = _fit(runs, x0, lo, hi, f_scale, lay, y_fixed, g0, sd)
+    ci = {n: (math.nan, math.nan) for n in names}
+    g_ci = (math.nan, math.nan)
+    r = resid(x)
+    clusters = np.concatenate([np.asarray([f"{n}|{c}" for c in runs[n].clusters], object)
+                               for n in names]
+                              + ([np.asarray(["prior"], object)]
+                                 if fit_leak and math.isfinite(sd) else []))
+    cov = cluster_covariance(_raw_jacobian(resid, x, lo, hi), r, soft_l1_weights(r, f_scale),
+                             clusters)
+    if cov is not None:
+        for n, free in zip(names, lay.free):
+            j = lay.slices[n].stop - 1
+            if free and np.isfinite(cov[j, j]) and cov[j, j] >= 0:
+                half = 1.96 * math.sqrt(cov[j, j])
+                ci[n] = (float(x[j] - half), float(x[j] + half))
+        if fit_leak and np.isfinite(cov[-1, -1]) and cov[-1, -1] >= 0:
+            half = 1.96 * math.sqrt(cov[-1, -1])
+            g_ci = (max(float(x[-1]) - half, 0.0), float(x[-1]) + half)
+    return JointGeometry({n: tuple(float(v) for v in lay.side_x(x, n, y_fixed[n]))
+                          for n in names}, ci,
+                         {n: tuple(float(v) for v in default[n]) for n in names},
+                         float(lay.leak(x, g0)), g_ci, g_def)
+
+
+def _judge(side: ValveSide, y, ci, levels: int, span: float) -> tuple[bool, str]:
+    """(identified, why not) of a fitted y_c [mm]."""
+    lo, hi = _bounds(side, side.z0_mm, side.c_flow)
+    if not _valid(side, y):
+        # the fit ended where eq. (4) cannot be inverted (every residual at
+        # its sentinel, a flat cost): no centre of a valve
+        return False, (f"the fit ended at y_c = {y:.1f} mm, where eq. (4) is not "
+                       "monotonic over the cam range")
+    if levels < 2:
+        return False, (f"{levels} load level(s): the threshold's dependence on the "
+                       "pressures needs >= 2")
+    if not all(math.isfinite(v) for v in ci) or (ci[1] - ci[0]) / 2 > 0.5 * abs(y):
+        return False, (f"the fluid force spans {span:.1f} N only; y_c's 95 % interval "
+                       f"{_fmt_ci(ci)} mm is too wide")
+    if abs(y - lo[2]) < 1e-6 or abs(y - hi[2]) < 1e-6:
+        return False, f"y_c ran into its bound ({y:.1f} mm)"
+    return True, ""
+
+
+def _rmse(side: ValveSide, x, g, held) -> float:
+    th, p1, dp, q, dpl = (np.asarray(a, float) for a in held)
+    r = q - _predict(side, x, th, p1, dp) - g * dpl
+    return float(np.sqrt(np.nanmean(r ** 2))) if np.isfinite(r).any() else math.nan
 
 
 def fit_geometry(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_mm3_s, load_level,
-                 *, z0_start_mm: float, c_start: float, heldout=None) -> GeometryFit:
+                 *, z0_start_mm: float, c_start: float, heldout=None, dp_leak_mpa=None,
+                 leak_mm3_s_per_mpa: float = 0.0, fit_leak: bool = False) -> GeometryFit:
     """Fit (z0, C, y_c) of one side to its flow steps (eq. 3-5); see the module notes.
 
-    ``heldout``: optional (theta, p1, dp, q) of runs kept out of the fit; the
-    RMSEs reported are then on them, for this fit and for (z0, C) fitted with
-    the rig file's y_c (``rmse_default_mm3_s``).
+    ``heldout``: optional (theta, p1, dp, q[, dp_leak]) of runs kept out of
+    the fit; the RMSEs reported are then on them, for this fit and for (z0,
+    C) fitted with the rig file's y_c (``rmse_default_mm3_s``).
+    ``dp_leak_mpa`` [MPa] per run (dp_supply - dp_drain) with the seat
+    leakage's conductance ``leak_mm3_s_per_mpa`` (held, or fitted with
+    ``fit_leak``); default: no leakage. Both sides at once, sharing the
+    leakage: :func:`fit_geometry_sides`.
     """
-    theta, p1, dp, q, sigma = (np.asarray(a, float) for a in
-                               (theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_mm3_s))
-    y0 = float(side.geometry.needle_y_c_mm)
-    sgn = math.copysign(1.0, y0) if y0 != 0 else -1.0
-    levels = np.unique(np.asarray(load_level, float)[np.isfinite(np.asarray(load_level, float))])
-    force = fluid_force_n(p1, dp, side.geometry)
-    span = float(np.ptp(force)) if force.size else 0.0
-    x0 = [z0_start_mm, c_start, y0]
-    r0 = (q - _predict(side, x0, theta, p1, dp)) / sigma
-    f_scale = max(1.4826 * float(np.nanmedian(np.abs(r0))), 1e-6)
-    lo = [z0_start_mm - 1.0, min(0.0, 20 * c_start), -80.0 if sgn < 0 else 4.0]
-    hi = [z0_start_mm + 1.0, max(0.0, 20 * c_start), -4.0 if sgn < 0 else 80.0]
-    x_def, _ = _fit(side, theta, p1, dp, q, sigma, x0, lo, hi, f_scale, free_y=False)
-    x, best = _fit(side, theta, p1, dp, q, sigma, x_def, lo, hi, f_scale, free_y=True)
-    ci = (math.nan, math.nan)
-    try:
-        dof = max(q.size - 3, 1)
-        s2 = float(np.sum(best.fun ** 2)) / dof
-        cov = np.linalg.inv(best.jac.T @ best.jac) * s2
-        if np.isfinite(cov[2, 2]) and cov[2, 2] >= 0:
-            half = 1.96 * math.sqrt(cov[2, 2])
-            ci = (float(x[2] - half), float(x[2] + half))
-    except np.linalg.LinAlgError:
-        pass
+    q = np.asarray(q_mm3_s, float)
+    dpl = np.zeros(q.shape) if dp_leak_mpa is None else np.asarray(dp_leak_mpa, float)
+    runs = SideRuns(replace(side, z0_mm=float(z0_start_mm), c_flow=float(c_start)), theta_deg,
+                    p1_mpa, dp_mpa, q, sigma_mm3_s, dpl, load_level)
     if heldout is not None:
-        th, hp1, hdp, hq = (np.asarray(a, float) for a in heldout)
-    else:
-        th, hp1, hdp, hq = theta, p1, dp, q
+        held = list(heldout) + ([np.zeros(np.shape(heldout[3]))] if len(heldout) == 4 else [])
+        runs.heldout = tuple(held)
+    return _side_results({side.side: runs}, leak_mm3_s_per_mpa=leak_mm3_s_per_mpa,
+                         fit_leak=fit_leak)[side.side]
 
-    def rmse(xx):
-        r = hq - _predict(side, xx, th, hp1, hdp)
-        return float(np.sqrt(np.nanmean(r ** 2))) if np.isfinite(r).any() else math.nan
 
-    note, ok = "", True
-    if not _valid(side, x[2]):
-        # the fit ended where eq. (4) cannot be inverted (every residual at
-        # its sentinel, a flat cost): no centre of a valve
-        ok, note = False, (f"the fit ended at y_c = {x[2]:.1f} mm, where eq. (4) is not "
-                           "monotonic over the cam range")
-    elif levels.size < 2:
-        ok, note = False, (f"{levels.size} load level(s): the threshold's dependence on the "
-                           "pressures needs >= 2")
-    elif not all(math.isfinite(v) for v in ci) or (ci[1] - ci[0]) / 2 > 0.5 * abs(x[2]):
-        ok, note = False, (f"the fluid force spans {span:.1f} N only; y_c's 95 % interval "
-                           f"{_fmt_ci(ci)} mm is too wide")
-    elif abs(x[2] - lo[2]) < 1e-6 or abs(x[2] - hi[2]) < 1e-6:
-        ok, note = False, f"y_c ran into its bound ({x[2]:.1f} mm)"
-    return GeometryFit(side.side, float(x[0]), float(x[1]), float(x[2]), ci, ok, note,
-                       rmse(x), rmse(x_def), int(q.size), int(levels.size), span)
+def _side_results(runs: dict[str, SideRuns], *, leak_mm3_s_per_mpa: float, fit_leak: bool,
+                  leak_upper_mm3_s_per_mpa: float = 15.0,
+                  leak_prior_sd_mm3_s_per_mpa: float = math.inf) -> dict[str, GeometryFit]:
+    """:func:`fit_geometry_sides` with y_c free where the runs span >= 2 load
+    levels, judged per side (:func:`_judge`)."""
+    levels = {n: np.unique(r.load_level[np.isfinite(r.load_level)]).size for n, r in runs.items()}
+    free = [n for n in runs if levels[n] >= 2]
+    jg = fit_geometry_sides(runs, free_y=free, leak_mm3_s_per_mpa=leak_mm3_s_per_mpa,
+                            fit_leak=fit_leak, leak_upper_mm3_s_per_mpa=leak_upper_mm3_s_per_mpa,
+                            leak_prior_sd_mm3_s_per_mpa=leak_prior_sd_mm3_s_per_mpa)
+    out = {}
+    for n, r in runs.items():
+        side = r.side
+        x = jg.sides[n]
+        force = fluid_force_n(r.p1_mpa, r.dp_mpa, side.geometry)
+        span = float(np.ptp(force)) if force.size else 0.0
+        ok, note = _judge(side, x[2], jg.y_ci95[n], levels[n], span)
+        held = r.heldout if r.heldout is not None else \
+            (r.theta_deg, r.p1_mpa, r.dp_mpa, r.q_mm3_s, r.dp_leak_mpa)
+        out[n] = GeometryFit(n, x[0], x[1], x[2], jg.y_ci95[n], ok, note,
+                             _rmse(side, x, jg.leak_mm3_s_per_mpa, held),
+                             _rmse(side, jg.default[n], jg.leak_default_mm3_s_per_mpa, held),
+                             int(r.q_mm3_s.size), int(levels[n]), span,
+                             jg.leak_mm3_s_per_mpa, jg.leak_ci95)
+    return out
 
 
 def _fmt_ci(ci) -> str:
@@ -167,10 +380,17 @@ def threshold_span(side: ValveSide, p1_mpa, dp_mpa) -> np.ndarray:
     return np.asarray(side.threshold_deg(np.asarray(p1_mpa, float), np.asarray(dp_mpa, float)))
 
 
-def geometry_constants(per_run, model, rig) -> tuple[list[Constant], dict[str, Any], list[str]]:
-    """Needle centre y_c per side from flowfit's per-run table (runs used);
-    constants, fit summary and notes."""
+def geometry_constants(per_run, model, rig, *, leak_mm3_s_per_mpa: float | None = None
+                       ) -> tuple[list[Constant], dict[str, Any], list[str]]:
+    """Needle centre y_c per side from flowfit's per-run table (runs used),
+    both sides fitted together with the seat leakage's conductance (started
+    at ``leak_mm3_s_per_mpa``, default the rig file's; the table's
+    ``dp_leak_mpa``, none without it); constants, fit summary and notes."""
     consts, fits, notes = [], {}, []
+    runs: dict[str, SideRuns] = {}
+    meta = {}
+    g0 = float(rig["valve"]["plant"]["leakage_conductance_mm3_s_per_mpa"]) \
+        if leak_mm3_s_per_mpa is None else float(leak_mm3_s_per_mpa)
     for name in ("supply", "drain"):
         key = f"valve.{name}.needle_y_c_mm"
         default = float(rig["valve"][name]["needle_y_c_mm"])
@@ -182,16 +402,35 @@ def geometry_constants(per_run, model, rig) -> tuple[list[Constant], dict[str, A
             continue
         side = model.side(name)
         rows = rows.sort_values("run_index")
+        if "dp_leak_mpa" not in rows:
+            rows = rows.assign(dp_leak_mpa=0.0)
         # held out: every third run in time order (all loads and angles stay in
         # both parts: the constants are static, the split tests prediction)
         pick = (np.arange(len(rows)) % 3 == 2) if len(rows) >= 12 else np.zeros(len(rows), bool)
         train, held = rows[~pick], rows[pick]
         n_held = int(pick.sum())
-        cols = ["theta_deg", "p1_mpa", "dp_mpa", "q_mm3_s"]
-        g = fit_geometry(side, train["theta_deg"], train["p1_mpa"], train["dp_mpa"],
-                         train["q_mm3_s"], train["sigma_mm3_s"].fillna(1.0).clip(lower=1e-3),
-                         train["load_level_mpag"], z0_start_mm=side.z0_mm, c_start=side.c_flow,
-                         heldout=[held[c] for c in cols] if n_held else None)
+        cols = ["theta_deg", "p1_mpa", "dp_mpa", "q_mm3_s", "dp_leak_mpa"]
+        cond = (train["cam_deg"].to_numpy(float) if "cam_deg" in train
+                else train["theta_deg"].to_numpy(float))
+        clusters = np.asarray([f"{lv:.4g}|{c:.3f}" for lv, c in
+                               zip(train["load_level_mpag"].to_numpy(float), cond)], object)
+        runs[name] = SideRuns(side, train["theta_deg"], train["p1_mpa"], train["dp_mpa"],
+                              train["q_mm3_s"],
+                              train["sigma_mm3_s"].fillna(1.0).clip(lower=1e-3),
+                              train["dp_leak_mpa"].fillna(0.0), train["load_level_mpag"],
+                              clusters,
+                              tuple(held[c].fillna(0.0) if c == "dp_leak_mpa" else held[c]
+                                    for c in cols) if n_held else None)
+        meta[name] = (key, default, rows, train, n_held)
+    if not runs:
+        return consts, fits, notes
+    band, p_supply = float(rig.analysis["leakage_flow_mm3_s"]), float(rig["supply"]["pressure_mpag"])
+    found = _side_results(runs, leak_mm3_s_per_mpa=g0, fit_leak=True,
+                          leak_upper_mm3_s_per_mpa=band / max(p_supply, 0.1),
+                          leak_prior_sd_mm3_s_per_mpa=prior_sd_mm3_s_per_mpa(band, p_supply))
+    for name, g in found.items():
+        key, default, rows, train, n_held = meta[name]
+        side = runs[name].side
         by = (f"threshold vs fluid force over {g.n_loads} load levels ({g.n_runs} flow steps, "
               f"F_w span {g.force_span_n:.1f} N)")
         consts.append(Constant(key, f"{name} needle centre y_c", g.y_c_mm if g.identified else
@@ -203,8 +442,11 @@ def geometry_constants(per_run, model, rig) -> tuple[list[Constant], dict[str, A
         part = "heldout" if n_held else "train"
         fits[name] = {"metric": "flow-step RMSE [mm^3/s], y_c of the rig file vs identified "
                                 "(z0, C refitted for each)",
-                      f"{part}_default": g.rmse_default_mm3_s, part: g.rmse_mm3_s, "n_train_runs": len(train), "n_heldout_runs": n_held,
+                      f"{part}_default": g.rmse_default_mm3_s, part: g.rmse_mm3_s,
+                      "n_train_runs": len(train), "n_heldout_runs": n_held,
                       "z0_mm": g.z0_mm, C_KEY: g.c_flow,
+                      "seat_leak": {"conductance": g.leak_mm3_s_per_mpa,
+                                    "ci95": list(g.leak_ci95), "unit": "mm^3/(s MPa)"},
                       "threshold_range_deg": [float(np.min(thr_new)), float(np.max(thr_new))],
                       "threshold_range_default_deg": [float(np.min(thr_default)),
                                                       float(np.max(thr_default))]}

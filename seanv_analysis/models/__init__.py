@@ -12,10 +12,17 @@ from .sealing import (
     spring_force_n,
     threshold_displacement_mm,
 )
-from .valve import SIDES, ValveModel, ValveSide, side_pressures, signed_power
+from .valve import (
+    SIDES,
+    ValveModel,
+    ValveSide,
+    seat_leakage_mm3_s,
+    side_pressures,
+    signed_power,
+)
 
 __all__ = [
     "NeedleGeometry", "fluid_force_n", "needle_height_mm", "spring_force_n",
     "threshold_displacement_mm", "SIDES", "ValveModel", "ValveSide", "side_pressures",
-    "signed_power", "flow_from_velocity",
+    "signed_power", "seat_leakage_mm3_s", "flow_from_velocity",
 ]

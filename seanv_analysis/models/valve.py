@@ -1,10 +1,18 @@
-"""Flow model of the SEANV (paper Sec. II-D, eq. 5-6), per side.
+"""Flow model of the SEANV (paper Sec. II-D, eq. 5-6), per side, and the
+needles' seat leakage.
 
 Units: cam angle deg, pressure MPa (gauge), flow mm^3/s.
 
 Supply side: p1 = p_supply, p2 = p_head, opens for theta > theta_d, C > 0.
 Drain side:  p1 = p_head,   p2 = p_tank, opens for theta < theta_d, C < 0
 (flow out of the actuator is negative, as in the paper).
+
+Seat leakage (not in the paper's eq. 5; the paper saw +-50 mm^3/s of it):
+each needle leaks past its seat, open or sealed, laminar, g dp: into the
+head through the supply needle, out of it through the drain needle, so the
+head gets Q_leak = g (dp_supply - dp_drain) beside eq. (5)
+(:func:`seat_leakage_mm3_s`). The simulator's plant and the flow fit call
+the same law.
 """
 from __future__ import annotations
 
@@ -16,7 +24,12 @@ import numpy as np
 from .sealing import NeedleGeometry, threshold_displacement_mm
 
 __all__ = ["SIDES", "ValveSide", "ValveModel", "side_pressures", "signed_power",
-           "signed_power_core", "opening_core", "flow_core", "cam_for_flow_core", "MIN_DP_MPA"]
+           "signed_power_core", "opening_core", "flow_core", "cam_for_flow_core", "MIN_DP_MPA",
+           "seat_leakage_core", "seat_leakage_mm3_s", "SEAT_LEAK_KEY"]
+
+#: a fitted :class:`ValveModel`'s seat-leakage conductance [mm^3/(s MPa)] in
+#: its ``extras`` (flowfit and discover write it; eq. 5 itself does not use it)
+SEAT_LEAK_KEY = "seat_leak_mm3_s_per_mpa"
 
 SIDES = ("supply", "drain")
 
@@ -53,6 +66,30 @@ def cam_for_flow_core(q_mm3_s, theta_d_deg, dp_power, c_flow, opens_upward):
     flows of the wrong sign give theta_d."""
     opening = np.sqrt(np.maximum(q_mm3_s / (c_flow * dp_power), 0.0))
     return theta_d_deg + opening if opens_upward else theta_d_deg - opening
+
+
+def seat_leakage_core(conductance, dp_supply_mpa, dp_drain_mpa):
+    """Seat leakage into the head on plain numbers [mm^3/s]:
+    Q_leak = g (dp_supply - dp_drain), g [mm^3/(s MPa)] per needle."""
+    return conductance * (dp_supply_mpa - dp_drain_mpa)
+
+
+def seat_leakage_mm3_s(dp_supply_mpa, dp_drain_mpa, *, conductance_mm3_s_per_mpa: float):
+    """Flow into the actuator head past both needles' seats [mm^3/s].
+
+    Q_leak = g (dp_s - dp_d), dp_s = p_supply - p_head, dp_d = p_head - p_tank
+    [MPa]: each needle, open or sealed, leaks g dp (laminar), the supply one
+    into the head, the drain one out of it. It adds to eq. (5) of the open
+    side; g is the rig's ``valve.plant.leakage_conductance_mm3_s_per_mpa``
+    (``identify`` measures it).
+
+    Examples
+    --------
+    >>> float(seat_leakage_mm3_s(1.7, 1.6, conductance_mm3_s_per_mpa=3.0))  # doctest: +ELLIPSIS
+    0.29...
+    """
+    return seat_leakage_core(float(conductance_mm3_s_per_mpa), np.asarray(dp_supply_mpa, float),
+                             np.asarray(dp_drain_mpa, float))
 
 
 def side_pressures(side: str, p_supply_mpag, p_head_mpag, p_tank_mpag=0.0):

@@ -72,7 +72,7 @@ configure_numba_cache()
 __all__ = ["SP_Z0", "SP_C", "SP_EXPONENT", "SP_DN", "SP_DO", "SP_K", "SP_UP", "SP_QMAX",
            "SP_SHARP", "SP_SIZE", "pack_side", "pack_model",
            "fluid_force", "threshold_displacement", "table_segment", "angle_for_height",
-           "signed_power",
+           "signed_power", "seat_leakage",
            "opening", "flow", "cam_for_flow", "saturate", "threshold_deg", "side_flow", "side_flow_at",
            "model_cam_for_flow", "backlash_play",
            "TERM_NONE", "TERM_MUL", "TERM_ADD", "TERM_THRESHOLD",
@@ -117,6 +117,7 @@ def angle_for_height(z_mm, z_table_mm, theta_table_deg):
     return theta_table_deg[lo] + w * (theta_table_deg[hi] - theta_table_deg[lo])
 
 signed_power = njit(**_opts)(_valve.signed_power_core)
+seat_leakage = njit(**_opts)(_valve.seat_leakage_core)
 opening = njit(**_opts)(_valve.opening_core)
 flow = njit(**_opts)(_valve.flow_core)
 cam_for_flow = njit(**_opts)(_valve.cam_for_flow_core)

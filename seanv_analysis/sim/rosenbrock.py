@@ -202,7 +202,7 @@ def plant_f(ps, y, needle, th_s, th_d, p_load_set, fr_mode, fr_arg, pp, sup, dr,
     if tw[J.TW_DRAIN + J.TW_MODE] != 0.0:
         qd, gd = term_flow(tw, J.TW_DRAIN, dr, th_d, needle, p0, dpd, smooth, y[ipl], qd, gd,
                            want_jac)
-    qv = qs + qd + gl * (dps - dpd)
+    qv = qs + qd + J.seat_leakage(gl, dps, dpd)        # models.valve.seat_leakage_core
     g = gs - gd + 2.0 * gl
     # node pressures (C = V / B; half segments at the ends, chamber at the last)
     dydt[0] = (qv - y[iq]) * inv_c_end

@@ -2,15 +2,15 @@
 
 Flow-step runs drive the static model (eq. 5) and its candidate effects
 (:func:`seanv_analysis.discover.discover_flow_steps`; every effect of the
-registry in :mod:`seanv_analysis.models.effects`); position-control runs with
-Q_ref the delay check against the nominal lag
-(:func:`seanv_analysis.discover.dynamic.discover_delay`), or, when the
-``identify`` stage ran, the dynamic candidates (delay, backlash) fitted on
-the identified twin replaying the logged cam command
-(:func:`seanv_analysis.identify.dynamic.closed_loop_effects`). When an effect is
-found and the data holds position-control runs, the closed-loop check re-runs
-them with the base and with the augmented model (the ``validate`` stage's
-work) and the held-out error quoted is the closed-loop one.
+registry in :mod:`seanv_analysis.models.effects`), the needle geometry
+decided with them; position-control runs the dynamic candidates (delay,
+backlash) fitted on a twin of the rig identified from the same logs (the
+``identify`` stage's, or one identified here: servo, controller, friction,
+load regulator, line), replaying the logged cam command
+(:func:`seanv_analysis.identify.dynamic.closed_loop_effects`); never against
+the rig file's nominal values. When an effect is found and the data holds
+position-control runs, the closed-loop check re-runs them with the base and
+with the augmented model on that twin (the ``validate`` stage's work).
 """
 from __future__ import annotations
 
@@ -67,6 +67,9 @@ class DiscoverResult(JsonResult):
     after: Any = None
     note: str = ""
     failed: tuple[FailedRun, ...] = ()
+    #: the rig's twin discover identified itself to test dynamic effects on
+    #: (None: the ``identify`` stage's, or none)
+    twin: Any = None
 
     def report(self) -> str:
         return self.discovery.report()
@@ -85,53 +88,130 @@ class DiscoverResult(JsonResult):
         return {} if self.before is None else dict(getattr(self.before, "skipped", {}))
 
 
-def closed_loop(ctx: Context, discovery) -> DiscoverResult:
+def closed_loop(ctx: Context, discovery, twin: Any = None) -> DiscoverResult:
     """The closed-loop check of a discovery: the position-control runs
     validated with the base model and with the augmented model and effects
-    (a proposed closed-form term included: ``augmented_model_and_effects``)."""
+    (a proposed closed-form term included: ``augmented_model_and_effects``),
+    on ``twin`` (the rig identified for the dynamic search when discover did
+    it itself: its keys over the context's twin; None: the context's)."""
     if not position_paths(ctx) or not (discovery.effects or discovery.proposed_term):
-        return DiscoverResult(discovery)
+        return DiscoverResult(discovery, twin=twin)
     note = ""
-    twin = getattr(discovery, "twin_overrides", None)
+    base = _twin_overrides(twin)
+    extra = getattr(discovery, "twin_overrides", None)
+    overrides = _merge(base, extra or {})
     try:
         augmented, specs = discovery.augmented_model_and_effects(ctx.plant_rig)
     except SeanvError as exc:
         note = f"effects not simulated in the closed-loop check: {one_line(exc)}"
         augmented, specs = discovery.model, []
-    given = ctx.result("validate")
+    # before: validate's when it ran on the same twin, else the base model
+    # discovery started from (z0 and C fitted, the rig file's geometry): the
+    # model one has without discovery, on the twin discovery tests on
+    given = ctx.result("validate") if twin is None else None
     try:
-        before = given or validate_model(ctx, ctx.valve)
+        before = given or validate_model(ctx, discovery.base_model, plant_overrides=base or None)
         after = validate_model(ctx, augmented, specs, stage="validate_augmented",
-                               plant_overrides=twin)
+                               plant_overrides=overrides or None)
     except SeanvError as exc:
         return DiscoverResult(discovery, note=("closed-loop check with the augmented model "
-                                               f"failed: {one_line(exc)}"))
+                                               f"failed: {one_line(exc)}"), twin=twin)
     checked = discovery.with_closed_loop(controller_numbers(before.validation),
                                          controller_numbers(after.validation))
     failed = (*(() if given else before.failed), *after.failed)
-    return DiscoverResult(checked, before, after, note, failed)
+    return DiscoverResult(checked, before, after, note, failed, twin)
+
+
+def _twin_overrides(twin) -> dict[str, Any]:
+    """The identified keys of a twin discover identified itself ({}: none)."""
+    return twin.overrides() if twin is not None else {}
+
+
+def _merge(a: Mapping[str, Any], b: Mapping[str, Any]) -> dict[str, Any]:
+    """``a`` with ``b``'s keys over it, section by section."""
+    out = {k: dict(v) if isinstance(v, Mapping) else v for k, v in a.items()}
+    for k, v in b.items():
+        out[k] = {**out.get(k, {}), **v} if isinstance(v, Mapping) else v
+    return out
+
+
+#: the parts of the rig discover identifies for its twin when no ``identify``
+#: stage ran (the valve's geometry is decided by discover's own static fit)
+TWIN_PARTS = ("servo", "friction", "load", "flow_path")
+
+
+def _valve_keys(valve) -> dict[str, Any]:
+    """The rig-file keys of a valve model: z0, C and the needle centre per side."""
+    return {"valve": {s: {"z0_mm": float(valve.side(s).z0_mm),
+                          "c_flow": float(valve.side(s).c_flow),
+                          "needle_x_c_mm": float(valve.side(s).geometry.needle_x_c_mm),
+                          "needle_y_c_mm": float(valve.side(s).geometry.needle_y_c_mm)}
+                      for s in ("supply", "drain")}}
+
+
+def _twin_search(ctx: Context, summary, runs, held: dict[str, Any]):
+    """The dynamic search of :func:`seanv_analysis.discover.discover_dataset`:
+    on the ``identify`` stage's twin when it ran, else on a twin identified
+    here from the same logs (servo, controller, friction, load regulator,
+    line) with the valve discover's static fit decided; ``held['twin']``
+    keeps the identification made here. A twin whose servo the logs cannot
+    tell (no cam feedback) is no twin: the search says so instead."""
+    from ..discover import NoTwin
+    from ..identify import identify_rig
+    from ..identify.dynamic import closed_loop_effects
+    from .identify import servo_flow_runs
+
+    given = ctx.result("identify")
+
+    def search(train, held_runs, valve, rig, *, seed: int = 0):
+        if given is not None:
+            twin_rig = given.rig
+        else:
+            ctx.log("discover: identifying the rig's twin from its logs (servo, controller, "
+                    "friction, load regulator, line) to test dynamic effects on")
+            start = ctx.rig.with_overrides(_valve_keys(valve), where="discover")
+            ident = identify_rig(summary, start, position_runs=runs,
+                                 flow_runs=servo_flow_runs(ctx, runs), parts=TWIN_PARTS,
+                                 n_boot=0, seed=seed, log=ctx.log)
+            if not any(c.key.startswith("servo.") for c in ident.identified()):
+                raise NoTwin("the servo cannot be identified from these logs (no cam "
+                             "feedback), so neither can a twin to test dynamic effects on")
+            held["twin"] = ident
+            twin_rig = ident.rig
+        return closed_loop_effects(train, held_runs, valve, twin_rig, seed=seed)
+
+    return search
 
 
 def run(ctx: Context, options: Mapping[str, Any]) -> DiscoverResult:
     """Discovery on the data set (:func:`seanv_analysis.discover.discover_dataset`),
-    with the closed-loop check.
+    with the closed-loop check. Dynamic effects are tested on a twin the data
+    identified: the ``identify`` stage's, or one identified here.
 
     Raises
     ------
     FitError
-        too few usable runs (see :func:`discover_runs`).
+        too few usable runs.
     """
     from ..discover import discover_dataset
-    from ..identify.dynamic import closed_loop_effects
+    from ..models import ValveModel
 
     opts = {**OPTIONS, **options}
     ds = ctx.result("ingest")
     ctx.log("discover: residual of the base model -> candidate effects -> held-out check")
-    twin = ctx.result("identify") is not None   # dynamic effects only on an identified twin
-    disc = discover_dataset(position_runs(ctx), ds.summary, rig=ctx.plant_rig, model=ctx.valve,
+    runs = position_runs(ctx)
+    kept: dict[str, Any] = {}
+    # the static fit starts from the rig file's geometry (or the --model's):
+    # the data's own needle centre is decided there, with the effects
+    start = ctx.start_model or ValveModel.from_rig(ctx.rig)
+    # the twin's valve: identify's when that stage ran (fitted with the whole
+    # rig it identified), else the static fit's
+    given = ctx.result("identify")
+    disc = discover_dataset(runs, ds.summary, rig=ctx.plant_rig, model=start,
                             holdout=opts["holdout"], seed=opts["seed"],
-                            dynamic_search=closed_loop_effects if twin else None)
-    return closed_loop(ctx, disc)
+                            dynamic_search=_twin_search(ctx, ds.summary, runs, kept),
+                            twin_model=ctx.valve if given is not None else None)
+    return closed_loop(ctx, disc, kept.get("twin"))
 
 
 def write(result: DiscoverResult, folder: Path) -> list[Path]:

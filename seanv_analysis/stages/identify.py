@@ -19,7 +19,7 @@ from .dataset import position_runs
 from .pipeline import MAX_N_BOOT, MAX_SEED, check_count
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DESCRIPTION", "check_option", "run", "write",
-           "rig_toml"]
+           "rig_toml", "servo_flow_runs"]
 
 NAME = "identify"
 ORDER = 30
@@ -55,22 +55,28 @@ def run(ctx: Context, options: Mapping[str, Any]):
     """:class:`~seanv_analysis.identify.Identification` of the data set;
     None when it has neither flow steps nor position-control runs."""
     from ..identify import identify_rig
-    from ..io.reader import read_run
 
     opts = {**OPTIONS, **options}
     ds = ctx.result("ingest")
     if ds is None or ds.summary.empty:
         return None
     pos = position_runs(ctx)
-    flow = []
-    if not any("servo" in r.tables and "cam_deg" in r.tables["servo"]
-               and r.tables["servo"]["cam_deg"].notna().any() for r in pos):
-        paths = ds.kind("flow_step")["path"].tolist()[:120]
-        flow = [ctx.loaded_runs[p] if p in ctx.loaded_runs else read_run(p, rig=ctx.rig)
-                for p in paths]
-    return identify_rig(ds.summary, ctx.rig, position_runs=pos, flow_runs=flow,
+    return identify_rig(ds.summary, ctx.rig, position_runs=pos, flow_runs=servo_flow_runs(ctx, pos),
                         parts=tuple(opts["parts"]), n_boot=int(opts["n_boot"]),
                         seed=int(opts["seed"]), log=ctx.log)
+
+
+def servo_flow_runs(ctx: Context, pos) -> list:
+    """The flow-step runs the servo is identified from when no
+    position-control run ``pos`` has cam feedback (the first 120); else none."""
+    from ..io.reader import read_run
+
+    if any("servo" in r.tables and "cam_deg" in r.tables["servo"]
+           and r.tables["servo"]["cam_deg"].notna().any() for r in pos):
+        return []
+    ds = ctx.result("ingest")
+    paths = ds.kind("flow_step")["path"].tolist()[:120]
+    return [ctx.loaded_runs[p] if p in ctx.loaded_runs else read_run(p, rig=ctx.rig) for p in paths]
 
 
 def rig_toml(result) -> str:

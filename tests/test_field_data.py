@@ -1,0 +1,47 @@
+"""Logs of a rig nobody here wrote (../shared/field-data), with their truth:
+the static discovery (flow steps) on the clean set and on the set with an
+undeclared supply drift. Their constants are read from the truth files, never
+written into the package. The closed-loop parts (the twin, the dynamic
+effects, every command end to end on all three sets) run in
+benchmarks/bench_field.py, which the note of issue 31 quotes.
+"""
+from __future__ import annotations
+
+import pytest
+from field_data import field_truth
+
+from seanv_analysis import ValveModel, load_rig
+from seanv_analysis.discover import discover_flow_steps
+from seanv_analysis.stages import run_stages
+
+pytestmark = pytest.mark.slow
+
+
+def _static(field_root, name):
+    summary = run_stages(field_root / name, ["ingest"]).result("ingest").summary
+    return discover_flow_steps(summary, model=ValveModel.from_rig(load_rig()))
+
+
+def test_field_clean_flow_steps_say_none(field_root):
+    """Nothing undeclared: no effect, and the needle centres the rig file does
+    not know (its y_c is -20 / +20 mm) are found near the rig's own."""
+    truth = field_truth(field_root, "field-clean")
+    d = _static(field_root, "field-clean")
+    assert d.verdict == "none" and d.effects == [], d.report()
+    assert d.geometry is not None
+    for side in ("supply", "drain"):
+        # an effective centre: x_c stays the rig file's, whose effect on the
+        # threshold over the tested pressures y_c takes up
+        assert d.geometry[side]["needle_y_c_mm"] == pytest.approx(truth[side]["y_c_mm"], abs=2.0)
+    assert d.rmse_after_mm3_s < 0.2 * d.rmse_before_mm3_s     # the geometry, not an effect
+
+
+def test_field_drift_is_named_and_cuts_the_heldout_error(field_root):
+    """An undeclared drift of the supply side's C (a step every third supply
+    sweep): named on the supply side, nothing else, held-out error down >= 30 %."""
+    truth = field_truth(field_root, "field-drift-backlash")
+    assert truth["flow_effect"] == "drift_supply"
+    d = _static(field_root, "field-drift-backlash")
+    assert [(e.name, e.side) for e in d.effects] == [("drift", "supply")], d.report()
+    assert d.effects[0].params["step"] > 0        # C falls with use
+    assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
