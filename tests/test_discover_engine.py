@@ -72,14 +72,12 @@ def discovered(seed: int, effect: tuple | None):
 
 @pytest.mark.parametrize("effect", CASES, ids=lambda e: f"{e[0]}-{e[1]}")
 def test_names_injected_effect_and_cuts_heldout_error(effect):
-    hits = 0
-    for seed in range(3):
-        d = discovered(seed, effect)
-        named = [(e.name, e.side) for e in d.effects]
-        if d.verdict == "effect_found" and named[0] == effect[:2]:
-            hits += 1
-            assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
-    assert hits == 3  # every seed
+    """One seed per case here; the rates over seeds and strengths are
+    benchmarks/bench_discover.py's (make bench)."""
+    d = discovered(0, effect)
+    named = [(e.name, e.side) for e in d.effects]
+    assert d.verdict == "effect_found" and named[0] == effect[:2], d.report()
+    assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
 
 
 def test_backlash_width_and_exponent_recovered():
@@ -91,8 +89,10 @@ def test_backlash_width_and_exponent_recovered():
 
 
 def test_clean_data_says_none():
-    verdicts = [discover_flow_steps(synth_summary(100 + s), model=MODEL).verdict for s in range(10)]
-    assert verdicts.count("none") >= 9
+    """Three clean seeds here, every one 'none'; the false-alarm rate over 20
+    is benchmarks/bench_discover.py's (make bench)."""
+    verdicts = [discover_flow_steps(synth_summary(100 + s), model=MODEL).verdict for s in range(3)]
+    assert verdicts == ["none"] * 3
 
 
 def test_heldout_runs_are_never_fitted():
@@ -178,7 +178,7 @@ def test_load_dependence_is_not_passed_off_as_wear():
     trends with run order, but within a load run order explains nothing.
     The run-order candidates are tested by permuting the order within each
     load; scattering the residuals (as before) named a drift in 2 of 4 seeds."""
-    for seed in range(4):
+    for seed in range(2):   # 4 before the suite's budget; 2 in 4 named a drift then
         d = discover_flow_steps(load_stepped_summary(seed, c_per_mpa=0.4), model=MODEL, seed=seed)
         named = {e.name for e in d.effects}
         assert not named & {"drift", "threshold_shift"}, (seed, d.report())

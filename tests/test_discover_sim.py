@@ -97,19 +97,6 @@ def test_plain_discover_identifies_its_twin_and_names_the_delay(tmp_path):
     assert "nominal" not in json.dumps(doc["position_control"])
 
 
-def test_clean_position_control_says_none():
-    """Clean position-control runs: a twin identified, no dynamic effect named."""
-    runs = list(iter_scenario_runs("paper-position", seed=3, rig=RIG))
-    summary, _ = summarize_runs(runs, RIG)
-    from seanv_analysis.identify import identify_rig
-    from seanv_analysis.identify.dynamic import closed_loop_effects
-
-    twin = identify_rig(summary, RIG, position_runs=runs, parts=("servo", "flow_path"), n_boot=0)
-    res = discover_runs(runs, summary, rig=twin.rig, seed=3, dynamic_search=closed_loop_effects)
-    assert res.verdict == "none", res.report()
-    assert res.position_control["candidates"] and not res.position_control["found"]
-
-
 def test_position_runs_without_a_twin_say_so():
     """Without a dynamic search (no twin the logs identify), position-control
     runs are untested, said in words; nothing is named."""

@@ -1,45 +1,8 @@
-"""Dynamic effects found in position-control data on the identified twin
-(the ``identify`` stage ran before ``discover``).
-
-An extra transport delay between the servo and the needle does not show in
-the servo's feedback: identify's line (bulk modulus) takes part of it, and
-discover must still name it, refitting the line with the candidate, and
-cut the held-out flow error of the runs re-run in closed loop on the twin,
-segment by segment from the logged state.
-"""
+"""The closed-loop check of discover's stage. An extra delay named on a twin
+(identified by the identify stage or by discover itself) is checked end to
+end by tests/test_discover_sim.py (discover alone, our simulator) and
+tests/test_identify.py (identify + discover, the foreign rig)."""
 from __future__ import annotations
-
-import pytest
-
-from seanv_analysis.sim import simulate_scenario
-from seanv_analysis.stages import run_stages
-
-
-@pytest.fixture(scope="module")
-def delayed_position(tmp_path_factory):
-    root = tmp_path_factory.mktemp("twin") / "position"
-    simulate_scenario("paper-position", root, seed=3, effects=["delay:delay_s=0.1"])
-    return root
-
-
-def test_extra_delay_named_on_the_identified_twin(delayed_position):
-    ctx = run_stages(delayed_position, ["ingest", "identify", "discover"],
-                     options={"identify": {"parts": ["servo", "flow_path"]}})
-    d = ctx.result("discover").discovery
-    assert d.verdict == "effect_found"
-    assert [(e.name, e.side) for e in d.effects] == [("delay", "both")]
-    found = d.effects[0].params["delay_s"]
-    lo, hi = d.effects[0].params_ci95["delay_s"]
-    assert found == pytest.approx(0.1, abs=0.02) and lo <= 0.1 <= hi, (found, lo, hi)
-    assert d.heldout_source == "closed_loop_heldout"     # each segment re-run
-    assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
-    pc = d.position_control
-    assert pc["found"] and pc["n_heldout_runs"] == 1
-    kept = next(c for c in pc["candidates"] if c["named"])
-    # the closed-loop numbers are there beside the headline
-    assert kept["heldout_before"]["fit_position_pct"] > 0 and kept["heldout_after"]
-    # the closed-loop check runs the twin with the line refitted with the effect
-    assert d.twin_overrides["tube"]["effective_bulk_modulus_mpa"] > 0
 
 
 def test_closed_loop_check_survives_effects_that_cannot_be_simulated(monkeypatch):
