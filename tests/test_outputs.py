@@ -16,6 +16,10 @@ from conftest import write_synthetic_dataset, write_synthetic_run
 
 from seanv_analysis.batch import run_pipeline
 from seanv_analysis.io.atomic import OWNER_MARKER
+from seanv_analysis.io.outdir import LOCK_NAME
+
+#: files the package keeps in an output folder for itself (not outputs)
+BOOKKEEPING = {OWNER_MARKER, LOCK_NAME}
 
 #: position-control runs: per-run tables (tracking/) and per-run figures (figures/fig6/)
 POSITION = {"pipeline": {"name": "pos"},
@@ -71,7 +75,7 @@ def test_second_dataset_leaves_no_file_of_the_first(two_datasets, tmp_path):
     # the manifest lists every file of the folder but itself and result.json, hashes matching
     manifest = json.loads((out / "manifest.json").read_text())
     listed = {e["path"]: e for e in manifest["outputs"]}
-    markers = {f for f in files if Path(f).name == OWNER_MARKER}   # bookkeeping, not outputs
+    markers = {f for f in files if Path(f).name in BOOKKEEPING}   # bookkeeping, not outputs
     assert {"figures/" + OWNER_MARKER, "tracking/" + OWNER_MARKER} <= markers
     assert set(listed) == files - {"manifest.json", "result.json"} - markers
     for rel, entry in listed.items():
@@ -166,6 +170,7 @@ def test_command_manifest_lists_outputs_with_hashes(two_datasets, tmp_path):
     listed = {e["path"]: e for e in manifest["outputs"]}
     assert {"tracking.json", "tracking_alpha0.parquet"} <= set(listed)
     assert any(p.endswith(".png") for p in listed)  # figures drawn by the command
-    assert set(listed) == _files(out) - {"manifest.json"}
+    assert set(listed) == {f for f in _files(out) if Path(f).name not in BOOKKEEPING} - {
+        "manifest.json"}
     for rel, entry in listed.items():
         assert entry["sha256"] == _sha256(out / rel), rel

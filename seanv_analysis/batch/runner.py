@@ -22,8 +22,8 @@ import pandas as pd
 from .. import __version__
 from ..config import RigConfig
 from ..errors import ConfigError, DataError, OutputError, SeanvError
-from ..io.atomic import atomic_folder, check_not_foreign, remove_stale_temps, retire_folder
-from ..io.outdir import check_out_dir
+from ..io.atomic import atomic_folder, check_not_foreign, is_owned, remove_stale_temps, retire_folder
+from ..io.outdir import check_out_dir, out_lock
 from ..jsonable import JsonResult
 from ..stages import STAGES, Context, FailedRun, RunOutcome, execute, one_blas_thread, results_of
 from ..stages.pipeline import Pipeline, load_pipeline
@@ -395,6 +395,15 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     ctx.start_model = ValveModel.from_rig(ctx.rig)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
+    with out_lock(out):       # one run at a time in an output folder
+        return _run_locked(pipe, ctx, out, command=command, reuse=reuse, force=force,
+                           workers=workers, scheduler=scheduler, client=client, quiet=quiet,
+                           say=say, t_start=t_start)
+
+
+def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool, force: bool,
+                workers, scheduler, client, quiet: bool, say, t_start: float) -> PipelineResult:
+    """:func:`run_pipeline`'s work, the output folder held."""
     result = PipelineResult(pipe, ctx.data, out, rig=ctx.rig,
                             command=list(command) if command is not None else list(sys.argv))
     result.runs_found = len(ctx.run_dirs)
@@ -433,6 +442,7 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
         result.warnings += [f"{w.category.__name__}: {w.message}" for w in caught
                             if not issubclass(w.category, (DeprecationWarning, ResourceWarning))]
     result.model = ctx.model
+    _retire_other_stages(pipe, out)
     _write_result(result, ctx, pipe, time.perf_counter() - t_start)
     if key is not None and result.success:
         record_run(out, key, result.outputs)
@@ -478,6 +488,16 @@ def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, say) -> No
         finish(name)
 
     execute(pipe, ctx, start=start, on_error=on_error, done=done)
+
+
+def _retire_other_stages(pipe: Pipeline, out: Path) -> None:
+    """Remove the folders of the catalogue's stages this pipeline does not
+    have that an earlier run (another pipeline) left in ``out``: only
+    folders of this package's (the marker; a folder of the user's stays)."""
+    ours = {s.name for s in pipe.stages}
+    for name, mod in STAGES.items():
+        if name not in ours and mod.FOLDER != "." and is_owned(out / mod.FOLDER):
+            retire_folder(out / mod.FOLDER)
 
 
 def _stage_failed(result: PipelineResult, name: str, exc: BaseException) -> None:

@@ -108,12 +108,18 @@ def check_out_dir(data: str | Path | Sequence[str | Path] | None, out: str | Pat
         ``out`` would write over an input (symbolic links resolved, inodes
         compared).
     OutputError
-        ``out`` is empty or cannot be written.
+        ``out`` is empty or cannot be written; with "." in ``owned`` (a
+        command that replaces its folder whole), ``out`` holds files this
+        package did not write.
     """
+    from ..io.atomic import check_not_foreign
     from ..io.outdir import check_out_dir as check
 
     datas = [] if data is None else [data] if isinstance(data, (str, Path)) else list(data)
     check(out, data=datas, files=files, owned=owned)
+    out = Path(out)
+    if "." in owned and out.is_dir() and not out.is_symlink() and any(out.iterdir()):
+        check_not_foreign(out)     # the command replaces the folder whole: ours, or refused now
     probe_writable(out)
 
 
@@ -227,48 +233,90 @@ class CommandRun:
     written: list[Path]
 
 
+class _Unusable(Exception):
+    """Nothing usable in the data: the command's exit code after listing the
+    bad runs (raised inside the output folder's swap, so nothing is swapped in)."""
+
+    def __init__(self, code: int):
+        super().__init__(code)
+        self.code = code
+
+
 def run_command(pipe, data, *, rig, out: Path, model=None, quiet: bool = True,
-                folders: dict[str, str] | None = None, missing: str = "nothing to analyse"
-                ) -> CommandRun | int:
+                folders: dict[str, str] | None = None, missing: str = "nothing to analyse",
+                manifest: dict | None = None) -> CommandRun | int:
     """Run a command's pipeline (:func:`command_pipeline`) through the one
     path of the stages (:func:`seanv_analysis.stages.execute`), each stage's
-    files written into ``out`` (or ``out / folders[stage]``) as it ends;
-    per-run work on all cores for large data sets (:func:`stage_context`).
+    files written as it ends, then ``manifest.json`` (``manifest``: the
+    command's options); per-run work on all cores for large data sets
+    (:func:`stage_context`).
 
-    Returns the :class:`CommandRun`, or the exit code after listing the bad
-    runs when the data held nothing usable (:func:`unusable`); a last stage
-    that gives nothing raises ``DataError(missing)`` (listed the same way).
+    The output folder is written whole and swapped in (as ``run`` does with
+    a stage's folder): a new one beside ``out``, renamed in when the command
+    has written everything, so no file of an earlier run into ``out`` stays
+    beside this one's; one command at a time per folder (a lock beside it).
+    ``out`` must be new, empty, or a folder this package wrote.
+
+    Returns the :class:`CommandRun` (its files at their final paths), or the
+    exit code after listing the bad runs when the data held nothing usable
+    (:func:`unusable`; ``out`` is then left as it was); a last stage that
+    gives nothing raises ``DataError(missing)`` (listed the same way).
     """
-    import warnings
 
     from ..errors import DataError, FitError
+    from ..io.atomic import OWNER_MARKER, atomic_folder
+    from ..io.outdir import out_lock
     from ..stages import STAGES, execute
     from ..stages.dataset import NoRunsRead
 
     folders = folders or {}
     main = [s.name for s in pipe.stages if s.name not in ("ingest", "figures")][-1]
+    first = data if isinstance(data, (str, Path)) else data[0]
+    out = Path(out)
+    try:
+        with out_lock(out, beside=True):
+            if out.is_dir() and not out.is_symlink() and not any(out.iterdir()):
+                (out / OWNER_MARKER).touch()      # an empty folder given as --out: taken
+            with atomic_folder(out) as tmp:
+                ctx, written = _run_in(pipe, data, first, tmp, rig=rig, model=model, quiet=quiet,
+                                       folders=folders, main=main, missing=missing,
+                                       execute=execute, stages=STAGES, no_runs=NoRunsRead,
+                                       errors=(DataError, FitError))
+                write_command_manifest(tmp, ctx, outputs=written, extra=manifest or {})
+    except _Unusable as exc:
+        return exc.code
+    final = [out / p.relative_to(tmp) if p.is_relative_to(tmp) else p for p in written]
+    return CommandRun(ctx, ctx.result("ingest"), ctx.result(main), final)
+
+
+def _run_in(pipe, data, first, folder: Path, *, rig, model, quiet, folders, main, missing,
+            execute, stages, no_runs, errors):
+    """:func:`run_command`'s stages, writing into ``folder``: (context, files)."""
+    import warnings
+
+    from ..errors import DataError
+
     written: list[Path] = []
 
     def done(name: str, value) -> None:
         if value is None and name == main:
-            raise DataError(missing, path=data if isinstance(data, (str, Path)) else data[0])
+            raise DataError(missing, path=first)
         if value is not None and name != "ingest":
-            written.extend(Path(p) for p in STAGES[name].write(value, out / folders.get(name, ".")))
+            written.extend(Path(p) for p in stages[name].write(value, folder / folders.get(name, ".")))
 
-    first = data if isinstance(data, (str, Path)) else data[0]
-    with stage_context(data, rig=rig, out_dir=out, model=model, quiet=quiet) as ctx, \
+    with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet) as ctx, \
             warnings.catch_warnings(record=True):
         warnings.simplefilter("always")   # a result keeps what matters (skipped runs, notes)
         try:
             execute(pipe, ctx, done=done)
-        except NoRunsRead as exc:
-            return unusable(first, exc.result.failed)
-        except (DataError, FitError) as exc:  # nothing usable: say which runs were bad and why
+        except no_runs as exc:
+            raise _Unusable(unusable(first, exc.result.failed)) from None
+        except errors as exc:  # nothing usable: say which runs were bad and why
             ds = ctx.result("ingest")
             if ds is None:
                 raise
-            return unusable(first, ds.failed, exc)
-    return CommandRun(ctx, ctx.result("ingest"), ctx.result(main), written)
+            raise _Unusable(unusable(first, ds.failed, exc)) from None
+    return ctx, written
 
 
 def unusable(data, failed, exc: Exception | None = None) -> int:

@@ -17,7 +17,6 @@ from ._common import (
     run_command,
     sim_default_dataset,
     verbosity,
-    write_command_manifest,
 )
 
 __all__ = ["discover_cmd"]
@@ -77,19 +76,18 @@ def discover_cmd(data, model_file, rig_file, holdout, out_dir, seed, identify_fi
         click.echo(f"no DATA given: using the built-in simulated paper flow-step data set ({data})",
                    err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "discover")
-    check_out_dir(data, out, files=[rig_file, model_file])
+    check_out_dir(data, out, files=[rig_file, model_file], owned=(".",))
     model = read_model(model_file, rig=rig) if model_file else None
     stages = ([{"name": "identify"}] if identify_first else []) + [
         {"name": "discover", "holdout": holdout, "seed": seed}]
     pipe = command_pipeline("discover", stages, figures=not no_figures, formats=formats)
     run = run_command(pipe, data, rig=rig, out=out, model=model, folders={"identify": "identify"},
-                      missing="nothing to discover")
+                      missing="nothing to discover",
+                      manifest={"holdout": holdout, "seed": seed, "identify": identify_first,
+                                "model": str(model_file) if model_file else None})
     if isinstance(run, int):
         return run
     result = run.value
-    write_command_manifest(out, run.ctx, outputs=run.written, extra={
-        "holdout": holdout, "seed": seed, "identify": identify_first,
-        "model": str(model_file) if model_file else None})
     if as_json:
         click.echo(result_json(result, run.ds, failed=result.failed, filtered=True))
     else:

@@ -18,7 +18,6 @@ from ._common import (
     run_command,
     sim_default_dataset,
     verbosity,
-    write_command_manifest,
 )
 
 __all__ = ["flowfit_cmd", "BUILTIN_SCENARIO"]
@@ -98,17 +97,16 @@ def flowfit_cmd(data: Path | None, rig_file: Path | None, out_dir: Path | None, 
         click.echo(f"no DATA given: using the built-in simulated data set "
                    f"'{BUILTIN_SCENARIO}' ({data})", err=as_json)
     out = Path(out_dir) if out_dir else default_out_dir(data, "flowfit")
-    check_out_dir(data, out, files=[rig_file])
+    check_out_dir(data, out, files=[rig_file], owned=(".",))
     sides = ["supply", "drain"] if side == "both" else [side]
     options = {"sides": sides, "procedure": procedure, "cam": cam, "n_boot": n_boot, "seed": seed}
     pipe = command_pipeline("flowfit", [{"name": "flowfit", **options}],
                             ingest={"method": method}, figures=not no_figures, formats=formats)
-    run = run_command(pipe, data, rig=rig, out=out, missing="no flow_step runs in the data set")
+    run = run_command(pipe, data, rig=rig, out=out, missing="no flow_step runs in the data set",
+                      manifest={"flowfit": {"data": str(data), "side": side, "method": method,
+                                            **options}})
     if isinstance(run, int):
         return run
-    write_command_manifest(out, run.ctx, outputs=run.written, extra={"flowfit": {
-        "data": str(data), "side": side, "method": method, **options,
-        "outputs": [str(p) for p in run.written]}})
     if as_json:
         click.echo(result_json(run.value, run.ds, filtered=True))
     else:

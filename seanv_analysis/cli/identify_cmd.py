@@ -16,7 +16,6 @@ from ._common import (
     run_command,
     sim_default_dataset,
     verbosity,
-    write_command_manifest,
 )
 
 __all__ = ["identify_cmd"]
@@ -69,15 +68,15 @@ def identify_cmd(data, rig_file, parts, n_boot, out_dir, as_json, quiet):
         click.echo("no DATA given: using the built-in simulated flow-step and position-control "
                    f"data sets ({data[0]}, {data[1]})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data[0], "identify")
-    check_out_dir(list(data), out, files=[rig_file])
+    check_out_dir(list(data), out, files=[rig_file], owned=(".",))
     options = {"n_boot": n_boot, **({"parts": list(parts)} if parts else {})}
     pipe = command_pipeline("identify", [{"name": "identify", **options}], figures=False)
     run = run_command(pipe, list(data), rig=rig, out=out, quiet=quiet,
-                      missing="no flow_step or position_control run to identify from")
+                      missing="no flow_step or position_control run to identify from",
+                      manifest={"parts": pipe.stage("identify").options["parts"],
+                                "n_boot": n_boot})
     if isinstance(run, int):
         return run
-    write_command_manifest(out, run.ctx, outputs=run.written, extra={
-        "parts": pipe.stage("identify").options["parts"], "n_boot": n_boot})
     if as_json:
         click.echo(result_json(run.value, run.ds))
     else:

@@ -17,7 +17,6 @@ from ._common import (
     run_command,
     sim_default_dataset,
     verbosity,
-    write_command_manifest,
 )
 
 __all__ = ["tracking_cmd"]
@@ -64,7 +63,7 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
         click.echo(f"no DATA given: using the built-in simulated paper position-control data "
                    f"set ({data})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "tracking")
-    check_out_dir(data, out, files=[rig_file, model_file])
+    check_out_dir(data, out, files=[rig_file, model_file], owned=(".",))
     model = read_model(model_file, rig=rig) if model_file else None
     options = {"shift_s": shift_s, "q_range": list(q_range)}
     pipe = command_pipeline("tracking", [{"name": "tracking", **options}],
@@ -72,12 +71,11 @@ def tracking_cmd(data, shift_s, q_range, model_file, rig_file, out_dir, no_figur
                             flags={"shift_s": "--shift", "q_range": "--range"})
     run = run_command(pipe, data, rig=rig, out=out, model=model,
                       missing="no position_control run in the data set; expected runs with "
-                              "run.json kind = 'position_control'")
+                              "run.json kind = 'position_control'",
+                      manifest={"shift_s": shift_s, "range_mm3_s": list(q_range),
+                                "model": str(model_file) if model_file else None})
     if isinstance(run, int):
         return run
-    write_command_manifest(out, run.ctx, outputs=run.written, extra={
-        "shift_s": shift_s, "range_mm3_s": list(q_range),
-        "model": str(model_file) if model_file else None})
     if as_json:
         click.echo(result_json(run.value, run.ds))
     else:

@@ -18,7 +18,6 @@ from ._common import (
     run_command,
     sim_default_dataset,
     verbosity,
-    write_command_manifest,
 )
 
 __all__ = ["validate_cmd"]
@@ -83,7 +82,7 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
         click.echo(f"no DATA given: using the built-in simulated paper position-control data "
                    f"set ({data})", err=True)
     out = Path(out_dir) if out_dir else default_out_dir(data, "validate")
-    check_out_dir(data, out, files=[rig_file, model_file])
+    check_out_dir(data, out, files=[rig_file, model_file], owned=(".",))
     # a model file's effects and proposed term (discover's model_augmented.json) are simulated
     model, effects = read_model_file(model_file, rig=rig) if model_file else (None, ())
     options = {"threshold_pct": threshold_pct, "controller_model": controller_model,
@@ -92,12 +91,12 @@ def validate_cmd(data, model_file, rig_file, threshold_pct, controller_model, ou
                             ingest={"derive": True}, figures=not no_figures, formats=formats,
                             flags={"threshold_pct": "--threshold"})
     run = run_command(pipe, data, rig=rig, out=out, model=model,
-                      missing="no position_control run could be validated")
+                      missing="no position_control run could be validated",
+                      manifest={"model": str(model_file) if model_file else None,
+                                "effects": list(effects), "threshold_pct": threshold_pct,
+                                "controller_model": controller_model})
     if isinstance(run, int):
         return run
-    write_command_manifest(out, run.ctx, outputs=run.written, extra={
-        "model": str(model_file) if model_file else None, "effects": list(effects),
-        "threshold_pct": threshold_pct, "controller_model": controller_model})
     if as_json:
         click.echo(result_json(run.value, run.ds, failed=run.value.failed))
     else:

@@ -13,12 +13,48 @@ defence: a folder this package did not make is never replaced or deleted.
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Iterator
 
 from ..errors import DataError, OutputError
 
-__all__ = ["check_out_dir"]
+__all__ = ["check_out_dir", "out_lock", "LOCK_NAME"]
+
+#: the lock file of a run in its output folder (:func:`out_lock`)
+LOCK_NAME = ".seanv-lock"
+
+
+@contextmanager
+def out_lock(out: str | Path, *, beside: bool = False) -> Iterator[Path]:
+    """Hold the output folder ``out`` for one run: an exclusive lock on
+    ``out/.seanv-lock`` (``beside``: ``<parent>/.<out>.lock``, for a folder
+    the run swaps in whole), so two runs into one folder cannot delete each
+    other's temp files or swap each other's folders. Yields the lock file.
+
+    Raises
+    ------
+    OutputError
+        another run holds it (one line: which folder, what to do).
+    """
+    out = Path(out)
+    lock = out.parent / f".{out.name}.lock" if beside else out / LOCK_NAME
+    lock.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:        # no POSIX locks here: nothing to hold
+        yield lock
+        return
+    fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            raise OutputError(f"{out}: another seanv-analyze run is writing there (it holds "
+                              f"{lock}); wait for it to end or choose another --out") from None
+        yield lock
+    finally:
+        os.close(fd)
 
 
 def _identity(path: Path) -> tuple[int, int] | None:

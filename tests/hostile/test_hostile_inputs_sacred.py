@@ -165,3 +165,45 @@ def test_stale_temps_only_of_our_folders(tmp_path):
     (theirs / "data.csv").write_text("t\n")
     assert remove_stale_temps(tmp_path, ["flowfit", "figures"]) == 1
     assert not mine.exists() and (theirs / "data.csv").is_file()
+
+
+def test_a_single_command_writes_its_folder_whole(data, tmp_path):
+    """A command's folder is swapped in whole: a file an earlier run left is
+    gone; a folder of the user's is refused; an empty one is taken."""
+    out = tmp_path / "out"
+    assert invoke("tracking", data, "--out", out, "-q", "--no-figures").exit_code in (0, 1)
+    (out / "stale_from_earlier.parquet").write_text("x")
+    assert invoke("tracking", data, "--out", out, "-q", "--no-figures").exit_code in (0, 1)
+    assert not (out / "stale_from_earlier.parquet").exists() and (out / "tracking.json").is_file()
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep")
+    assert_refused(invoke("tracking", data, "--out", mine, "-q"), r"did not write")
+    assert (mine / "notes.txt").read_text() == "keep"
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert invoke("tracking", data, "--out", empty, "-q", "--no-figures").exit_code in (0, 1)
+    assert (empty / "tracking.json").is_file()
+
+
+def test_one_run_at_a_time_per_output_folder(data, tmp_path):
+    """A second run into a folder another run holds is refused, one line."""
+    from seanv_analysis.io.outdir import out_lock
+
+    out = tmp_path / "out"
+    out.mkdir()
+    with out_lock(out):
+        assert_refused(invoke("run", "tracking", data, "--out", out, "-q"),
+                       r"another seanv-analyze run is writing there")
+    with out_lock(out / "cmd", beside=True):
+        assert_refused(invoke("tracking", data, "--out", out / "cmd", "-q"),
+                       r"another seanv-analyze run is writing there")
+
+
+def test_a_pipeline_run_retires_the_stage_folders_it_no_longer_has(data, tmp_path):
+    out = tmp_path / "out"
+    assert invoke("run", "tracking", data, "--out", out, "-q", "--no-figures").exit_code in (0, 1)
+    assert (out / "tracking").is_dir()
+    (out / "mine").mkdir()        # a folder of the user's stays
+    assert invoke("run", "flowfit", data, "--out", out, "-q", "--no-figures").exit_code in (0, 1)
+    assert not (out / "tracking").exists() and (out / "mine").is_dir()
