@@ -194,6 +194,9 @@ def main(argv: list[str] | None = None) -> int:
 
     from .batch import run_pipeline
     from .errors import SeanvError
+    from .log import configure
+
+    configure(quiet=args.quiet)   # progress bars on a terminal (the lines: log below)
 
     def log(msg: str) -> None:
         if not args.quiet:

@@ -142,10 +142,10 @@ def test_run_end_to_end_subprocess(data, tmp_path):
     exe = Path(sys.executable).with_name("seanv-analyze")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-c",
                                            "from seanv_analysis.cli import main; main()"]
-    proc = subprocess.run([*cmd, "run", "tracking", str(data), "--out", str(out), "--workers", "2"],
-                          capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run([*cmd, "run", "tracking", str(data), "--out", str(out), "--workers", "2",
+                           "-v"], capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert "stage ingest done" in proc.stderr       # plain line per stage when not a TTY
+    assert "stage ingest done" in proc.stderr       # plain line per stage with -v
     assert "\r" not in proc.stderr                  # no progress bar
     assert "report:" in proc.stdout
 

@@ -56,3 +56,12 @@ def test_svg_only_writes_no_png(tmp_path, make_dataset):
     assert res.exit_code == 0, res.output
     assert list(out.rglob("*.svg")), "no figure drawn"
     assert not list(out.rglob("*.png"))
+
+
+def test_identify_default_parts_are_every_part():
+    """The identify stage checks ``parts`` against its default (so a
+    pipeline is checked without importing the identify layer): every part."""
+    from seanv_analysis.identify import PARTS
+    from seanv_analysis.stages import identify
+
+    assert tuple(identify.OPTIONS["parts"]) == PARTS

@@ -1,7 +1,6 @@
 """``seanv-analyze plots``: the paper-style figures for a whole data set."""
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -92,14 +91,11 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
     figs = [f.number if f.number is not None else f.name for f in selected_figures(chosen)]
     out = Path(out_dir) if out_dir else default_out_dir(data, "plots")
     check_out_dir(data, out)
-    interactive = sys.stderr.isatty() and not os.environ.get("CI")
-    # a line per stage where no progress bar is drawn (-q: none)
-    log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
     try:
         pipe = plots_pipeline(figs)
         pipe["stages"][-1]["formats"] = list(formats)
         result = run_pipeline(pipe, data, out_dir=out, workers=workers,
-                              quiet=quiet, rig=rig_file, log=log, command=sys.argv)
+                              quiet=quiet, rig=rig_file, command=sys.argv)
     except DataError as exc:  # no run could be read: say which runs were bad and why
         from .run_cmd import bad_runs
         return unusable(data, bad_runs([data], rig_file, exc), exc)

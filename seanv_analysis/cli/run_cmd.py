@@ -98,14 +98,11 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
         datas = [data]
         out = Path(out_dir) if out_dir else default_out_dir(data, f"run-{pipe.name}")
     check_out_dir(datas, out, files=[pipe.source, rig_file], owned=owned_outputs(pipe))
-    interactive = sys.stderr.isatty() and not os.environ.get("CI")
-    # a line per stage where no progress bar is drawn (-q: none)
-    log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
     if scheduler is None and workers is None and os.environ.get("DASK_SCHEDULER_ADDRESS"):
         scheduler = os.environ["DASK_SCHEDULER_ADDRESS"]
     try:
         result = run_pipeline(pipe, datas, out_dir=out, workers=workers, scheduler=scheduler,
-                              force=force, quiet=quiet, rig=rig_file, log=log, command=sys.argv,
+                              force=force, quiet=quiet, rig=rig_file, command=sys.argv,
                               reuse=True)
     except DataError as exc:  # no run could be read: say which runs were bad and why
         return unusable(data, bad_runs(datas, rig_file, exc), exc)

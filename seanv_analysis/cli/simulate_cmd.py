@@ -1,7 +1,6 @@
 """``seanv-analyze simulate``: write a built-in scenario as a data set."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import click
@@ -71,22 +70,22 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
         parsed = parse_effects(effects)
     except ValueError as exc:  # the CLI's one-line error
         raise ConfigError(str(exc)) from None
-    bar = progress = None
-    if not quiet and sys.stderr.isatty():  # tqdm (and its ~40 ms import) only if seen
-        from tqdm import tqdm
+    from ..log import progress as progress_bar
+    from ..sim.scenarios import scenario_size
 
-        bar = tqdm(desc=scenario, unit="run", leave=False)
+    # drawn on a terminal unless -q (tqdm and its ~40 ms import only if seen)
+    bar = progress_bar(total=scenario_size(scenario), desc=scenario)
+    done_runs = [0]
 
-        def progress(done, total):
-            bar.total = total
-            bar.update(done - bar.n)
+    def progress(done, total):
+        bar.update(done - done_runs[0])
+        done_runs[0] = done
 
     try:
         path = simulate_scenario(scenario, out_dir, seed=seed, effects=parsed, rig=rig,
                                  write_truth=write_truth, fmt=fmt, progress=progress)
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     n = sum(1 for _ in path.rglob("run.json"))
     click.echo(f"wrote {n} runs of {scenario} to {path}"
                + (f" with {', '.join(e.spec() for e in parsed)}" if parsed else ""))
