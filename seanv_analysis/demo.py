@@ -137,7 +137,9 @@ def headline(result: dict, rig=None) -> str:
         rows.append(("flow delay behind Q_ref [s]",
                      f"{tr['lag_s']:.3f} {_ci(tr.get('lag_ci95_s'), '.3f')} ({tr.get('lag_source')})",
                      f"{rig.analysis.get('nominal_flow_lag_s', 0.25):.2f}"))
-        rows.append(("tracking RMSE, Q_ref in -2.5e3..8e3 [mm^3/s]", f"{tr['rmse_mm3_s']:.0f}",
+        lo, hi = tr.get("range_mm3_s") or (-2.5e3, 8e3)
+        rows.append((f"tracking RMSE, Q_ref in {lo / 1e3:g}e3..{hi / 1e3:g}e3 [mm^3/s]",
+                     f"{tr['rmse_mm3_s']:.0f} ({tr.get('pooled', 'all runs')})",
                      f"{PAPER_TRACKING_RMSE_MM3_S:.0f}"))
     width = max(len(r[0]) for r in rows)
     w2 = max(len(r[1]) for r in rows)

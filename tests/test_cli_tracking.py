@@ -144,3 +144,33 @@ def test_no_data_uses_builtin_dataset(sim_sets, tmp_path, monkeypatch):
     assert json.loads(res.stdout)["lag_source"] == "given"
     assert asked == ["paper-position"]
     assert (tmp_path / "outputs" / "paper-position-x" / "tracking" / "tracking.json").exists()
+
+
+def test_one_tracking_number_everywhere(tmp_path):
+    """Issue 33, point 2: ``tracking`` alone (which skips a run whose Q_ref
+    is only implied), the pipeline (which tracks it with the rig's model),
+    its report and its Fig. 7(b) give one RMSE: the runs with a commanded
+    Q_ref, in the range."""
+    from seanv_analysis.batch import run_pipeline
+    from seanv_analysis.report._format import _fmt
+
+    root = tmp_path / "pos"
+    write_delayed_run(root, "commanded", seed=21, duration_s=8.0)
+    write_delayed_run(root, "implied", seed=22, duration_s=8.0, q_ref_empty=True,
+                      flow_model=False, started_at="2026-03-02T10:05:00Z")
+    alone = CliRunner().invoke(cli, ["tracking", str(root), "--json", "--no-figures",
+                                     "--out", str(tmp_path / "t")])
+    assert alone.exit_code == 0, alone.output
+    alone = json.loads(alone.stdout)
+    pipe = {"pipeline": {"name": "t"}, "stages": [{"name": "ingest"}, {"name": "tracking"},
+                                                   {"name": "report"}]}
+    res = run_pipeline(pipe, root, out_dir=tmp_path / "run", workers=1, quiet=True)
+    doc = json.loads((tmp_path / "run" / "result.json").read_text())["tracking"]
+    assert [r["target_source"] for r in doc["runs"]] == ["q_ref", "model"]
+    assert doc["pooled_runs"] == alone["pooled_runs"] == ["commanded"]
+    assert doc["rmse_mm3_s"] == alone["rmse_mm3_s"] == res["tracking"].rmse_mm3_s
+    html = res.report_path.read_text()
+    assert f"{_fmt(doc['rmse_mm3_s'], 4)} mm" in html and "runs with a commanded Q_ref" in html
+    from seanv_analysis.plots.fig7 import scatter_runs
+
+    assert [r.run_id for r in scatter_runs(res["tracking"])[0]] == ["commanded"]

@@ -19,6 +19,12 @@ For each position_control run:
   ``q_range`` (inclusive; the paper's -2.5e3..8e3 mm^3/s): RMSE, bias, RMSE
   per side (target >= 0 supply, < 0 drain) and per load level.
 
+The headline numbers (the pooled delay estimate, RMSE, bias, per side and
+load) are the paper's: over the runs whose Q_ref the controller commanded
+(logged, or Kp e of the flow-model controller: :data:`COMMANDED`), in the
+stated Q_ref range. A run without the flow model has no commanded Q_ref (its
+target is only implied by a valve model): it gets its own numbers, and is
+pooled only when no run had a commanded Q_ref (``pooled`` says which).
 The paper reports RMSE = 0.516e3 mm^3/s with a 0.25 s shift.
 """
 from __future__ import annotations
@@ -37,13 +43,22 @@ from ..jsonable import JsonResult, json_num
 from ..signals.derive import derive_samples
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments
 
-__all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "load_level_holds", "RunTracking", "Tracking",
-           "run_flows", "tracking_runs", "load_levels_mpag"]
+__all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "COMMANDED", "load_level_holds",
+           "RunTracking", "Tracking", "run_flows", "tracking_runs", "load_levels_mpag"]
 
 #: The paper's fitting range of the target flow [mm^3/s] (Sec. III-C.2).
 DEFAULT_Q_RANGE_MM3_S = (-2.5e3, 8e3)
+#: Target sources that are the controller's commanded Q_ref: logged, or Kp e
+#: of the flow-model controller (``model``: only implied by a valve model).
+COMMANDED = ("q_ref", "kp_error")
 #: Load pressures are grouped into levels on this grid [MPa].
 LOAD_LEVEL_STEP_MPA = 0.05
+
+
+#: how the headline numbers' runs are said
+POOLED_COMMANDED = "runs with a commanded Q_ref"
+POOLED_ALL = ("all runs: none had a commanded Q_ref (targets implied by the valve model at "
+              "the commanded cam)")
 
 
 def _rmse(r: np.ndarray) -> float:
@@ -243,8 +258,9 @@ class Tracking(JsonResult):
     lag_source : 'given' | 'estimated'
     lag : pooled :class:`LagEstimate` (also computed when the lag is given,
         for reference; None if it failed)
-    rmse_mm3_s, bias_mm3_s : pooled over all runs' in-range samples,
-        residual = shifted actual - target [mm^3/s]
+    rmse_mm3_s, bias_mm3_s : pooled over the in-range samples of the
+        ``pooled_runs`` (the runs with a commanded Q_ref, as the paper's
+        Fig. 7(b)), residual = shifted actual - target [mm^3/s]
     rmse_supply_mm3_s, rmse_drain_mm3_s : target >= 0 / < 0 [mm^3/s]
     rmse_by_load_mm3_s : {load level [MPaG]: RMSE}
     range_mm3_s : (lo, hi) target range, inclusive [mm^3/s]
@@ -252,6 +268,9 @@ class Tracking(JsonResult):
     runs : per-run :class:`RunTracking`
     skipped : {run_id: reason}
     warnings : messages worth reading
+    pooled_runs : run_ids the headline numbers pool
+    pooled : what they are, in words ("runs with a commanded Q_ref", or
+        "all runs: none had a commanded Q_ref ...")
     """
 
     lag_s: float
@@ -267,6 +286,8 @@ class Tracking(JsonResult):
     runs: list[RunTracking]
     skipped: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    pooled_runs: list[str] = field(default_factory=list)
+    pooled: str = POOLED_COMMANDED
 
     @property
     def success(self) -> bool:
@@ -292,7 +313,9 @@ class Tracking(JsonResult):
                 "rmse_mm3_s": json_num(self.rmse_mm3_s), "bias_mm3_s": json_num(self.bias_mm3_s),
                 "range_mm3_s": [float(self.range_mm3_s[0]), float(self.range_mm3_s[1])],
                 "n_samples": int(self.n_samples),
-                "runs": [{"run_id": r.run_id, "lag_s": json_num(r.lag_s),
+                "pooled": self.pooled, "pooled_runs": list(self.pooled_runs),
+                "runs": [{"run_id": r.run_id, "target_source": r.target_source,
+                          "pooled": r.run_id in self.pooled_runs, "lag_s": json_num(r.lag_s),
                           "rmse_mm3_s": json_num(r.rmse_mm3_s)} for r in self.runs]}
 
     def details(self) -> dict[str, Any]:
@@ -339,23 +362,30 @@ class Tracking(JsonResult):
         else:
             lines.append(f"  delay: estimated, {self.lag.report() if self.lag else 'failed'}")
         lines.append(f"  actual shifted earlier by {self.lag_s:.4f} s; target range "
-                     f"[{lo:g}, {hi:g}] mm^3/s, {self.n_samples} samples")
-        lines.append(f"  RMSE {self.rmse_mm3_s:.1f} mm^3/s (paper: 516), bias "
-                     f"{self.bias_mm3_s:+.1f} mm^3/s (actual - target)")
+                     f"[{lo:g}, {hi:g}] mm^3/s, {self.n_samples} samples of the "
+                     f"{self.pooled} ({', '.join(self.pooled_runs)})")
+        lines.append(f"  RMSE {self.rmse_mm3_s:.1f} mm^3/s (paper: 516, its run with a "
+                     f"commanded Q_ref), bias {self.bias_mm3_s:+.1f} mm^3/s (actual - target)")
         lines.append(f"  per side: supply {self.rmse_supply_mm3_s:.1f}, drain "
                      f"{self.rmse_drain_mm3_s:.1f} mm^3/s")
         if self.rmse_by_load_mm3_s:
             lines.append("  per load level: " + ", ".join(
                 f"{k:g} MPaG {v:.1f}" for k, v in sorted(self.rmse_by_load_mm3_s.items())))
-        lines.append(f"  {'run':<32} {'lag est [s]':>11} {'RMSE':>8} {'bias':>8} {'n':>7}")
+        lines.append(f"  {'run':<32} {'lag est [s]':>11} {'RMSE':>8} {'bias':>8} {'n':>7}  target")
         for r in self.runs:
             lines.append(f"  {r.run_id:<32} {r.lag_s:>11.4f} {r.rmse_mm3_s:>8.1f} "
-                         f"{r.bias_mm3_s:>+8.1f} {r.n_samples:>7d}")
+                         f"{r.bias_mm3_s:>+8.1f} {r.n_samples:>7d}  {_SOURCE_WORDS[r.target_source]}")
         for rid, why in self.skipped.items():
             lines.append(f"  skipped {rid}: {why}")
         for w in self.warnings:
             lines.append(f"  warning: {w}")
         return "\n".join(lines)
+
+#: a run's target, in words (the report's run table)
+_SOURCE_WORDS = {"q_ref": "commanded Q_ref (logged)",
+                 "kp_error": "commanded Q_ref = Kp e (from the logged error)",
+                 "model": "implied by the valve model (not pooled)"}
+
 
 def _summary(resid: np.ndarray, target: np.ndarray, load: np.ndarray):
     sup = target >= 0
@@ -397,7 +427,9 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
     -----
     RMSE = sqrt(mean((Q(t + lag) - Q_ref(t))^2)) over the samples with
     lo <= Q_ref(t) <= hi and Q(t + lag) inside the record; the per-run RMSE
-    uses the same (pooled or given) lag.
+    uses the same (pooled or given) lag. The pooled lag estimate and the
+    headline numbers are over the runs with a commanded Q_ref
+    (:data:`COMMANDED`; all runs when none has one): the paper's Fig. 7(b).
     """
     if len(q_range) != 2 or not float(q_range[0]) < float(q_range[1]):
         raise ConfigError(f"q_range: expected (lo, hi) with lo < hi, got {tuple(q_range)}")
@@ -424,9 +456,12 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
                         "target flow (q_ref_mm3_s, flow-model kp, or --model)")
     segs = [(df.t_s.to_numpy(), df.q_ref_mm3_s.to_numpy(), df.q_mm3_s.to_numpy())
             for _, df, _ in flows]
+    # the headline pools the runs with a commanded Q_ref (all, if none has one)
+    pool = [i for i, (_, _, src) in enumerate(flows) if src in COMMANDED] or list(range(len(flows)))
+    pooled_what = POOLED_COMMANDED if flows[pool[0]][2] in COMMANDED else POOLED_ALL
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        pooled = estimate_lag_segments(segs, max_lag_s=max_lag_s, seed=seed)
+        pooled = estimate_lag_segments([segs[i] for i in pool], max_lag_s=max_lag_s, seed=seed)
         per_run = []
         for seg in segs:
             try:
@@ -444,7 +479,7 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
         lag_s, source = pooled.lag_s, "estimated"
     results = []
     all_r, all_q, all_l = [], [], []
-    for (run, df, tsrc), lag in zip(flows, per_run):
+    for i, ((run, df, tsrc), lag) in enumerate(zip(flows, per_run)):
         t = df.t_s.to_numpy()
         q = df.q_ref_mm3_s.to_numpy()
         qs = _shifted(t, df.q_mm3_s.to_numpy(), lag_s)
@@ -456,6 +491,8 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
                                                df.load_level_mpag.to_numpy()[inside])
         results.append(RunTracking(run.run_id, tsrc, lag, lag_s,
                                    rmse, bias, rs, rd, int(inside.sum()), by_load, data, run))
+        if i not in pool:
+            continue
         all_r.append(resid)
         all_q.append(q[inside])
         all_l.append(df.load_level_mpag.to_numpy()[inside])
@@ -464,5 +501,6 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
     if resid.size == 0:
         notes.append(f"no sample has its target inside [{lo:g}, {hi:g}] mm^3/s")
     return Tracking(lag_s, source, pooled if pooled.success else None, rmse, bias, rs, rd,
-                    by_load, (lo, hi), int(resid.size), results, skipped, notes)
+                    by_load, (lo, hi), int(resid.size), results, skipped, notes,
+                    pooled_runs=[flows[i][0].run_id for i in pool], pooled=pooled_what)
 

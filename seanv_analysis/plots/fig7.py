@@ -28,7 +28,8 @@ from ._style import (
 )
 from .registry import Figure, register_figure
 
-__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", "draw"]
+__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", "draw",
+           "scatter_runs"]
 
 _K = 1e-3  # axes in 10^3 mm^3/s, as the paper
 
@@ -39,23 +40,13 @@ TARGET_LABELS = {"q_ref": "target $Q_{ref}$ (logged)",
                  "model": "$Q_{ref}$ implied by the flow model (not commanded)"}
 
 
-def pooled_rmse(runs) -> float:
-    """RMSE [mm^3/s] over the in-range samples of ``runs`` pooled (each run's
-    RMSE weighted by its sample count, as the tracking stage pools them)."""
-    n = np.array([r.n_samples for r in runs], dtype=float)
-    e = np.array([r.rmse_mm3_s for r in runs], dtype=float)
-    ok = (n > 0) & np.isfinite(e)
-    return float(np.sqrt(np.sum(n[ok] * e[ok] ** 2) / np.sum(n[ok]))) if ok.any() else np.nan
-
-
 def scatter_runs(tracking) -> tuple[list, str]:
-    """The runs of panel (b) and how to say it: as the paper (Fig. 7(b)
-    shows the run with the flow model, Fig. 6(b)), the runs whose target
-    Q_ref was logged; all runs when none was."""
-    logged = [r for r in tracking.runs if r.target_source == "q_ref"]
-    if logged and len(logged) < len(tracking.runs):
-        return logged, "runs with a logged $Q_{ref}$ (flow-model controller)"
-    return list(tracking.runs), "all runs"
+    """The runs of panel (b) and how to say it: the runs the tracking
+    headline pools (``tracking.pooled_runs``: those with a commanded Q_ref,
+    as the paper's Fig. 7(b); all runs when none had one), so the panel's
+    RMSE is the headline's."""
+    pooled = set(tracking.pooled_runs)
+    return [r for r in tracking.runs if r.run_id in pooled], tracking.pooled
 
 
 def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = True) -> None:
@@ -139,10 +130,9 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
 
     The data-set figure has (a) one time panel per run (up to ``max_runs``;
     the run with a logged Q_ref first; a target only implied by the flow
-    model is dashed and labelled so) and (b) the scatter of the runs whose
-    Q_ref was logged (the paper's Fig. 7(b): the run with the flow model;
-    all runs when no run or every run logged it), with the RMSE of exactly
-    those runs.
+    model is dashed and labelled so) and (b) the scatter of the runs the
+    tracking headline pools (those with a commanded Q_ref, the paper's
+    Fig. 7(b); :func:`scatter_runs`), titled with the headline RMSE.
 
     Parameters
     ----------
@@ -178,7 +168,7 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
                 ax.set_xlabel("")
         ax_b = fig.add_subplot(gs[:, 1])
         draw_flow_scatter(ax_b, [r.data for r in in_b], q_range=tracking.range_mm3_s,
-                          lag_s=tracking.lag_s, rmse_mm3_s=pooled_rmse(in_b))
+                          lag_s=tracking.lag_s, rmse_mm3_s=tracking.rmse_mm3_s)
         ax_b.set_title(f"(b) {which}, shift {tracking.lag_s:.3g} s ({tracking.lag_source})\n"
                        + ax_b.get_title())
         fig.tight_layout()

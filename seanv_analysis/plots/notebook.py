@@ -68,7 +68,7 @@ def _dataset(ds, ax):
 
 
 def _tracking(tr, ax, panel: str = "b", run: str | None = None):
-    from .fig7 import draw_flow_scatter, draw_flow_time, pooled_rmse, scatter_runs
+    from .fig7 import draw_flow_scatter, draw_flow_time, scatter_runs
 
     if panel == "a":
         r = next((r for r in tr.runs if run in (None, r.run_id)), None)
@@ -83,7 +83,7 @@ def _tracking(tr, ax, panel: str = "b", run: str | None = None):
         ax = _axes(ax, figsize=(5.0, 4.6))
         runs, which = scatter_runs(tr)
         draw_flow_scatter(ax, [r.data for r in runs], q_range=tr.range_mm3_s, lag_s=tr.lag_s,
-                          rmse_mm3_s=pooled_rmse(runs))
+                          rmse_mm3_s=tr.rmse_mm3_s)
         ax.set_title(f"(b) {which}\n" + ax.get_title(), fontsize=9)
         return ax
     raise ValueError(f"panel: expected 'a' (flows against time) or 'b' (actual vs target), "

@@ -197,8 +197,9 @@ def tracking_section(r) -> str:
         out.append("<table>"
                    f"<tr><td class='l'>flow delay (actual behind target)</td><td>{lag}</td></tr>"
                    f"<tr><td class='l'>RMSE of shifted actual &minus; target, targets in "
-                   f"[{_fmt(lo)}, {_fmt(hi)}] {MM3_S}</td><td>{_fmt(tr.rmse_mm3_s, 4)} {MM3_S} "
-                   f"(paper: 516 {MM3_S})</td></tr>"
+                   f"[{_fmt(lo)}, {_fmt(hi)}] {MM3_S}, pooled over the {_e(tr.pooled)} "
+                   f"({_e(', '.join(tr.pooled_runs))})</td><td>{_fmt(tr.rmse_mm3_s, 4)} {MM3_S} "
+                   f"(paper: 516 {MM3_S}, its run with a commanded Q_ref)</td></tr>"
                    f"<tr><td class='l'>bias (actual &minus; target)</td><td>{_fmt(tr.bias_mm3_s, 4)} {MM3_S}"
                    "</td></tr>"
                    f"<tr><td class='l'>RMSE supply / drain targets</td><td>{_fmt(tr.rmse_supply_mm3_s, 4)} / "
@@ -392,7 +393,8 @@ def tracking_cards(r) -> list[tuple[str, str]]:
     """The overview's tracking numbers: RMSE and delay."""
     if r.tracking is None:
         return []
-    return [(f"{_fmt(r.tracking.rmse_mm3_s, 3)}", "flow tracking RMSE [mm³/s]"),
+    return [(f"{_fmt(r.tracking.rmse_mm3_s, 3)}",
+             f"flow tracking RMSE [mm³/s], {r.tracking.pooled}"),
             (f"{_fmt(r.tracking.lag_s, 3)}", "flow delay [s]")]
 
 
