@@ -10,13 +10,14 @@ from .errors import ConfigError, DataError, FitError, SeanvError
 
 __all__ = ["__version__", "SeanvError", "DataError", "ConfigError", "FitError",
            "RigConfig", "load_rig", "ValveModel", "ValveSide", "NeedleGeometry",
-           "load_dataset", "flowfit"]
+           "load_dataset", "flowfit", "tracking", "validate", "identify", "discover", "run"]
 
 #: names imported on first use (numpy and the rest stay out of
 #: ``import seanv_analysis`` and ``seanv-analyze --help``): name -> module
 _LAZY = {"ValveModel": "seanv_analysis.models", "ValveSide": "seanv_analysis.models",
-         "NeedleGeometry": "seanv_analysis.models", "load_dataset": "seanv_analysis.api",
-         "flowfit": "seanv_analysis.api"}
+         "NeedleGeometry": "seanv_analysis.models",
+         **{name: "seanv_analysis.api" for name in ("load_dataset", "flowfit", "tracking",
+                                                   "validate", "identify", "discover", "run")}}
 
 
 def __getattr__(name):

@@ -25,6 +25,7 @@ def folder(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("readme")
     simulate_scenario("paper-flowsteps-small", root / "data" / "flow", seed=0)
+    simulate_scenario("paper-position", root / "data" / "pos", seed=0)
     return root
 
 
@@ -42,6 +43,8 @@ def test_readme_snippet_runs_and_recovers_the_paper_values(folder, monkeypatch, 
     assert frame.loc["drain", "c_flow"] == pytest.approx(-22.636, rel=0.02)
     assert scope["ax"].get_xlabel() == "Cam rotation angle [deg]"
     assert "Discovery:" in out
+    assert "<Tracking lag 0.250 s (given)" in out
+    assert scope["res"].success and (folder / "outputs" / "flow" / "report.html").is_file()
 
 
 def test_import_loads_no_plotting_library():
