@@ -82,3 +82,20 @@ def test_run_stages_refuses_as_a_pipeline_file_does(data, tmp_path, names, optio
     said = str(from_toml.value).split(": ", 1)[1]
     assert str(from_call.value) == f"run_stages: {said}"
     assert not isinstance(from_call.value, KeyError)
+
+
+def test_identify_and_discover_are_commands_and_their_subpackages():
+    """``seanv_analysis.identify`` and ``.discover`` are also subpackages,
+    which the import system sets on the package when imported: they are
+    callable (the command) and stay the modules (their names)."""
+    import seanv_analysis.discover
+    import seanv_analysis.identify  # noqa: F401
+    from seanv_analysis import api
+    from seanv_analysis.identify import identify_rig
+
+    for name in ("identify", "discover"):
+        func = getattr(sa, name)
+        assert callable(func)
+        assert inspect.signature(func) == inspect.signature(getattr(api, name))
+    assert sa.identify.identify_rig is identify_rig
+    assert sa.discover.__name__ == "seanv_analysis.discover"
