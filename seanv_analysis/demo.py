@@ -135,7 +135,7 @@ def headline(result: dict, rig=None) -> str:
     tr = result.get("tracking") or {}
     if tr.get("lag_s") is not None:
         rows.append(("flow delay behind Q_ref [s]",
-                     f"{tr['lag_s']:.3f} {_ci(tr.get('lag_ci95_s'), '.3f')} ({tr.get('lag_source')})",
+                     f"{tr['lag_s']:.3f} {_ci(tr.get('lag_ci95_s'), '.3f')} (estimated)",
                      f"{rig.analysis.get('nominal_flow_lag_s', 0.25):.2f}"))
         lo, hi = tr.get("range_mm3_s") or (-2.5e3, 8e3)
         rows.append((f"tracking RMSE, Q_ref in {lo / 1e3:g}e3..{hi / 1e3:g}e3 [mm^3/s]",

@@ -32,7 +32,7 @@ def test_tracking_json_shift(dataset, tmp_path):
     doc = json.loads(res.stdout)  # nothing else on stdout
     expected = run_stages(dataset, ["ingest", "tracking"],
                           options={"tracking": {"shift_s": 0.25}}).result("tracking")
-    assert doc["lag_source"] == "given" and doc["lag_s"] == 0.25
+    assert doc["shift_source"] == "given" and doc["shift_s"] == 0.25
     assert_allclose(doc["rmse_mm3_s"], expected.rmse_mm3_s, rtol=1e-12)
     assert doc["n_samples"] == expected.n_samples
     assert [r["run_id"] for r in doc["runs"]] == ["pos0", "pos1"]
@@ -48,7 +48,8 @@ def test_tracking_estimated_and_range(dataset, tmp_path):
                                    "--json", "--no-figures", "--out", str(out)])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
-    assert doc["lag_source"] == "estimated" and abs(doc["lag_s"] - 0.237) < 0.005
+    assert doc["shift_source"] == "estimated" and abs(doc["lag_s"] - 0.237) < 0.005
+    assert doc["shift_s"] == doc["lag_s"]
     assert len(doc["lag_ci95_s"]) == 2 and doc["range_mm3_s"] == [-2000.0, 6000.0]
 
 
@@ -66,7 +67,7 @@ def test_tracking_subprocess_end_to_end(dataset, tmp_path):
                            "--shift", "0.25", "--json", "--no-figures", "--out",
                            str(tmp_path / "sp")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert json.loads(proc.stdout)["lag_s"] == 0.25
+    assert json.loads(proc.stdout)["shift_s"] == 0.25
 
 
 # --- on simulated data sets ------------------------------------------------------
@@ -141,7 +142,7 @@ def test_no_data_uses_builtin_dataset(sim_sets, tmp_path, monkeypatch):
     res = CliRunner().invoke(cli, ["tracking", "--shift", "0.25", "--json", "--no-figures"])
     assert res.exit_code == 0, res.output
     assert "built-in simulated paper position-control data set" in res.stderr
-    assert json.loads(res.stdout)["lag_source"] == "given"
+    assert json.loads(res.stdout)["shift_source"] == "given"
     assert asked == ["paper-position"]
     assert (tmp_path / "outputs" / "paper-position-x" / "tracking" / "tracking.json").exists()
 

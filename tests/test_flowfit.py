@@ -81,7 +81,7 @@ def test_model_carries_fit_and_threshold_table(rig, paper_fit, paper_summary):
     ok = pl[pl["success"]]
     dev = np.abs(ok["theta_d_deg"] - ok["theta_d_model_deg"]) / ok["theta_d_se_deg"]
     assert float(np.median(dev)) < 2.0
-    assert (np.sign(ok["alpha"]) == np.where(ok["side"] == "supply", 1, -1)).all()
+    assert (np.sign(ok["alpha_mm3_s_deg2"]) == np.where(ok["side"] == "supply", 1, -1)).all()
 
 
 def test_per_run_residual_is_measured_minus_model(paper_fit, paper_summary):

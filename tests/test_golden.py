@@ -117,6 +117,9 @@ def test_pipeline_result_follows_the_schema_and_names_units(golden_run):
     doc, _ = golden_run
     check_schema("run", doc)
     assert keys_without_unit(doc) == []
+    from test_names import other_names
+
+    assert other_names(doc) == []          # one name per quantity (issue 33, point 4)
     # integers stay integers (JSON Schema's "integer" also admits 6.0)
     assert all(isinstance(r["steps"], int) for r in doc["validation"]["runs"])
     assert all(isinstance(c["steps"], int) for c in doc["validation"]["by_controller"].values())

@@ -175,8 +175,8 @@ def _per_load() -> pd.DataFrame:
     for an 800 px window without scrolling."""
     rng = np.random.default_rng(0)
     cols = ["load_level_mpag", "n_runs", "p1_mpa", "dp_mpa", "p1_threshold_mpa",
-            "dp_threshold_mpa", "theta_d_deg", "theta_d_se_deg", "alpha", "alpha_se",
-            "rmse_mm3_s", "theta_d_model_deg", "alpha_model"]
+            "dp_threshold_mpa", "theta_d_deg", "theta_d_se_deg", "alpha_mm3_s_deg2",
+            "alpha_se_mm3_s_deg2", "rmse_mm3_s", "theta_d_model_deg", "alpha_model_mm3_s_deg2"]
     df = pd.DataFrame(rng.uniform(-30.0, 30.0, (10, len(cols))) * 1.2345678, columns=cols)
     df.insert(0, "side", ["supply"] * 5 + ["drain"] * 5)
     df["success"], df["message"] = True, ""

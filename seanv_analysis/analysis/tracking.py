@@ -210,8 +210,9 @@ class RunTracking:
     ----------
     run_id : the run
     target_source : 'q_ref' | 'kp_error' | 'model'
-    lag : this run's own delay estimate (None if it failed)
-    lag_applied_s : shift applied to this run's actual flow [s]
+    lag : this run's own delay estimate (None if it failed; ``lag_s``)
+    shift_s : shift applied to this run's actual flow [s] (the data set's:
+        given, or the pooled estimate)
     rmse_mm3_s, bias_mm3_s : of (shifted actual - target) inside the range [mm^3/s]
     rmse_supply_mm3_s, rmse_drain_mm3_s : same, target >= 0 / < 0 [mm^3/s]
     n_samples : samples inside the range
@@ -224,7 +225,7 @@ class RunTracking:
     run_id: str
     target_source: str
     lag: LagEstimate | None
-    lag_applied_s: float
+    shift_s: float
     rmse_mm3_s: float
     bias_mm3_s: float
     rmse_supply_mm3_s: float
@@ -243,7 +244,7 @@ class RunTracking:
         ci = self.lag.ci95_s if self.lag is not None and self.lag.ci95_s else (math.nan, math.nan)
         return {"run_id": self.run_id, "target_source": self.target_source,
                 "lag_s": self.lag_s, "lag_ci95_lo_s": ci[0], "lag_ci95_hi_s": ci[1],
-                "lag_applied_s": self.lag_applied_s, "rmse_mm3_s": self.rmse_mm3_s,
+                "shift_s": self.shift_s, "rmse_mm3_s": self.rmse_mm3_s,
                 "bias_mm3_s": self.bias_mm3_s, "rmse_supply_mm3_s": self.rmse_supply_mm3_s,
                 "rmse_drain_mm3_s": self.rmse_drain_mm3_s, "n_samples": self.n_samples}
 
@@ -252,12 +253,16 @@ class RunTracking:
 class Tracking(JsonResult):
     """Flow tracking of a set of position_control runs (``tracking --json`` contract).
 
+    Names: a *lag* is an estimate (of the data set pooled, ``lag_s``, or of
+    a run, ``runs[].lag_s``); the *shift* is the delay compensated (``shift_s``).
+
     Attributes
     ----------
-    lag_s : delay applied [s] (given, or the pooled estimate)
-    lag_source : 'given' | 'estimated'
-    lag : pooled :class:`LagEstimate` (also computed when the lag is given,
-        for reference; None if it failed)
+    shift_s : delay compensated [s]: given, or the pooled estimate
+    shift_source : 'given' | 'estimated'
+    lag : pooled :class:`LagEstimate` of the runs with a commanded Q_ref
+        (also computed when the shift is given, for reference; None if it
+        failed); ``lag_s`` and ``lag_ci95_s`` read it
     rmse_mm3_s, bias_mm3_s : pooled over the in-range samples of the
         ``pooled_runs`` (the runs with a commanded Q_ref, as the paper's
         Fig. 7(b)), residual = shifted actual - target [mm^3/s]
@@ -273,8 +278,8 @@ class Tracking(JsonResult):
         "all runs: none had a commanded Q_ref ...")
     """
 
-    lag_s: float
-    lag_source: str
+    shift_s: float
+    shift_source: str
     lag: LagEstimate | None
     rmse_mm3_s: float
     bias_mm3_s: float
@@ -294,21 +299,28 @@ class Tracking(JsonResult):
         return self.n_samples > 0 and math.isfinite(self.rmse_mm3_s)
 
     @property
+    def lag_s(self) -> float:
+        """The pooled delay estimate [s] (NaN when it failed)."""
+        return self.lag.lag_s if self.lag is not None else math.nan
+
+    @property
     def lag_ci95_s(self) -> tuple[float, float] | None:
-        """95 % interval of the estimated lag [s]; None when the lag was given."""
-        if self.lag_source != "estimated" or self.lag is None:
-            return None
-        return self.lag.ci95_s
+        """95 % interval of the pooled delay estimate [s]; None without one."""
+        return None if self.lag is None else self.lag.ci95_s
 
     @property
     def per_run(self) -> pd.DataFrame:
-        """One row per run (lag estimate, applied shift, RMSE, bias, per side)."""
-        return pd.DataFrame([r.row() for r in self.runs])
+        """One row per run (lag estimate, applied shift, RMSE, bias, per side;
+        ``pooled``: in the headline numbers)."""
+        return pd.DataFrame([{**r.row(), "pooled": r.run_id in self.pooled_runs}
+                             for r in self.runs])
 
     def to_json_dict(self) -> dict[str, Any]:
-        """The ``tracking --json`` document (``runs[].lag_s`` = the run's own estimate)."""
+        """The ``tracking --json`` document: ``shift_s`` the delay compensated,
+        ``lag_s`` the pooled estimate, ``runs[].lag_s`` each run's own estimate."""
         ci = self.lag_ci95_s
-        return {"lag_s": json_num(self.lag_s), "lag_source": self.lag_source,
+        return {"shift_s": json_num(self.shift_s), "shift_source": self.shift_source,
+                "lag_s": json_num(self.lag_s),
                 "lag_ci95_s": None if ci is None else [json_num(ci[0]), json_num(ci[1])],
                 "rmse_mm3_s": json_num(self.rmse_mm3_s), "bias_mm3_s": json_num(self.bias_mm3_s),
                 "range_mm3_s": [float(self.range_mm3_s[0]), float(self.range_mm3_s[1])],
@@ -332,7 +344,7 @@ class Tracking(JsonResult):
 
     def __repr__(self) -> str:
         lo, hi = self.range_mm3_s
-        return (f"<Tracking lag {self.lag_s:.3f} s ({self.lag_source}), RMSE "
+        return (f"<Tracking shift {self.shift_s:.3f} s ({self.shift_source}), RMSE "
                 f"{self.rmse_mm3_s:.4g} mm^3/s over Q_ref in [{lo:g}, {hi:g}] mm^3/s; "
                 f"{len(self.runs)} runs" + (f", {len(self.skipped)} skipped" if self.skipped
                                              else "") + ">")
@@ -345,7 +357,7 @@ class Tracking(JsonResult):
         return plot(self, ax, **kwargs)
 
     def to_frame(self) -> pd.DataFrame:
-        """One row per tracked run: lag_s, rmse_mm3_s (``per_run``)."""
+        """One row per tracked run: lag_s (its estimate), shift_s, rmse_mm3_s... (``per_run``)."""
         return self.per_run
 
     def skipped_runs(self) -> dict[str, str]:
@@ -356,12 +368,12 @@ class Tracking(JsonResult):
         """Plain-text summary."""
         lo, hi = self.range_mm3_s
         lines = ["Flow tracking during position control (paper Sec. III-C.2, Fig. 7)"]
-        if self.lag_source == "given":
+        if self.shift_source == "given":
             est = f" (estimated: {self.lag.report()})" if self.lag is not None else ""
-            lines.append(f"  delay: {self.lag_s:.3f} s given{est}")
+            lines.append(f"  delay: {self.shift_s:.3f} s given{est}")
         else:
             lines.append(f"  delay: estimated, {self.lag.report() if self.lag else 'failed'}")
-        lines.append(f"  actual shifted earlier by {self.lag_s:.4f} s; target range "
+        lines.append(f"  actual shifted earlier by {self.shift_s:.4f} s; target range "
                      f"[{lo:g}, {hi:g}] mm^3/s, {self.n_samples} samples of the "
                      f"{self.pooled} ({', '.join(self.pooled_runs)})")
         lines.append(f"  RMSE {self.rmse_mm3_s:.1f} mm^3/s (paper: 516, its run with a "

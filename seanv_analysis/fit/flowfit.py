@@ -256,9 +256,9 @@ class FlowFit(JsonResult):
         measured flow with the fitted C, eq. 6) [deg], sigma_mm3_s (noise scale),
         z_score, used
     per_load : one row per side and load level: theta_d_deg +- theta_d_se_deg [deg],
-        alpha +- alpha_se [mm^3/(s deg^2)], p1_mpa, dp_mpa (medians of the runs used),
+        alpha_mm3_s_deg2 +- alpha_se_mm3_s_deg2, p1_mpa, dp_mpa (medians of the runs used),
         p1/dp_threshold_mpa (interpolated at theta_d over the level's runs), n_runs,
-        theta_d_model_deg and alpha_model (the fitted model at those pressures)
+        theta_d_model_deg and alpha_model_mm3_s_deg2 (the fitted model at those pressures)
     excluded : runs excluded per reason {'leakage', 'friction', 'cam_range', 'invalid'}
     success, message : True when every side asked for was fitted
     warnings : recoverable oddities met on the way
@@ -283,12 +283,15 @@ class FlowFit(JsonResult):
         return out
 
     def to_frame(self) -> pd.DataFrame:
-        """One row per side: z0_mm, C with their 95 % intervals, RMSE, runs, status."""
+        """One row per side: z0_mm, C_mm3_s_deg2_sqrtMPa (the JSON's names),
+        their 95 % intervals (``z0_ci95_lo_mm``, ``z0_ci95_hi_mm``,
+        ``C_ci95_lo_mm3_s_deg2_sqrtMPa``...), rmse_mm3_s, n_runs, status."""
         rows = []
+        c_lo, c_hi = ("C_ci95_lo" + C_KEY[1:], "C_ci95_hi" + C_KEY[1:])
         for side, f in self.sides.items():
-            rows.append({"side": side, "z0_mm": f.z0_mm, "z0_lo_mm": f.z0_ci95[0],
-                         "z0_hi_mm": f.z0_ci95[1], "c_flow": f.c_flow, "c_lo": f.c_ci95[0],
-                         "c_hi": f.c_ci95[1], "rmse_mm3_s": f.rmse_mm3_s, "n_runs": f.n_runs,
+            rows.append({"side": side, "z0_mm": f.z0_mm, "z0_ci95_lo_mm": f.z0_ci95[0],
+                         "z0_ci95_hi_mm": f.z0_ci95[1], C_KEY: f.c_flow, c_lo: f.c_ci95[0],
+                         c_hi: f.c_ci95[1], "rmse_mm3_s": f.rmse_mm3_s, "n_runs": f.n_runs,
                          "status": f.status})
         return pd.DataFrame(rows).set_index("side")
 
@@ -453,7 +456,7 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
                           "p1_mpa": float(np.median(p1[g])), "dp_mpa": float(np.median(dp[g])),
                           "p1_threshold_mpa": p1_thr, "dp_threshold_mpa": dp_thr,
                           "theta_d_deg": lf.theta_d_deg, "theta_d_se_deg": lf.theta_d_se_deg,
-                          "alpha": lf.alpha, "alpha_se": lf.alpha_se,
+                          "alpha_mm3_s_deg2": lf.alpha, "alpha_se_mm3_s_deg2": lf.alpha_se,
                           "rmse_mm3_s": lf.rmse_mm3_s, "success": lf.success,
                           "message": lf.message})
     per_load = pd.DataFrame(load_rows)
@@ -464,7 +467,8 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
 
     # (b)+(c) two-step
     pl = per_load[ok] if len(per_load) else per_load
-    ts = two_step(side, pl["theta_d_deg"], pl["theta_d_se_deg"], pl["alpha"], pl["alpha_se"],
+    ts = two_step(side, pl["theta_d_deg"], pl["theta_d_se_deg"], pl["alpha_mm3_s_deg2"],
+                  pl["alpha_se_mm3_s_deg2"],
                   pl["p1_mpa"], pl["dp_mpa"]) if len(pl) else {
         "z0_mm": math.nan, "c_flow": math.nan, "success": False, "message": "no per-load fit"}
     result.two_step = ts
@@ -692,7 +696,7 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
             if side_model is not None:
                 pl["theta_d_model_deg"] = side_model.threshold_deg(pl["p1_mpa"].to_numpy(),
                                                                    pl["dp_mpa"].to_numpy())
-                pl["alpha_model"] = side_model.c_flow * signed_power(pl["dp_mpa"].to_numpy(),
+                pl["alpha_model_mm3_s_deg2"] = side_model.c_flow * signed_power(pl["dp_mpa"].to_numpy(),
                                                                      side_model.dp_exponent)
             per_loads.append(pl)
     if not any(r.success for r in results.values()):

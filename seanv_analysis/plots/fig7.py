@@ -63,7 +63,7 @@ def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = Tr
     ax.plot(t, d["q_mm3_s"] * _K, color=ACTUAL_COLOUR, lw=0.8, label="actual $Q$")
     if shifted:
         ax.plot(t, d["q_shifted_mm3_s"] * _K, color="tab:cyan", lw=0.7,
-                label=f"actual shifted by -{run_tracking.lag_applied_s:.3g} s")
+                label=f"actual shifted by -{run_tracking.shift_s:.3g} s")
     ax.set_xlabel("Time [s]")
     ax.set_ylabel("Flow rate [$10^3$ mm$^3$/s]")
     ax.set_xlim(t[0], t[-1])
@@ -117,8 +117,8 @@ def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *, stem: str | No
         draw_flow_time(ax_a, run_tracking)
         ax_a.set_title(f"(a) {run_tracking.run_id}: target and actual flow rate")
         draw_flow_scatter(ax_b, [run_tracking.data], q_range=tracking.range_mm3_s,
-                          lag_s=run_tracking.lag_applied_s, rmse_mm3_s=run_tracking.rmse_mm3_s)
-        ax_b.set_title(f"(b) shifted {run_tracking.lag_applied_s:.3g} s; " + ax_b.get_title())
+                          lag_s=run_tracking.shift_s, rmse_mm3_s=run_tracking.rmse_mm3_s)
+        ax_b.set_title(f"(b) shifted {run_tracking.shift_s:.3g} s; " + ax_b.get_title())
         fig.tight_layout()
         return save_figure(fig, out_dir, stem or f"fig7_{safe_name(run_tracking.run_id)}",
                            formats=formats)
@@ -168,8 +168,8 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
                 ax.set_xlabel("")
         ax_b = fig.add_subplot(gs[:, 1])
         draw_flow_scatter(ax_b, [r.data for r in in_b], q_range=tracking.range_mm3_s,
-                          lag_s=tracking.lag_s, rmse_mm3_s=tracking.rmse_mm3_s)
-        ax_b.set_title(f"(b) {which}, shift {tracking.lag_s:.3g} s ({tracking.lag_source})\n"
+                          lag_s=tracking.shift_s, rmse_mm3_s=tracking.rmse_mm3_s)
+        ax_b.set_title(f"(b) {which}, shift {tracking.shift_s:.3g} s ({tracking.shift_source})\n"
                        + ax_b.get_title())
         fig.tight_layout()
         paths += save_figure(fig, out_dir, stem, formats=formats)

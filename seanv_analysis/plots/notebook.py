@@ -82,7 +82,7 @@ def _tracking(tr, ax, panel: str = "b", run: str | None = None):
     if panel == "b":
         ax = _axes(ax, figsize=(5.0, 4.6))
         runs, which = scatter_runs(tr)
-        draw_flow_scatter(ax, [r.data for r in runs], q_range=tr.range_mm3_s, lag_s=tr.lag_s,
+        draw_flow_scatter(ax, [r.data for r in runs], q_range=tr.range_mm3_s, lag_s=tr.shift_s,
                           rmse_mm3_s=tr.rmse_mm3_s)
         ax.set_title(f"(b) {which}\n" + ax.get_title(), fontsize=9)
         return ax

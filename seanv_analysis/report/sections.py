@@ -191,8 +191,10 @@ def tracking_section(r) -> str:
         out.append(f"<p>No tracking result ({_e(why)}).</p>")
     else:
         ci = tr.lag_ci95_s
-        lag = f"{_fmt(tr.lag_s, 3)} s ({_e(tr.lag_source)}" + (f", 95 % interval {_ci(ci, 3)} s, block bootstrap"
-                                                              if ci else "") + ")"
+        lag = (f"{_fmt(tr.lag_s, 3)} s (estimated" + (f", 95 % interval {_ci(ci, 3)} s, block "
+                                                      "bootstrap" if ci else "") + ")"
+               + ("" if tr.shift_source == "estimated"
+                  else f"; shift {_fmt(tr.shift_s, 3)} s given"))
         lo, hi = tr.range_mm3_s
         out.append("<table>"
                    f"<tr><td class='l'>flow delay (actual behind target)</td><td>{lag}</td></tr>"
@@ -395,7 +397,7 @@ def tracking_cards(r) -> list[tuple[str, str]]:
         return []
     return [(f"{_fmt(r.tracking.rmse_mm3_s, 3)}",
              f"flow tracking RMSE [mm³/s], {r.tracking.pooled}"),
-            (f"{_fmt(r.tracking.lag_s, 3)}", "flow delay [s]")]
+            (f"{_fmt(r.tracking.shift_s, 3)}", f"flow delay compensated [s], {r.tracking.shift_source}")]
 
 
 def discovery_cards(r) -> list[tuple[str, str]]:

@@ -86,6 +86,6 @@ def write(result, folder: Path) -> list[Path]:
     for r in result.runs:
         paths.append(write_table_parquet(
             r.data, out / f"tracking_{r.run_id}.parquet",
-            metadata={"run_id": r.run_id, "lag_applied_s": r.lag_applied_s,
+            metadata={"run_id": r.run_id, "shift_s": r.shift_s,
                       "target_source": r.target_source}))
     return paths
