@@ -1,7 +1,7 @@
 """Fig. 7 of the paper: flow control performance during position control.
 
-(a) target Q_ref and actual Q flow against time [mm^3/s] (higher-load
-periods shaded); (b) actual flow shifted earlier by the delay against the
+(a) target Q_ref and actual Q flow against time [mm^3/s] (the higher
+load's periods shaded, both loads named); (b) actual flow shifted earlier by the delay against the
 target, with the identity line (solid inside the fitting range, dashed
 outside), the range bounds and the RMSE in the title. One figure for the
 data set (``fig7``) and one per run (``fig7_<run_id>``).
@@ -19,11 +19,11 @@ from ._style import (
     ACTUAL_COLOUR,
     DEFAULT_FORMATS,
     TARGET_COLOUR,
-    high_load_spans,
+    legend_outside,
     new_figure,
     paper_style,
     save_figure,
-    shade_high_load,
+    shade_loads,
     thin,
 )
 from .registry import Figure, register_figure
@@ -54,9 +54,7 @@ def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = Tr
     d = run_tracking.data
     d = d.iloc[thin(len(d))]
     t = d["t_s"].to_numpy(float)
-    spans = high_load_spans(t, d["load_level_mpag"].to_numpy(float))
-    hi = float(np.nanmax(d["load_level_mpag"])) if spans else None
-    shade_high_load(ax, spans, label=f"load {hi:g} MPaG" if hi is not None else None)
+    loads = shade_loads(ax, t, d["load_level_mpag"].to_numpy(float))
     ax.plot(t, d["q_ref_mm3_s"] * _K, color=TARGET_COLOUR, lw=0.9, drawstyle="steps-post",
             label=TARGET_LABELS.get(run_tracking.target_source, "target $Q_{ref}$"),
             ls="-" if run_tracking.target_source == "q_ref" else "--")
@@ -68,7 +66,7 @@ def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = Tr
     ax.set_ylabel("Flow rate [$10^3$ mm$^3$/s]")
     ax.set_xlim(t[0], t[-1])
     if legend:
-        ax.legend(loc="upper right", ncol=2)
+        legend_outside(ax, extra=loads)
 
 
 def draw_flow_scatter(ax, datas, *, q_range, lag_s: float, rmse_mm3_s: float) -> None:
@@ -104,7 +102,7 @@ def draw_flow_scatter(ax, datas, *, q_range, lag_s: float, rmse_mm3_s: float) ->
     ax.set_ylabel(f"Actual flow rate $Q(t + {lag_s:.3g}$ s) [$10^3$ mm$^3$/s]")
     ax.set_title(f"RMSE {rmse_mm3_s * _K:.3f} $\\times 10^3$ mm$^3$/s in "
                  f"[{lo * _K:g}, {hi * _K:g}] $\\times 10^3$")
-    ax.legend(loc="upper left", markerscale=4)
+    legend_outside(ax, markerscale=4)
 
 
 def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *, stem: str | None = None,
@@ -112,7 +110,7 @@ def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *, stem: str | No
     """Fig. 7 of one run: (a) flows against time, (b) shifted actual vs target,
     written in ``formats`` as ``<stem>.<format>`` (default stem ``fig7_<run_id>``)."""
     with paper_style():
-        fig = new_figure(figsize=(10.0, 3.8))
+        fig = new_figure(figsize=(12.5, 3.8))
         ax_a, ax_b = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.6, 1]})
         draw_flow_time(ax_a, run_tracking)
         ax_a.set_title(f"(a) {run_tracking.run_id}: target and actual flow rate")
@@ -155,14 +153,14 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
     shown = ordered[:max_runs]
     in_b, which = scatter_runs(tracking)
     with paper_style():
-        fig = new_figure(figsize=(11.0, max(3.8, 2.4 * len(shown))))
+        fig = new_figure(figsize=(13.0, max(3.8, 2.6 * len(shown))))
         gs = fig.add_gridspec(len(shown), 2, width_ratios=[1.6, 1])
         for i, r in enumerate(shown):
             ax = fig.add_subplot(gs[i, 0])
             draw_flow_time(ax, r, legend=(i == 0))  # one legend: it would cover the others' data
             label = "(a)" if i == 0 else f"(a{i + 1})"
             target = "" if i == 0 and r.target_source == "q_ref" else \
-                f"; red: {TARGET_LABELS.get(r.target_source, 'target')}"
+                f"\nred dashed: {TARGET_LABELS.get(r.target_source, 'target')}"
             ax.set_title(f"{label} {r.run_id}{target}", loc="left")
             if i < len(shown) - 1:
                 ax.set_xlabel("")

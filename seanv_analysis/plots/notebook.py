@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from ._style import legend_outside
+
 __all__ = ["plot"]
 
 
@@ -62,7 +64,7 @@ def _dataset(ds, ax):
     ax.set_title(f"{ds.runs_read} runs read"
                  + (f", {len(ds.failed)} bad" if ds.failed else ""), loc="left", fontsize=10)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7, frameon=False)
+        legend_outside(ax, fontsize=7, frameon=False)
     ax.grid(True, lw=0.3, alpha=0.5)
     return ax
 
@@ -105,7 +107,7 @@ def _validation(val, ax, quantity: str = "position"):
                 label=f"{r.run_id}: simulated")
     ax.set_xlabel("Time [s]")
     ax.set_ylabel(label)
-    ax.legend(fontsize=7, frameon=False)
+    legend_outside(ax, fontsize=7, frameon=False)
     ax.grid(True, lw=0.3, alpha=0.5)
     return ax
 
@@ -135,7 +137,7 @@ def _discovery(d, ax, variable: str = "run_index"):
     ax.axhline(0.0, color="k", lw=0.8)
     ax.set_xlabel(LABELS.get(variable, variable.replace("_", " ")))
     ax.set_ylabel("Residual $Q - Q_{model}$ [mm$^3$/s]")
-    ax.legend(fontsize=7, frameon=False)
+    legend_outside(ax, fontsize=7, frameon=False)
     ax.grid(True, lw=0.3, alpha=0.5)
     return ax
 
