@@ -175,3 +175,15 @@ def test_one_tracking_number_everywhere(tmp_path):
     from seanv_analysis.plots.fig7 import scatter_runs
 
     assert [r.run_id for r in scatter_runs(res["tracking"])[0]] == ["commanded"]
+
+
+@pytest.mark.parametrize("shift", ["25", "-1", "2.5"])
+def test_a_shift_outside_0_to_2_s_is_refused_with_its_range(dataset, tmp_path, shift):
+    """Issue 33, point 6: --shift 25 exited 0 with RMSE 1144 and no word."""
+    out = tmp_path / "o"
+    res = CliRunner().invoke(cli, ["tracking", str(dataset), f"--shift={shift}", "--out", str(out),
+                                   "--no-figures"])
+    assert res.exit_code == 2, res.output
+    assert res.stderr.count("\n") == 1 and "(--shift)" in res.stderr
+    assert "from 0 to 2" in res.stderr and not (out / "tracking.json").exists()
+    assert "--shift 0..2" in CliRunner().invoke(cli, ["tracking", "--help"]).output

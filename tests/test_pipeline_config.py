@@ -16,7 +16,7 @@ BAD = [
     ("identify", "parts", '["geometry", "x"]'), ("identify", "parts", '"servo"'),
     ("identify", "parts", "[]"), ("identify", "n_boot", "-3"), ("identify", "seed", "1.0"),
     ("tracking", "shift_s", '"0.25"'), ("tracking", "shift_s", "nan"),
-    ("tracking", "shift_s", "-0.1"), ("tracking", "shift_s", "true"),
+    ("tracking", "shift_s", "-0.1"), ("tracking", "shift_s", "true"), ("tracking", "shift_s", "2.5"),
     ("tracking", "q_range", "[nan, 5]"), ("tracking", "q_range", "[5, 1]"),
     ("tracking", "q_range", "[1, inf]"), ("tracking", "q_range", "[1]"),
     ("validate", "threshold_pct", "nan"), ("validate", "threshold_pct", "150"),
