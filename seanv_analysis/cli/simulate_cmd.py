@@ -91,11 +91,24 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
                + (f" with {', '.join(e.spec() for e in parsed)}" if parsed else ""))
 
 
+def effect_summary(cls) -> str:
+    """The first paragraph of an effect's docstring, on one line: whole
+    sentences, never cut at the docstring's first line break."""
+    import inspect
+
+    paragraph = inspect.cleandoc(cls.__doc__ or "").split("\n\n", 1)[0]
+    return " ".join(paragraph.split())
+
+
 def _list_effects(ctx: click.Context) -> None:
+    import shutil
+
     from ..models.effects import EFFECTS
 
+    width = min(100, shutil.get_terminal_size((100, 24)).columns)
     for name, cls in EFFECTS.items():
-        click.echo(f"{name}: {cls.__doc__.strip().splitlines()[0]}")
+        click.echo(click.wrap_text(f"{name}: {effect_summary(cls)}", width=width,
+                                   subsequent_indent="    "))
         for param, meaning in cls.PARAMS.items():
             default = getattr(cls, param, None)
             click.echo(f"    {param} = {default!r}   {meaning}")
