@@ -258,6 +258,19 @@ def test_list_effects_says_whole_sentences():
     assert "the needle lags width/2 behind the servo in the direction it last moved." in text
 
 
+@pytest.mark.parametrize("effect", ["drfit:side=drain", "drift:side=drian"])
+def test_a_bad_effect_leaves_no_out_folder(tmp_path, effect):
+    """Issue 33, point 6: a typo'd --effect left an empty --out folder."""
+    from click.testing import CliRunner
+
+    from seanv_analysis.cli import cli
+
+    res = CliRunner().invoke(cli, ["simulate", "paper-position-model", "--out",
+                                   str(tmp_path / "new"), "--effect", effect])
+    assert res.exit_code == 2 and res.stderr.startswith("error: ")
+    assert not (tmp_path / "new").exists()
+
+
 #: a rig whose supply needle centre makes eq. (4) non-monotonic (no threshold inverse)
 BAD_GEOMETRY = "[valve.supply]\nneedle_x_c_mm = 0.0\nneedle_y_c_mm = 0.0\n"
 

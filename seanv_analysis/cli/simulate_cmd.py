@@ -65,11 +65,12 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
     from ..sim.scenarios import simulate_scenario
 
     rig = load_rig(rig_file)
-    probe_writable(out_dir)
-    try:
+    try:   # before --out is made: a typo leaves no empty folder behind
         parsed = parse_effects(effects)
     except ValueError as exc:  # the CLI's one-line error
         raise ConfigError(str(exc)) from None
+    made = not Path(out_dir).exists()
+    probe_writable(out_dir)
     from ..log import progress as progress_bar
     from ..sim.scenarios import scenario_size
 
@@ -84,6 +85,10 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
     try:
         path = simulate_scenario(scenario, out_dir, seed=seed, effects=parsed, rig=rig,
                                  write_truth=write_truth, fmt=fmt, progress=progress)
+    except BaseException:
+        if made and not any(Path(out_dir).iterdir()):   # ours, and nothing in it
+            Path(out_dir).rmdir()
+        raise
     finally:
         bar.close()
     n = sum(1 for _ in path.rglob("run.json"))
