@@ -97,6 +97,9 @@ def test_run_pipeline_file_and_bad_runs_exit_1(data, tmp_path):
     r = invoke("run", pipe, d, "--out", tmp_path / "o", "--workers", "1", "-q")
     assert r.exit_code == 1
     assert "1 failed" in r.output and "nopressure" in r.output and "pressure" in r.output
+    # issue 33, point 6: with -q too, what went wrong is on stderr, not on stdout only
+    assert "1 bad run(s) skipped:" in r.stderr and "nopressure" in r.stderr
+    assert "outputs (" not in r.stderr                      # the summary stays on stdout
 
 
 @pytest.mark.parametrize("args, match", [
@@ -162,3 +165,4 @@ def test_run_figure_options(data, tmp_path):
     doc = json.loads(r.stdout)
     assert doc["figures"] == {} and "figures" not in [s["name"] for s in doc["pipeline"]["stages"]]
     assert (tmp_path / "none" / "report.html").is_file()
+

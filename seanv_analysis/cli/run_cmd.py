@@ -10,7 +10,7 @@ import click
 from . import cli
 from ._common import OUT_FOLDER, check_out_dir, default_out_dir, figure_options, unusable, verbosity
 
-__all__ = ["run_cmd"]
+__all__ = ["run_cmd", "failures_to_stderr"]
 
 
 @cli.command("run")
@@ -108,12 +108,24 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
         return unusable(data, bad_runs(datas, rig_file, exc), exc)
     if as_json:
         click.echo(result.to_json())
-        text = result.summary_text()
-        if result.failed or result.stage_errors:
-            click.echo(text, err=True)
     else:
         click.echo(result.summary_text())
+    failures_to_stderr(result)   # what went wrong is an error: on stderr, -q or not
     return 0 if result.success else 1
+
+
+def failures_to_stderr(result) -> None:
+    """The bad runs and the failed stages of ``result``, one line each, on
+    stderr (the exit code 1 says there are some; the summary on stdout lists
+    them too)."""
+    if result.stage_errors:
+        click.echo(f"{len(result.stage_errors)} stage(s) failed:", err=True)
+        for name, msg in result.stage_errors.items():
+            click.echo(f"  {name}: {msg}", err=True)
+    if result.failed:
+        click.echo(f"{len(result.failed)} bad run(s) skipped:", err=True)
+        for f in result.failed:
+            click.echo(f"  [{f.stage}] {f.message}", err=True)
 
 
 def with_figure_options(pipe, *, no_figures: bool, formats: tuple[str, ...]):
