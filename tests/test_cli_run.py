@@ -166,3 +166,24 @@ def test_run_figure_options(data, tmp_path):
     assert doc["figures"] == {} and "figures" not in [s["name"] for s in doc["pipeline"]["stages"]]
     assert (tmp_path / "none" / "report.html").is_file()
 
+
+def test_plots_says_what_it_runs_and_fails_when_nothing_is_drawn(tmp_path):
+    """Issue 33, point 6: ``plots --fig 7`` on flow steps wrote 0 files and
+    exited 0; ``--fig all`` re-ran four analyses without a word."""
+    from conftest import write_synthetic_dataset
+
+    from seanv_analysis.cli.plots_cmd import analyses_run, plots_pipeline
+
+    flow = write_synthetic_dataset(tmp_path / "flow", n_flow=6)
+    r = invoke("plots", flow, "--fig", "7", "--out", tmp_path / "p7", "--workers", "1")
+    assert r.exit_code == 2, r.output
+    assert "error: " in r.stderr and "no figure written: fig 7 (tracking: no position-control " \
+        "runs" in " ".join(r.stderr.split())
+    assert "need the results of tracking: running them first" in r.stderr
+    r = invoke("plots", flow, "--fig", "4", "--fig", "7", "--out", tmp_path / "p47",
+               "--workers", "1")
+    assert r.exit_code == 0, r.output
+    assert "note: not drawn: fig 7 (tracking:" in r.stderr and "fig4.png" in r.stdout
+    assert analyses_run(plots_pipeline("all")) == ["flowfit", "tracking", "validate", "discover"]
+    assert "need the results" not in invoke("plots", flow, "--fig", "4", "--out",
+                                            tmp_path / "q", "--workers", "1", "-q").stderr
