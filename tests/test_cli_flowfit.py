@@ -155,3 +155,20 @@ def test_figure_options(dataset, tmp_path):
     assert modules_after(code, ["matplotlib"]) == []
     assert (tmp_path / "none" / "flowfit.json").is_file()
     assert not list((tmp_path / "none").glob("fig4.*"))
+
+
+def test_peak_method_says_its_bias(dataset, tmp_path):
+    """Issue 33, point 6: --method peak said 'ok' with intervals that can
+    exclude the truth and no word of the estimate's known bias."""
+    res = invoke(dataset, "--method", "peak", "--n-boot", "0", "--no-figures",
+                 "--out", tmp_path / "o")
+    assert res.exit_code == 0, res.output
+    assert "fitted on the biased 'peak' flow estimate" in res.stdout
+    assert "supply: ok" not in res.stdout and "+16 %" in res.stdout
+    doc = json.loads(invoke(dataset, "--method", "peak", "--n-boot", "0", "--no-figures",
+                            "--json", "--out", tmp_path / "j").stdout)
+    assert doc["flow_method"] == "peak"
+    check_schema("flowfit", doc)
+    steady = json.loads(invoke(dataset, "--n-boot", "0", "--no-figures", "--json",
+                               "--out", tmp_path / "s").stdout)
+    assert steady["flow_method"] == "steady"

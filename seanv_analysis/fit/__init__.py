@@ -5,6 +5,6 @@
   and per-load tables, ``.report()``, ``.to_json_dict()`` (files are written by
   :mod:`seanv_analysis.stages.flowfit`).
 """
-from .flowfit import PROCEDURES, UNITS, FlowFit, SideFit, fit_flow
+from .flowfit import PEAK_BIAS, PROCEDURES, UNITS, FlowFit, SideFit, fit_flow
 
-__all__ = ["FlowFit", "SideFit", "fit_flow", "PROCEDURES", "UNITS"]
+__all__ = ["FlowFit", "SideFit", "fit_flow", "PROCEDURES", "UNITS", "PEAK_BIAS"]

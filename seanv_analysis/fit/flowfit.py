@@ -87,7 +87,7 @@ from ._perload import (
     two_step,
 )
 
-__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "UNITS", "C_KEY",
+__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "UNITS", "C_KEY", "PEAK_BIAS",
            "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
 
 #: Fit procedures: 'joint' (default, eq. 5 on all runs) and the paper's 'two_step'.
@@ -280,7 +280,14 @@ class FlowFit(JsonResult):
         out: dict[str, Any] = {s: f.to_json_dict() for s, f in self.sides.items()}
         out["excluded"] = {k: int(v) for k, v in self.excluded.items()}
         out["units"] = dict(UNITS)
+        out["flow_method"] = self.flow_method
         return out
+
+    @property
+    def flow_method(self) -> str:
+        """The per-run flow estimate fitted: 'steady', 'peak' (biased:
+        :data:`PEAK_BIAS`), 'mixed' or '' (not said)."""
+        return str(self.settings.get("flow_method", ""))
 
     def to_frame(self) -> pd.DataFrame:
         """One row per side: z0_mm, C_mm3_s_deg2_sqrtMPa (the JSON's names),
@@ -336,6 +343,9 @@ class FlowFit(JsonResult):
         for s, f in self.sides.items():
             if f.status == "lack of fit":
                 lines.append(f"{s}: lack of fit: {f.message}")
+            elif f.success and self.flow_method == "peak":
+                lines.append(f"{s}: fitted on the biased 'peak' flow estimate (see the warning "
+                             "below; the intervals do not hold its bias)")
             else:
                 lines.append(f"{s}: {'ok' if f.success else 'FAILED'}"
                              + (f" ({f.message})" if f.message else ""))
@@ -365,6 +375,23 @@ class FlowFit(JsonResult):
         return "\n".join(lines)
 
 # ---------------------------------------------------------------------------
+
+#: what a fit on the paper's peak-velocity flows must say (docs/flow_estimate.md)
+PEAK_BIAS = ("flow estimate 'peak' (the paper's peak velocity) is biased: +16 % / -14 % "
+             "median on the supply / drain side against simulated truth, +28 % / -33 % below "
+             "1500 mm^3/s where the actuator stick-slips (docs/flow_estimate.md); the 95 % "
+             "intervals do not include that bias, so they may exclude the true z0 and C. "
+             "Use the default 'steady' estimate for numbers you quote")
+
+
+def _flow_method(steps: pd.DataFrame) -> str:
+    """The per-run flow estimate of the flow steps ('steady', 'peak', or
+    'mixed'; '' when the summary does not say)."""
+    if "flow_method" not in steps or steps.empty:
+        return ""
+    found = {m for m in steps["flow_method"].astype(str) if m}
+    return found.pop() if len(found) == 1 else ("mixed" if found else "")
+
 
 def _check_summary(summary: pd.DataFrame) -> None:
     need = ("kind", "side", "load_mpag", "cam_deg", "q_mm3_s", "dp_mpa", "p1_mpa", "excluded")
@@ -679,6 +706,9 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
     fitted = base
     results: dict[str, SideFit] = {}
     per_runs, per_loads, warns = [], [], []
+    method = _flow_method(asked)
+    if method == "peak":
+        warns.append(PEAK_BIAS)
     for s in sides:
         rows_all = asked[asked["side"] == s]
         use = (rows_all["excluded"].fillna("").astype(str) == "").to_numpy()
@@ -720,7 +750,8 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
                    warns, {"procedure": procedure, "n_boot": n_boot, "seed": seed,
                            "sides": list(sides), "load_tol_mpag": load_tol_mpag, "cam": cam,
                            "flow_scale_u95": flow_scale_u95, "cam_u95_deg": cam_u95_deg,
-                           "loss": "soft_l1", "ci": "bootstrap percentile 95 %"})
+                           "loss": "soft_l1", "ci": "bootstrap percentile 95 %",
+                           "flow_method": method})
 
 
 def _finite_pressures(rows: pd.DataFrame) -> np.ndarray:

@@ -45,7 +45,7 @@ def flowfit_section(r) -> str:
             f"<td>{_fmt(f.c_flow, 4)}</td><td>{_ci(f.c_ci95)}</td>"
             f"<td>{_fmt(ref_c, 4)}</td>"
             f"<td>{_fmt(f.rmse_mm3_s, 4)}</td><td>{f.n_runs}</td>"
-            f"<td class='l'>{_side_verdict(f, r.discovery)}</td></tr>")
+            f"<td class='l'>{_side_verdict(f, r.discovery, getattr(fit, 'flow_method', ''))}</td></tr>")
     methods = sorted({f.ci_method for f in fit.sides.values() if f.ci_method})
     table = ("<table><tr><th class='l'>side</th><th>z0 [mm]</th><th>z0 95 % interval [mm]</th>"
              f"<th>z0 paper/rig [mm]</th><th>C [{C_UNIT}]</th><th>C 95 % interval [{C_UNIT}]</th>"
@@ -59,6 +59,10 @@ def flowfit_section(r) -> str:
         table += (f"<p>Discovery also found {_e(names)}: the plant, not eq. (5); see "
                   "<a href='#discovery'>Discovery</a>.</p>")
     notes = [f"Residual = measured &minus; model. Intervals: {_e('; '.join(methods) or 'n/a')}."]
+    if getattr(fit, "flow_method", "") == "peak":   # the biased estimate: said first
+        from ..fit import PEAK_BIAS
+
+        notes.insert(0, f"<span class='warn'>{_e(PEAK_BIAS)}.</span>")
     for side, f in fit.sides.items():  # the lack-of-fit check of every side, flagged or not
         line = f.lack_of_fit_line() if hasattr(f, "lack_of_fit_line") else ""
         if line:
@@ -96,12 +100,14 @@ def _side_findings(side: str, discovery) -> list[str]:
     return out
 
 
-def _side_verdict(f, discovery) -> str:
+def _side_verdict(f, discovery, flow_method: str = "") -> str:
     """The model table's verdict cell of one side: flowfit's status
     (``SideFit.status``: failed / lack of fit / ok) and discovery's findings;
     green "ok" only when neither flags the side."""
     status = getattr(f, "status", None) or ("ok" if f.success else "failed")
     flags = _side_findings(f.side, discovery)
+    if flow_method == "peak":
+        flags.insert(0, "on the biased 'peak' flow estimate (note below)")
     if status == "lack of fit":
         flags.insert(0, "lack of fit (flowfit's check against the repeated runs, below)")
     msg = f" <small>{_e(f.message)}</small>" if f.message else ""
