@@ -38,13 +38,19 @@ def _fmt(v: Any, digits: int = 4) -> str:
     return f"{f:.{digits}g}" if abs(f) >= 1 else f"{f:.{digits}f}".rstrip("0").rstrip(".")
 
 
-def _ci(ci: Any, digits: int = 4) -> str:
+#: why a fit's interval is missing, unless the caller knows better
+FIT_NO_INTERVAL = "singular covariance / too few runs"
+
+
+def _ci(ci: Any, digits: int = 4, *, why: str | None = FIT_NO_INTERVAL) -> str:
+    """'[lo, hi]', or 'no interval' with ``why`` (None: no reason given here,
+    e.g. where a note beside it says it)."""
     try:
         lo, hi = (float(c) for c in ci)
     except (TypeError, ValueError):
         return "<span class='warn'>no interval</span>"
     if not (math.isfinite(lo) and math.isfinite(hi)):
-        return "<span class='warn'>no interval (singular covariance / too few runs)</span>"
+        return f"<span class='warn'>no interval{f' ({_e(why)})' if why else ''}</span>"
     return f"[{_fmt(lo, digits)}, {_fmt(hi, digits)}]"
 
 

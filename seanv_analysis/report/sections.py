@@ -132,7 +132,8 @@ def identify_section(r) -> str:
                   else "<span class='warn'>rig file</span>")
         key = _e(c.key).replace(".", ".<wbr>") if c.key else "(reported)"  # may wrap at a dot
         rows.append(f"<tr><td class='l'>{_e(c.name)}</td><td class='l'><code>{key}</code>"
-                    f"</td><td>{_fmt(c.value)}</td><td>{_ci(c.ci95)}</td><td>{_fmt(c.default)}</td>"
+                    f"</td><td>{_fmt(c.value)}</td><td>{_ci(c.ci95, why=None)}</td>"
+                    f"<td>{_fmt(c.default)}</td>"
                     f"<td class='l'>{_e(_unit(c.unit))}</td><td class='l'>{status} {_e(c.constrained_by)}"
                     f"{'; ' + _e(c.note) if c.note else ''}</td></tr>")
     table = ("<table><tr><th class='l'>constant</th><th class='l'>rig key</th><th>identified</th>"
