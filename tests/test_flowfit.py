@@ -152,7 +152,7 @@ def test_one_outlier_run_moves_c_less_than_3_percent(rig, paper_summary, side):
 def test_json_contract(paper_fit):
     C = "C_mm3_s_deg2_sqrtMPa"  # the unit in the key
     doc = paper_fit.to_json_dict()
-    assert list(doc) == ["supply", "drain", "excluded", "units"]
+    assert list(doc) == ["supply", "drain", "excluded", "units", "flow_method"]
     for side in ("supply", "drain"):
         d = doc[side]
         assert list(d) == ["z0_mm", C, "z0_ci95_mm", "C_ci95" + C[1:], "rmse_mm3_s", "n_runs",
