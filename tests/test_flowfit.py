@@ -307,3 +307,31 @@ def test_bootstrap_jacobian_is_the_derivative_of_eq5():
                                                              rel=1e-6)
         np.testing.assert_allclose(r.jac(x), numeric, rtol=0,
                                    atol=1e-6 * np.abs(numeric).max())
+
+
+def test_params_and_eval_as_lmfit(paper_fit, paper_summary):
+    """Issue 33: an lmfit-like way to a fit's numbers,
+    ``fit.params["supply.C"].value / .stderr / .ci95`` and
+    ``fit.eval(theta, dp, side)`` for the model's prediction."""
+    p = paper_fit.params
+    assert list(p) == ["supply.z0", "supply.C", "drain.z0", "drain.C"]
+    for side in ("supply", "drain"):
+        sf = paper_fit.sides[side]
+        c, z0 = p[f"{side}.C"], p[f"{side}.z0"]
+        assert (c.value, c.ci95, c.unit) == (sf.c_flow, sf.c_ci95, "mm^3/(s deg^2 MPa^0.5)")
+        assert (z0.value, z0.ci95, z0.unit) == (sf.z0_mm, sf.z0_ci95, "mm")
+        assert c.stderr == sf.joint["c_se"] and z0.stderr == sf.joint["z0_se_mm"] > 0
+        assert c.ci95[0] < c.value < c.ci95[1] and "95 %" in repr(c)
+    used = paper_fit.per_run[paper_fit.per_run["used"].astype(bool)]
+    for side in ("supply", "drain"):
+        rows = used[used["side"] == side]
+        assert_allclose(paper_fit.eval(rows["theta_deg"], rows["dp_mpa"], side,
+                                       p1_mpa=rows["p1_mpa"]), rows["q_model_mm3_s"], rtol=1e-12)
+    # default p1: the supply runs' supply pressure; the drain's head = dp + tank
+    sup = used[used["side"] == "supply"]
+    q = paper_fit.eval([5.0, 10.0], 2.0, "supply")
+    assert_allclose(q, paper_fit.model.supply.flow(np.array([5.0, 10.0]),
+                                                   float(np.median(sup["p1_mpa"])), 2.0))
+    assert paper_fit.eval(-30.0, 1.0, "drain") < 0 < paper_fit.eval(5.0, 2.0, "supply")
+    with pytest.raises(ValueError, match="side: expected one of supply, drain"):
+        paper_fit.eval(0.0, 1.0, "both")

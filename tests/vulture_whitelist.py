@@ -38,3 +38,4 @@ layout  # scripts/check_report_browser.py: tests/test_report.py renders with it
 # inspect.signature, set on module objects: Python reads them)
 _.__signature__
 _.__class__
+_.eval  # fit.FlowFit.eval: a notebook user's model prediction (as lmfit's result.eval)

@@ -2,9 +2,10 @@
 
 - :func:`fit_flow` (per-run summary -> :class:`FlowFit`) and
 - :class:`FlowFit`, :class:`SideFit`: parameters, 95 % intervals, per-run
-  and per-load tables, ``.report()``, ``.to_json_dict()`` (files are written by
+  and per-load tables, ``fit.params["supply.C"]`` (:class:`Parameter`:
+  value, stderr, ci95, as lmfit) and ``fit.eval(theta, dp, side)``, ``.report()``, ``.to_json_dict()`` (files are written by
   :mod:`seanv_analysis.stages.flowfit`).
 """
-from .flowfit import PEAK_BIAS, PROCEDURES, UNITS, FlowFit, SideFit, fit_flow
+from .flowfit import PEAK_BIAS, PROCEDURES, UNITS, FlowFit, Parameter, SideFit, fit_flow
 
-__all__ = ["FlowFit", "SideFit", "fit_flow", "PROCEDURES", "UNITS", "PEAK_BIAS"]
+__all__ = ["FlowFit", "SideFit", "Parameter", "fit_flow", "PROCEDURES", "UNITS", "PEAK_BIAS"]

@@ -87,8 +87,8 @@ from ._perload import (
     two_step,
 )
 
-__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "UNITS", "C_KEY", "PEAK_BIAS",
-           "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
+__all__ = ["SideFit", "FlowFit", "Parameter", "fit_flow", "PROCEDURES", "UNITS", "C_KEY",
+           "PEAK_BIAS", "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
 
 #: Fit procedures: 'joint' (default, eq. 5 on all runs) and the paper's 'two_step'.
 PROCEDURES = ("joint", "two_step")
@@ -239,6 +239,35 @@ def _clean(d: dict) -> dict:
     return {k: (json_num(v) if isinstance(v, float) else v) for k, v in d.items()}
 
 
+@dataclass(frozen=True)
+class Parameter:
+    """One fitted number of a :class:`FlowFit`, as lmfit gives it:
+    ``fit.params["supply.C"].value / .stderr / .ci95``.
+
+    Attributes
+    ----------
+    name : '<side>.z0' or '<side>.C'
+    value : the estimate (of the fit's procedure, joint or two-step)
+    stderr : its standard error (1 sigma, from the procedure's covariance;
+        NaN when singular)
+    ci95 : the 95 % interval of the fit (bootstrap over conditions plus the
+        calibration terms, ``SideFit.z0_ci95`` / ``c_ci95``): use it for
+        statements, ``stderr`` for a quick look
+    unit : 'mm' (z0) or 'mm^3/(s deg^2 MPa^0.5)' (C)
+    """
+
+    name: str
+    value: float
+    stderr: float
+    ci95: tuple[float, float]
+    unit: str
+
+    def __repr__(self) -> str:
+        lo, hi = self.ci95
+        return (f"<Parameter {self.name} = {self.value:.6g} {self.unit} (stderr "
+                f"{self.stderr:.2g}, 95 % [{lo:.6g}, {hi:.6g}])>")
+
+
 @dataclass
 class FlowFit(JsonResult):
     """Result of :func:`fit_flow`: per-side parameters with 95 % intervals,
@@ -288,6 +317,51 @@ class FlowFit(JsonResult):
         """The per-run flow estimate fitted: 'steady', 'peak' (biased:
         :data:`PEAK_BIAS`), 'mixed' or '' (not said)."""
         return str(self.settings.get("flow_method", ""))
+
+    @property
+    def params(self) -> dict[str, Parameter]:
+        """The fitted numbers by name, as lmfit's ``result.params``:
+        ``'supply.z0'``, ``'supply.C'``, ``'drain.z0'``, ``'drain.C'`` (the
+        sides fitted), each a :class:`Parameter` (value, stderr, ci95, unit)."""
+        out: dict[str, Parameter] = {}
+        for side, f in self.sides.items():
+            est = f.joint if f.procedure == "joint" else f.two_step
+            out[f"{side}.z0"] = Parameter(f"{side}.z0", f.z0_mm,
+                                          float(est.get("z0_se_mm", math.nan)),
+                                          tuple(f.z0_ci95), UNITS["z0_mm"])
+            out[f"{side}.C"] = Parameter(f"{side}.C", f.c_flow, float(est.get("c_se", math.nan)),
+                                         tuple(f.c_ci95), UNITS[C_KEY])
+        return out
+
+    def eval(self, theta_deg, dp_mpa, side: str, *, p1_mpa=None) -> np.ndarray:
+        """The fitted model's flow, eq. (3)-(5): Q = C (theta - theta_d)^2
+        sqrt(dp) [mm^3/s] at cam angle ``theta_deg`` [deg] and pressure
+        difference ``dp_mpa`` [MPa] across ``side`` (arrays broadcast).
+
+        ``p1_mpa`` [MPa] is the pressure on the needle, which moves the
+        sealing threshold theta_d (eq. 4); default as in the runs fitted:
+        the supply pressure (median of the supply runs) on the supply side,
+        dp plus the tank pressure (median) on the drain side.
+
+        Raises
+        ------
+        ValueError
+            ``side`` is not a side of this fit.
+        """
+        if side not in self.sides:
+            raise ValueError(f"side: expected one of {', '.join(self.sides)}, got {side!r}")
+        dp = np.asarray(dp_mpa, dtype=float)
+        if p1_mpa is None:
+            rows = self.per_run[(self.per_run["side"] == side) & self.per_run["used"].astype(bool)] \
+                if len(self.per_run) else self.per_run
+            if side == "supply":
+                p1_mpa = float(np.median(rows["p1_mpa"])) if len(rows) else 3.3
+            else:
+                p1_mpa = dp + (float(np.median(rows["p1_mpa"] - rows["dp_mpa"])) if len(rows)
+                               else 0.0)
+        return np.asarray(self.model.side(side).flow(np.asarray(theta_deg, dtype=float),
+                                                     np.asarray(p1_mpa, dtype=float), dp),
+                          dtype=float)
 
     def to_frame(self) -> pd.DataFrame:
         """One row per side: z0_mm, C_mm3_s_deg2_sqrtMPa (the JSON's names),
