@@ -190,22 +190,22 @@ def timing_text(timings: dict) -> str:
     parts = []
     fresh, installed, reused = (timings.get(k) for k in ("fresh", "installed", "reused"))
     if fresh:
+        sim, ana = round(fresh["simulation_s"]), round(fresh["analysis_s"])
         parts.append(f"{_duration(fresh['total_s'])} on a fresh clone "
                      f"({_duration(fresh['install_s'])} creating `.venv`, installing and "
-                     "compiling the simulator, "
-                     f"{_duration(fresh['simulation_s'] + fresh['analysis_s'])} for the demo "
-                     f"itself: simulating the data sets {_duration(fresh['simulation_s'])}, the "
-                     f"analysis {_duration(fresh['analysis_s'])})")
+                     f"compiling the simulator, {_duration(sim + ana)} for the demo itself: "
+                     f"simulating the data sets {_duration(sim)}, the analysis {_duration(ana)})")
     if installed:
         parts.append(f"{_duration(installed['total_s'])} once installed (simulating "
                      f"{_duration(installed['simulation_s'])}, the analysis "
                      f"{_duration(installed['analysis_s'])})")
     if reused:
-        parts.append(f"{_duration(reused['total_s'])} run again with nothing changed")
+        parts.append(f"{_duration(reused['total_s'])} when run again with nothing changed")
+    if not parts:
+        return ""
     cores = next((t.get("cores") for t in (fresh, installed, reused) if t), None)
-    where = f" on {cores} cores" if cores else ""
-    return ("`make demo` took " + "; ".join(parts) + f"{where} (measured by `make demo` "
-            "itself: outputs/demo/timings.json)") if parts else ""
+    return ((f"On {cores} cores, " if cores else "") + "`make demo` took " + "; ".join(parts)
+            + " (measured by `make demo` itself: outputs/demo/timings.json)")
 
 
 def _record_timings(out: Path, kind: str, timing: dict) -> None:

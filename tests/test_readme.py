@@ -109,10 +109,10 @@ def test_demo_timing_sentence():
                                   "analysis_s": 20.1, "cores": 2},
                         "reused": {"total_s": 2.2, "install_s": 0.0, "simulation_s": 0.1,
                                    "analysis_s": 1.5, "cores": 2}})
-    assert said == ("`make demo` took 1 min 50 s on a fresh clone (1 min 22 s creating `.venv`, "
-                    "installing and compiling the simulator, 28 s for the demo itself: "
-                    "simulating the data sets 8 s, the analysis 20 s); 2 s run again with "
-                    "nothing changed on 2 cores (measured by `make demo` itself: "
+    assert said == ("On 2 cores, `make demo` took 1 min 50 s on a fresh clone (1 min 22 s "
+                    "creating `.venv`, installing and compiling the simulator, 28 s for the demo "
+                    "itself: simulating the data sets 8 s, the analysis 20 s); 2 s when run again "
+                    "with nothing changed (measured by `make demo` itself: "
                     "outputs/demo/timings.json)")
     assert timing_text({}) == ""
 
