@@ -96,10 +96,11 @@ def test_steps_shown_by_default_on_a_terminal(monkeypatch):
         logger.handlers[:], logger.level, logger.propagate = saved
 
 
-def _in_a_terminal(argv, *, until: str, timeout_s: float = 120.0):
+def _in_a_terminal(argv, *, until: str | None = None, timeout_s: float = 120.0):
     """Run ``argv`` in a pseudo-terminal (40 x 140) until a line holding
-    ``until`` appears (then Ctrl-C) or it ends; return [(time since the
-    start [s], text)] of what it wrote, split at CR and LF, and the exit code."""
+    ``until`` appears (then Ctrl-C) or, without ``until``, until it ends;
+    return [(time since the start [s], text)] of what it wrote, split at CR
+    and LF, and the exit code."""
     import fcntl
     import os
     import pty
@@ -134,11 +135,11 @@ def _in_a_terminal(argv, *, until: str, timeout_s: float = 120.0):
             *lines, buf = buf.replace(b"\r", b"\n").split(b"\n")
             now = time.perf_counter() - t0
             seen += [(now, x.decode(errors="replace")) for x in lines if x.strip()]
-            if not interrupted and any(until in x for _, x in seen):
+            if until is not None and not interrupted and any(until in x for _, x in seen):
                 os.kill(pid, signal.SIGINT)
                 interrupted = True
     finally:
-        if not interrupted:
+        if not interrupted and time.perf_counter() - t0 >= timeout_s:
             os.kill(pid, signal.SIGINT)
         _, status = os.waitpid(pid, 0)
         os.close(fd)
@@ -188,22 +189,21 @@ def test_run_piped_is_quiet_unless_verbose(flow, tmp_path):
 def test_a_command_on_a_terminal_says_its_stages(flow, tmp_path):
     seen, code = _in_a_terminal(
         [*_cli_exe(), "flowfit", str(flow), "--out", str(tmp_path / "o"), "--n-boot", "0",
-         "--no-figures"], until="outputs:")
+         "--no-figures"])
     text = [x for _, x in seen]
-    assert code in (0, 130), text
+    assert code == 0, text
     assert any("[flowfit] stage ingest ..." in x for x in text), text
     assert any("[flowfit] stage flowfit done (" in x for x in text), text
 
 
 def test_simulate_and_ingest_draw_bars_on_a_terminal(flow, tmp_path):
     seen, code = _in_a_terminal([*_cli_exe(), "simulate", "paper-position", "--out",
-                                 str(tmp_path / "pos")], until="wrote 2 runs")
+                                 str(tmp_path / "pos")])
     text = [x for _, x in seen]
-    assert code in (0, 130) and any("paper-position:" in x and "/2 [" in x for x in text), text
-    seen, code = _in_a_terminal([*_cli_exe(), "ingest", str(flow), "--out", str(tmp_path / "i")],
-                                until="outputs:")
+    assert code == 0 and any("paper-position:" in x and "/2 [" in x for x in text), text
+    seen, code = _in_a_terminal([*_cli_exe(), "ingest", str(flow), "--out", str(tmp_path / "i")])
     text = [x for _, x in seen]
-    assert code in (0, 130) and any("ingest:" in x and "/14 [" in x for x in text), text
+    assert code == 0 and any("ingest:" in x and "/14 [" in x for x in text), text
 
 
 def test_the_compile_is_announced_on_a_terminal_beside_a_bar(monkeypatch, tmp_path):

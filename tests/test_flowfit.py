@@ -189,7 +189,7 @@ def test_singular_covariance_gives_null_intervals(rig, paper_summary, monkeypatc
     assert "covariance singular" in sf.message and math.isfinite(sf.z0_mm)
     doc = fit.to_json_dict()
     assert doc["supply"]["z0_ci95_mm"] == [None, None] and doc["supply"]["C_ci95_mm3_s_deg2_sqrtMPa"] == [None, None]
-    assert list(doc) == ["supply", "excluded", "units"]
+    assert list(doc) == ["supply", "excluded", "units", "flow_method"]
     assert "covariance singular" in fit.report()
 
 
