@@ -85,9 +85,10 @@ def _coverage(doc: dict, truth: dict) -> dict[str, dict]:
         if where is None or where[1] not in truth.get(where[0], {}):
             continue
         true = float(truth[where[0]][where[1]])
-        ci = c.get("ci95") or [None, None]
+        value = next((v for k, v in c.items() if k.startswith("value")), None)
+        ci = next((v for k, v in c.items() if k.startswith("ci95")), None) or [None, None]
         lo, hi = (math.nan if v is None else float(v) for v in ci)
-        out[c["key"]] = {"truth": true, "value": c.get("value"), "ci95": [lo, hi],
+        out[c["key"]] = {"truth": true, "value": value, "ci95": [lo, hi],
                          "identified": bool(c.get("identified")),
                          "covers": bool(c.get("identified") and lo <= true <= hi)}
     return out

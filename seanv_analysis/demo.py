@@ -27,11 +27,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from pathlib import Path
 
-__all__ = ["DEMO_DATASETS", "DRAIN_DRIFT", "demo_datasets", "main"]
+__all__ = ["DEMO_DATASETS", "DRAIN_DRIFT", "demo_datasets", "main", "timing_text",
+           "README_TIME_START", "README_TIME_END", "TIMINGS"]
 
 #: The drift the paper saw on the drain side (Sec. II-D.2, Fig. 4(a)): a slight
 #: fall of C every three runs (0.5 %; "use" counts every run of the data set).
@@ -101,7 +103,8 @@ RECORDED_HEADLINE = Path("docs") / "demo_headline.json"
 
 def headline_inputs(result: dict) -> dict:
     """The part of ``result`` (:meth:`PipelineResult.to_json_dict`) that
-    :func:`headline` reads: flowfit, tracking, discovery."""
+    :func:`headline` reads: flowfit, tracking, discovery (the README's
+    record adds ``timings``: :func:`timing_text`)."""
     return {k: result.get(k) for k in ("flowfit", "tracking", "discovery")}
 
 
@@ -135,9 +138,11 @@ def headline(result: dict, rig=None) -> str:
     tr = result.get("tracking") or {}
     if tr.get("lag_s") is not None:
         rows.append(("flow delay behind Q_ref [s]",
-                     f"{tr['lag_s']:.3f} {_ci(tr.get('lag_ci95_s'), '.3f')} ({tr.get('lag_source')})",
+                     f"{tr['lag_s']:.3f} {_ci(tr.get('lag_ci95_s'), '.3f')} (estimated)",
                      f"{rig.analysis.get('nominal_flow_lag_s', 0.25):.2f}"))
-        rows.append(("tracking RMSE, Q_ref in -2.5e3..8e3 [mm^3/s]", f"{tr['rmse_mm3_s']:.0f}",
+        lo, hi = tr.get("range_mm3_s") or (-2.5e3, 8e3)
+        rows.append((f"tracking RMSE, Q_ref in {lo / 1e3:g}e3..{hi / 1e3:g}e3 [mm^3/s]",
+                     f"{tr['rmse_mm3_s']:.0f} ({tr.get('pooled', 'all runs')})",
                      f"{PAPER_TRACKING_RMSE_MM3_S:.0f}"))
     width = max(len(r[0]) for r in rows)
     w2 = max(len(r[1]) for r in rows)
@@ -165,6 +170,57 @@ def headline(result: dict, rig=None) -> str:
     return "\n".join(lines)
 
 
+#: the README sentence on how long ``make demo`` takes (scripts/update_readme_numbers.py)
+README_TIME_START, README_TIME_END = "<!-- demo-time:start -->", "<!-- demo-time:end -->"
+#: where the demo keeps its timings, under its output folder: the last run
+#: of each kind ('fresh': make installed the package first; 'installed';
+#: 'reused': nothing had changed)
+TIMINGS = "timings.json"
+
+
+def _duration(s: float) -> str:
+    """'28 s', '1 min 50 s'."""
+    s = round(s)
+    return f"{s // 60} min {s % 60} s" if s >= 60 else f"{s} s"
+
+
+def timing_text(timings: dict) -> str:
+    """How long ``make demo`` took, in one sentence, from the times it
+    recorded itself (:data:`TIMINGS`): what the README says."""
+    parts = []
+    fresh, installed, reused = (timings.get(k) for k in ("fresh", "installed", "reused"))
+    if fresh:
+        sim, ana = round(fresh["simulation_s"]), round(fresh["analysis_s"])
+        parts.append(f"{_duration(fresh['total_s'])} on a fresh clone "
+                     f"({_duration(fresh['install_s'])} creating `.venv`, installing and "
+                     f"compiling the simulator, {_duration(sim + ana)} for the demo itself: "
+                     f"simulating the data sets {_duration(sim)}, the analysis {_duration(ana)})")
+    if installed:
+        parts.append(f"{_duration(installed['total_s'])} once installed (simulating "
+                     f"{_duration(installed['simulation_s'])}, the analysis "
+                     f"{_duration(installed['analysis_s'])})")
+    if reused:
+        parts.append(f"{_duration(reused['total_s'])} when run again with nothing changed")
+    if not parts:
+        return ""
+    cores = next((t.get("cores") for t in (fresh, installed, reused) if t), None)
+    return ((f"On {cores} cores, " if cores else "") + "`make demo` took " + "; ".join(parts)
+            + " (measured by `make demo` itself: outputs/demo/timings.json)")
+
+
+def _record_timings(out: Path, kind: str, timing: dict) -> None:
+    """Keep ``timing`` as the last run of ``kind`` in ``out / TIMINGS``."""
+    from .io.atomic import write_json_atomic
+
+    path = out / TIMINGS
+    try:
+        doc = json.loads(path.read_text()) if path.is_file() else {}
+    except (OSError, ValueError):
+        doc = {}
+    doc[kind] = timing
+    write_json_atomic(path, doc)
+
+
 def _check_readme(text: str) -> None:
     """In a source checkout: say whether the README shows this run's numbers."""
     readme = Path("README.md")
@@ -190,16 +246,26 @@ def main(argv: list[str] | None = None) -> int:
                         help="worker processes (default: the CPU count)")
     parser.add_argument("--force", action="store_true", help="recompute everything")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
+    parser.add_argument("--started-at", type=float, default=None,
+                        help="when `make demo` started [s since the epoch]: the total time "
+                             "counts from there (what make did first, an install, included)")
+    parser.add_argument("--installed-at", type=Path, default=None,
+                        help="the install's stamp file: an install newer than --started-at "
+                             "was this make's (a fresh clone)")
     args = parser.parse_args(argv)
 
     from .batch import run_pipeline
     from .errors import SeanvError
+    from .log import configure
+
+    configure(quiet=args.quiet)   # progress bars on a terminal (the lines: log below)
 
     def log(msg: str) -> None:
         if not args.quiet:
             print(msg, file=sys.stderr, flush=True)
 
     t0 = time.perf_counter()
+    wall0 = time.time()
     try:
         log("1/2 simulating the paper's data sets (flow steps with the drain drift the paper "
             "observed; position control with and without the flow model) ...")
@@ -218,8 +284,20 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     _check_readme(text)
     total = time.perf_counter() - t0
+    started = args.started_at if args.started_at is not None else wall0
+    install = 0.0
+    if args.installed_at is not None and args.installed_at.is_file():
+        stamp = args.installed_at.stat().st_mtime
+        install = max(0.0, stamp - started) if stamp >= started else 0.0
+    kind = "fresh" if install > 0 else ("reused" if result.recorded is not None else "installed")
+    timing = {"total_s": round(time.time() - started, 1), "install_s": round(install, 1),
+              "simulation_s": round(t_sim, 1), "analysis_s": round(total - t_sim, 1),
+              "cores": os.cpu_count()}
+    _record_timings(args.out, kind, timing)
     print(f"\ndemo finished in {total:.0f} s (simulation {t_sim:.0f} s, analysis "
-          f"{total - t_sim:.0f} s)")
+          f"{total - t_sim:.0f} s)"
+          + (f"; make demo took {timing['total_s']:.0f} s in all, {install:.0f} s of it "
+             "installing" if install > 0 else ""))
     if result.report_path:
         print(f"open the report: {Path(result.report_path).resolve()}")
     return 0 if result.success else 1

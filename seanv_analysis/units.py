@@ -15,7 +15,9 @@ __all__ = ["UNIT_SUFFIXES", "unit_of_key", "unit_suffix", "units_of_columns"]
 #: key suffix -> unit in plain text. A suffix comes before the shorter ones
 #: it ends with (``_mm3_s`` before ``_s``, ``_deg_s`` before ``_s``), so the
 #: first suffix a key ends with is its unit (:func:`unit_of_key`); of two
-#: suffixes of one unit, the first is the one new keys get.
+#: suffixes of one unit, the first is the one new keys get. Suffixes are
+#: lower case (``_mpa``, ``_n``) but where the unit's spelling is part of a
+#: compound (``_mm3_s_deg2_sqrtMPa``).
 UNIT_SUFFIXES: dict[str, str] = {
     "_mm3_s_deg2_sqrtMPa": "mm^3/(s deg^2 MPa^0.5)",   # C of eq. (5)
     "_mm3_s_deg2": "mm^3/(s deg^2)",                   # alpha of Q = alpha (theta - theta_d)^2
@@ -31,8 +33,8 @@ UNIT_SUFFIXES: dict[str, str] = {
     "_mm_s": "mm/s",
     "_deg_s": "deg/s",
     "_mpag": "MPaG",
-    "_MPa": "MPa",
     "_mpa": "MPa",
+    "_MPa": "MPa",                                     # read, never written
     "_pct": "%",
     "_frac": "fraction",
     "_deg": "deg",
@@ -43,8 +45,8 @@ UNIT_SUFFIXES: dict[str, str] = {
     "_hz": "Hz",
     "_m": "m",
     "_s": "s",
-    "_N": "N",
     "_n": "N",
+    "_N": "N",                                         # read, never written
 }
 
 

@@ -126,3 +126,12 @@ def test_constraints_pin_every_dependency_within_pyproject():
         name = req.name.lower().replace("_", "-")
         assert name in pins, f"{req.name} is not pinned in constraints.txt"
         assert req.specifier.contains(pins[name]), f"{req.name}=={pins[name]} vs {req}"
+
+
+def test_license_is_an_spdx_expression():
+    """Issue 33, point 6: ``license = { text = "MIT" }`` made setuptools warn
+    (a 14-line BuildBackendWarning, twice) at every install; an SPDX string
+    needs setuptools >= 77, which the build requires."""
+    doc = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert doc["project"]["license"] == "MIT"
+    assert "setuptools>=77" in doc["build-system"]["requires"]

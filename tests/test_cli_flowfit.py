@@ -56,7 +56,7 @@ def test_json_outputs_and_manifest(dataset, tmp_path):
     res = invoke(dataset, "--out", out, "--json", "--n-boot", 30, "--cam", "commanded")
     assert res.exit_code == 0, res.output + res.stderr
     doc = json.loads(res.stdout)
-    assert list(doc) == ["supply", "drain", "excluded", "units", "inputs"]
+    assert list(doc) == ["supply", "drain", "excluded", "units", "flow_method", "inputs"]
     check_schema("flowfit", doc)  # data_schema/json/flowfit.schema.json
     assert keys_without_unit(doc) == []
     truth = ValveModel.from_rig(load_rig())
@@ -91,7 +91,7 @@ def test_report_and_one_side(dataset, tmp_path):
     assert "drain: ok" in res.stdout and "supply" not in res.stdout.split("excluded")[0]
     assert "z0 =" in res.stdout and f"outputs: {tmp_path}" in res.stdout
     doc = json.loads((tmp_path / "flowfit.json").read_text())
-    assert list(doc) == ["drain", "excluded", "units"]
+    assert list(doc) == ["drain", "excluded", "units", "flow_method"]
 
 
 def test_bad_run_exit_1_results_still_written(dataset, tmp_path):
@@ -155,3 +155,20 @@ def test_figure_options(dataset, tmp_path):
     assert modules_after(code, ["matplotlib"]) == []
     assert (tmp_path / "none" / "flowfit.json").is_file()
     assert not list((tmp_path / "none").glob("fig4.*"))
+
+
+def test_peak_method_says_its_bias(dataset, tmp_path):
+    """Issue 33, point 6: --method peak said 'ok' with intervals that can
+    exclude the truth and no word of the estimate's known bias."""
+    res = invoke(dataset, "--method", "peak", "--n-boot", "0", "--no-figures",
+                 "--out", tmp_path / "o")
+    assert res.exit_code == 0, res.output
+    assert "fitted on the biased 'peak' flow estimate" in res.stdout
+    assert "supply: ok" not in res.stdout and "+16 %" in res.stdout
+    doc = json.loads(invoke(dataset, "--method", "peak", "--n-boot", "0", "--no-figures",
+                            "--json", "--out", tmp_path / "j").stdout)
+    assert doc["flow_method"] == "peak"
+    check_schema("flowfit", doc)
+    steady = json.loads(invoke(dataset, "--n-boot", "0", "--no-figures", "--json",
+                               "--out", tmp_path / "s").stdout)
+    assert steady["flow_method"] == "steady"

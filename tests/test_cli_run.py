@@ -97,6 +97,9 @@ def test_run_pipeline_file_and_bad_runs_exit_1(data, tmp_path):
     r = invoke("run", pipe, d, "--out", tmp_path / "o", "--workers", "1", "-q")
     assert r.exit_code == 1
     assert "1 failed" in r.output and "nopressure" in r.output and "pressure" in r.output
+    # issue 33, point 6: with -q too, what went wrong is on stderr, not on stdout only
+    assert "1 bad run(s) skipped:" in r.stderr and "nopressure" in r.stderr
+    assert "outputs (" not in r.stderr                      # the summary stays on stdout
 
 
 @pytest.mark.parametrize("args, match", [
@@ -142,10 +145,10 @@ def test_run_end_to_end_subprocess(data, tmp_path):
     exe = Path(sys.executable).with_name("seanv-analyze")
     cmd = [str(exe)] if exe.exists() else [sys.executable, "-c",
                                            "from seanv_analysis.cli import main; main()"]
-    proc = subprocess.run([*cmd, "run", "tracking", str(data), "--out", str(out), "--workers", "2"],
-                          capture_output=True, text=True, env=env, timeout=300)
+    proc = subprocess.run([*cmd, "run", "tracking", str(data), "--out", str(out), "--workers", "2",
+                           "-v"], capture_output=True, text=True, env=env, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert "stage ingest done" in proc.stderr       # plain line per stage when not a TTY
+    assert "stage ingest done" in proc.stderr       # plain line per stage with -v
     assert "\r" not in proc.stderr                  # no progress bar
     assert "report:" in proc.stdout
 
@@ -162,3 +165,25 @@ def test_run_figure_options(data, tmp_path):
     doc = json.loads(r.stdout)
     assert doc["figures"] == {} and "figures" not in [s["name"] for s in doc["pipeline"]["stages"]]
     assert (tmp_path / "none" / "report.html").is_file()
+
+
+def test_plots_says_what_it_runs_and_fails_when_nothing_is_drawn(tmp_path):
+    """Issue 33, point 6: ``plots --fig 7`` on flow steps wrote 0 files and
+    exited 0; ``--fig all`` re-ran four analyses without a word."""
+    from conftest import write_synthetic_dataset
+
+    from seanv_analysis.cli.plots_cmd import analyses_run, plots_pipeline
+
+    flow = write_synthetic_dataset(tmp_path / "flow", n_flow=6)
+    r = invoke("plots", flow, "--fig", "7", "--out", tmp_path / "p7", "--workers", "1")
+    assert r.exit_code == 2, r.output
+    assert "error: " in r.stderr and "no figure written: fig 7 (tracking: no position-control " \
+        "runs" in " ".join(r.stderr.split())
+    assert "need the results of tracking: running them first" in r.stderr
+    r = invoke("plots", flow, "--fig", "4", "--fig", "7", "--out", tmp_path / "p47",
+               "--workers", "1")
+    assert r.exit_code == 0, r.output
+    assert "note: not drawn: fig 7 (tracking:" in r.stderr and "fig4.png" in r.stdout
+    assert analyses_run(plots_pipeline("all")) == ["flowfit", "tracking", "validate", "discover"]
+    assert "need the results" not in invoke("plots", flow, "--fig", "4", "--out",
+                                            tmp_path / "q", "--workers", "1", "-q").stderr

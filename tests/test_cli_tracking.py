@@ -32,7 +32,7 @@ def test_tracking_json_shift(dataset, tmp_path):
     doc = json.loads(res.stdout)  # nothing else on stdout
     expected = run_stages(dataset, ["ingest", "tracking"],
                           options={"tracking": {"shift_s": 0.25}}).result("tracking")
-    assert doc["lag_source"] == "given" and doc["lag_s"] == 0.25
+    assert doc["shift_source"] == "given" and doc["shift_s"] == 0.25
     assert_allclose(doc["rmse_mm3_s"], expected.rmse_mm3_s, rtol=1e-12)
     assert doc["n_samples"] == expected.n_samples
     assert [r["run_id"] for r in doc["runs"]] == ["pos0", "pos1"]
@@ -48,7 +48,8 @@ def test_tracking_estimated_and_range(dataset, tmp_path):
                                    "--json", "--no-figures", "--out", str(out)])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
-    assert doc["lag_source"] == "estimated" and abs(doc["lag_s"] - 0.237) < 0.005
+    assert doc["shift_source"] == "estimated" and abs(doc["lag_s"] - 0.237) < 0.005
+    assert doc["shift_s"] == doc["lag_s"]
     assert len(doc["lag_ci95_s"]) == 2 and doc["range_mm3_s"] == [-2000.0, 6000.0]
 
 
@@ -66,7 +67,7 @@ def test_tracking_subprocess_end_to_end(dataset, tmp_path):
                            "--shift", "0.25", "--json", "--no-figures", "--out",
                            str(tmp_path / "sp")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
-    assert json.loads(proc.stdout)["lag_s"] == 0.25
+    assert json.loads(proc.stdout)["shift_s"] == 0.25
 
 
 # --- on simulated data sets ------------------------------------------------------
@@ -141,6 +142,48 @@ def test_no_data_uses_builtin_dataset(sim_sets, tmp_path, monkeypatch):
     res = CliRunner().invoke(cli, ["tracking", "--shift", "0.25", "--json", "--no-figures"])
     assert res.exit_code == 0, res.output
     assert "built-in simulated paper position-control data set" in res.stderr
-    assert json.loads(res.stdout)["lag_source"] == "given"
+    assert json.loads(res.stdout)["shift_source"] == "given"
     assert asked == ["paper-position"]
     assert (tmp_path / "outputs" / "paper-position-x" / "tracking" / "tracking.json").exists()
+
+
+def test_one_tracking_number_everywhere(tmp_path):
+    """Issue 33, point 2: ``tracking`` alone (which skips a run whose Q_ref
+    is only implied), the pipeline (which tracks it with the rig's model),
+    its report and its Fig. 7(b) give one RMSE: the runs with a commanded
+    Q_ref, in the range."""
+    from seanv_analysis.batch import run_pipeline
+    from seanv_analysis.report._format import _fmt
+
+    root = tmp_path / "pos"
+    write_delayed_run(root, "commanded", seed=21, duration_s=8.0)
+    write_delayed_run(root, "implied", seed=22, duration_s=8.0, q_ref_empty=True,
+                      flow_model=False, started_at="2026-03-02T10:05:00Z")
+    alone = CliRunner().invoke(cli, ["tracking", str(root), "--json", "--no-figures",
+                                     "--out", str(tmp_path / "t")])
+    assert alone.exit_code == 0, alone.output
+    alone = json.loads(alone.stdout)
+    pipe = {"pipeline": {"name": "t"}, "stages": [{"name": "ingest"}, {"name": "tracking"},
+                                                   {"name": "report"}]}
+    res = run_pipeline(pipe, root, out_dir=tmp_path / "run", workers=1, quiet=True)
+    doc = json.loads((tmp_path / "run" / "result.json").read_text())["tracking"]
+    assert [r["target_source"] for r in doc["runs"]] == ["q_ref", "model"]
+    assert doc["pooled_runs"] == alone["pooled_runs"] == ["commanded"]
+    assert doc["rmse_mm3_s"] == alone["rmse_mm3_s"] == res["tracking"].rmse_mm3_s
+    html = res.report_path.read_text()
+    assert f"{_fmt(doc['rmse_mm3_s'], 4)} mm" in html and "runs with a commanded Q_ref" in html
+    from seanv_analysis.plots.fig7 import scatter_runs
+
+    assert [r.run_id for r in scatter_runs(res["tracking"])[0]] == ["commanded"]
+
+
+@pytest.mark.parametrize("shift", ["25", "-1", "2.5"])
+def test_a_shift_outside_0_to_2_s_is_refused_with_its_range(dataset, tmp_path, shift):
+    """Issue 33, point 6: --shift 25 exited 0 with RMSE 1144 and no word."""
+    out = tmp_path / "o"
+    res = CliRunner().invoke(cli, ["tracking", str(dataset), f"--shift={shift}", "--out", str(out),
+                                   "--no-figures"])
+    assert res.exit_code == 2, res.output
+    assert res.stderr.count("\n") == 1 and "(--shift)" in res.stderr
+    assert "from 0 to 2" in res.stderr and not (out / "tracking.json").exists()
+    assert "--shift 0..2" in CliRunner().invoke(cli, ["tracking", "--help"]).output

@@ -266,9 +266,10 @@ def test_per_run_figures_drawn_by_worker_processes(tmp_path, make_dataset):
     assert fig6 == ["fig6_pos000.png", "fig6_pos001.png"], res.summary_text()
 
 
-def test_fig7_scatter_is_the_logged_target_run_with_its_own_rmse(position_runs, tmp_path):
-    """As the paper's Fig. 7(b): the scatter holds the runs whose Q_ref was
-    logged, and its RMSE is theirs; a target only implied by a model is
+def test_fig7_scatter_is_the_commanded_target_run_with_the_headline_rmse(position_runs, tmp_path):
+    """As the paper's Fig. 7(b): the scatter holds the runs whose Q_ref the
+    controller commanded, and its RMSE is the tracking headline (issue 33,
+    point 2: one number everywhere); a target only implied by a model is
     labelled so."""
     import dataclasses
 
@@ -276,17 +277,14 @@ def test_fig7_scatter_is_the_logged_target_run_with_its_own_rmse(position_runs, 
 
     matplotlib.use("Agg")
     from seanv_analysis.analysis.tracking import tracking_runs
-    from seanv_analysis.plots.fig7 import TARGET_LABELS, plot_fig7, pooled_rmse, scatter_runs
+    from seanv_analysis.plots.fig7 import TARGET_LABELS, plot_fig7, scatter_runs
 
     tr = tracking_runs(position_runs, shift_s=0.25)
     logged, implied = tr.runs[0], dataclasses.replace(tr.runs[1], target_source="model")
-    tr = dataclasses.replace(tr, runs=[implied, logged])
+    tr = dataclasses.replace(tr, runs=[implied, logged], pooled_runs=[logged.run_id],
+                             rmse_mm3_s=logged.rmse_mm3_s)
     runs, which = scatter_runs(tr)
-    assert runs == [logged] and "logged" in which
-    assert pooled_rmse(runs) == pytest.approx(logged.rmse_mm3_s)
-    both = pooled_rmse([logged, implied])
-    assert min(logged.rmse_mm3_s, implied.rmse_mm3_s) <= both <= max(logged.rmse_mm3_s,
-                                                                       implied.rmse_mm3_s)
+    assert runs == [logged] and which == tr.pooled == "runs with a commanded Q_ref"
     assert [p.name for p in plot_fig7(tr, tmp_path, per_run=False, formats=("png",))] == [
         "fig7.png"]
     from seanv_analysis.plots._style import new_figure
@@ -342,3 +340,85 @@ def test_dataset_figure_not_redrawn_when_its_inputs_are_unchanged(position_runs,
     assert stage.figure_key("fig7", {"x": 1}, ("png",), rig) != stage.figure_key(
         "fig7", {"x": 1}, ("svg",), rig)
     assert stage.figure_key("fig7", {"x": object()}, ("png",), rig) is None  # not hashable: drawn
+
+
+@pytest.fixture(scope="module")
+def paper_position(tmp_path_factory):
+    """The demo's position-control runs (Sec. III-C, loads 0.35/0.45 MPaG),
+    simulated on the built-in plant: what Fig. 6, 7 and validate draw."""
+    from seanv_analysis.io import read_dataset
+    from seanv_analysis.sim import simulate_scenario
+
+    root = simulate_scenario("paper-position", tmp_path_factory.mktemp("pp") / "position", seed=0)
+    return read_dataset(root).runs
+
+
+def _legends_over_axes(fig) -> list[str]:
+    """Each legend that covers any axes' area (the data), as 'legend "first
+    label" over axes "title"'; the layout as it is saved."""
+    from matplotlib.transforms import Bbox
+
+    fig.draw_without_rendering()
+    renderer = fig.canvas.get_renderer()
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None] + fig.legends
+    out = []
+    for leg in legends:
+        box = leg.get_window_extent(renderer)
+        for ax in fig.axes:
+            if not ax.get_visible():
+                continue
+            inter = Bbox.intersection(box, ax.get_window_extent(renderer))
+            if inter is not None and inter.width > 1 and inter.height > 1:
+                first = leg.get_texts()[0].get_text() if leg.get_texts() else ""
+                out.append(f"legend {first!r} over axes {ax.get_title(loc='left') or ax.get_title()!r}")
+    return out
+
+
+def _legend_texts(fig) -> set[str]:
+    legends = [ax.get_legend() for ax in fig.axes if ax.get_legend() is not None] + fig.legends
+    return {t.get_text() for leg in legends for t in leg.get_texts()}
+
+
+def test_legends_never_cover_data_and_both_loads_are_named(rig, paper_position, tmp_path,
+                                                           monkeypatch):
+    """Issue 33, point 5: every figure of the demo keeps its legends off the
+    axes (the position traces at 30-33 mm between 35 and 80 s, the Q_ref
+    peaks, the scatter were covered), and the load shading has one label,
+    ``load 0.45 MPaG (shaded)``, with the 0.35 MPaG load named too."""
+    import importlib
+
+    from synthetic_flow import synthetic_flow_summary
+
+    from seanv_analysis.analysis.tracking import tracking_runs
+    from seanv_analysis.analysis.validate import validate_runs
+    from seanv_analysis.discover import discover_flow_steps
+    from seanv_analysis.models import ValveModel
+    from seanv_analysis.plots import _style
+
+    drawn: dict[str, object] = {}
+
+    def capture(fig, out_dir, stem, **kwargs):
+        drawn[stem] = fig
+        return [Path(out_dir) / f"{stem}.png"]
+
+    for name in ("fig4", "fig6", "fig7", "validate", "residuals"):
+        monkeypatch.setattr(importlib.import_module(f"seanv_analysis.plots.{name}"),
+                            "save_figure", capture)
+    monkeypatch.setattr(_style, "save_figure", capture)
+    truth = ValveModel.from_rig(rig)
+    tracking = tracking_runs(paper_position, model=truth)
+    validation = validate_runs(paper_position[:1], truth, rig=rig)
+    discovery = discover_flow_steps(synthetic_flow_summary(truth, rig, seed=1), model=truth)
+    results = {"flowfit": _flowfit(rig), "tracking": tracking, "validation": validation,
+               "discovery": discovery, "position_runs": paper_position}
+    for name in ("fig4", "fig7", "validate_fit", "discover_residuals", "fig6_runs"):
+        FIGURES[name].draw(results, tmp_path, formats=("png",))
+    FIGURES["fig6"].draw_run(paper_position[0], tmp_path, formats=("png",), rig=rig)
+    assert {"fig4", "fig7", "validate_fit", "discover_residuals", "fig6"} <= set(drawn) and \
+        any(s.startswith("fig7_") for s in drawn) and any(s.startswith("fig6_") for s in drawn)
+    for stem, fig in drawn.items():
+        assert _legends_over_axes(fig) == [], stem
+    for stem in [s for s in drawn if s.startswith(("fig6_", "fig7", "validate_position"))]:
+        texts = _legend_texts(drawn[stem])
+        assert {"load 0.45 MPaG (shaded)", "load 0.35 MPaG"} <= texts, (stem, texts)
+        assert not any("higher load" in t for t in texts), stem

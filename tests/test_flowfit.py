@@ -81,7 +81,7 @@ def test_model_carries_fit_and_threshold_table(rig, paper_fit, paper_summary):
     ok = pl[pl["success"]]
     dev = np.abs(ok["theta_d_deg"] - ok["theta_d_model_deg"]) / ok["theta_d_se_deg"]
     assert float(np.median(dev)) < 2.0
-    assert (np.sign(ok["alpha"]) == np.where(ok["side"] == "supply", 1, -1)).all()
+    assert (np.sign(ok["alpha_mm3_s_deg2"]) == np.where(ok["side"] == "supply", 1, -1)).all()
 
 
 def test_per_run_residual_is_measured_minus_model(paper_fit, paper_summary):
@@ -156,7 +156,7 @@ def test_one_outlier_run_moves_c_less_than_3_percent(rig, paper_summary, side):
 def test_json_contract(paper_fit):
     C = "C_mm3_s_deg2_sqrtMPa"  # the unit in the key
     doc = paper_fit.to_json_dict()
-    assert list(doc) == ["supply", "drain", "excluded", "units"]
+    assert list(doc) == ["supply", "drain", "excluded", "units", "flow_method"]
     for side in ("supply", "drain"):
         d = doc[side]
         assert list(d) == ["z0_mm", C, "z0_ci95_mm", "C_ci95" + C[1:], "rmse_mm3_s", "n_runs",
@@ -193,7 +193,7 @@ def test_singular_covariance_gives_null_intervals(rig, paper_summary, monkeypatc
     assert "covariance singular" in sf.message and math.isfinite(sf.z0_mm)
     doc = fit.to_json_dict()
     assert doc["supply"]["z0_ci95_mm"] == [None, None] and doc["supply"]["C_ci95_mm3_s_deg2_sqrtMPa"] == [None, None]
-    assert list(doc) == ["supply", "excluded", "units"]
+    assert list(doc) == ["supply", "excluded", "units", "flow_method"]
     assert "covariance singular" in fit.report()
 
 
@@ -311,3 +311,32 @@ def test_bootstrap_jacobian_is_the_derivative_of_eq5():
                                                              rel=1e-6)
         np.testing.assert_allclose(r.jac(x), numeric, rtol=0,
                                    atol=1e-6 * np.abs(numeric).max())
+
+
+def test_params_and_eval_as_lmfit(paper_fit, paper_summary):
+    """Issue 33: an lmfit-like way to a fit's numbers,
+    ``fit.params["supply.C"].value / .stderr / .ci95`` and
+    ``fit.eval(theta, dp, side)`` for the model's prediction."""
+    p = paper_fit.params
+    assert list(p) == ["supply.z0", "supply.C", "drain.z0", "drain.C"]
+    for side in ("supply", "drain"):
+        sf = paper_fit.sides[side]
+        c, z0 = p[f"{side}.C"], p[f"{side}.z0"]
+        assert (c.value, c.ci95, c.unit) == (sf.c_flow, sf.c_ci95, "mm^3/(s deg^2 MPa^0.5)")
+        assert (z0.value, z0.ci95, z0.unit) == (sf.z0_mm, sf.z0_ci95, "mm")
+        assert c.stderr == sf.joint["c_se"] and z0.stderr == sf.joint["z0_se_mm"] > 0
+        assert c.ci95[0] < c.value < c.ci95[1] and "95 %" in repr(c)
+    used = paper_fit.per_run[paper_fit.per_run["used"].astype(bool)]
+    for side in ("supply", "drain"):
+        rows = used[used["side"] == side]
+        assert_allclose(paper_fit.eval(rows["theta_deg"], rows["dp_mpa"], side,
+                                       p1_mpa=rows["p1_mpa"]),
+                        rows["q_model_mm3_s"] - rows["q_leak_mm3_s"].fillna(0.0), rtol=1e-9)
+    # default p1: the supply runs' supply pressure; the drain's head = dp + tank
+    sup = used[used["side"] == "supply"]
+    q = paper_fit.eval([5.0, 10.0], 2.0, "supply")
+    assert_allclose(q, paper_fit.model.supply.flow(np.array([5.0, 10.0]),
+                                                   float(np.median(sup["p1_mpa"])), 2.0))
+    assert paper_fit.eval(-30.0, 1.0, "drain") < 0 < paper_fit.eval(5.0, 2.0, "supply")
+    with pytest.raises(ValueError, match="side: expected one of supply, drain"):
+        paper_fit.eval(0.0, 1.0, "both")

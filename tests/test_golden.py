@@ -106,7 +106,7 @@ def test_line_structure_kept_on_our_own_plant(golden_run):
     replayed training run worse (its SSE grows as the inertance shrinks)."""
     doc, _ = golden_run
     c = next(c for c in doc["identify"]["constants"] if c["key"] == "tube.inertance_factor")
-    assert c["value"] == 1.0 and c["default"] == 1.0
+    assert c["value_ratio"] == 1.0 and c["default_ratio"] == 1.0
     assert "kept" in c["note"]
 
 
@@ -117,6 +117,9 @@ def test_pipeline_result_follows_the_schema_and_names_units(golden_run):
     doc, _ = golden_run
     check_schema("run", doc)
     assert keys_without_unit(doc) == []
+    from test_names import other_names
+
+    assert other_names(doc) == []          # one name per quantity (issue 33, point 4)
     # integers stay integers (JSON Schema's "integer" also admits 6.0)
     assert all(isinstance(r["steps"], int) for r in doc["validation"]["runs"])
     assert all(isinstance(c["steps"], int) for c in doc["validation"]["by_controller"].values())

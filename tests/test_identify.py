@@ -18,6 +18,7 @@ from json_schemas import check_schema, keys_without_unit
 
 from seanv_analysis import ValveModel, load_rig
 from seanv_analysis.cli import cli
+from seanv_analysis.identify.result import suffix_of_unit
 
 PLAN = flowstep_plan(supply_cams=(-5.0, 0.0, 5.0, 10.0), drain_cams=(-40.0, -32.5, -25.0, -20.0),
                      loads=(0.15, 0.3, 0.45), repeats=2)
@@ -67,18 +68,18 @@ def test_threshold_over_the_tested_pressures(foreign_own):
         off = np.abs(default.side(side).threshold_deg(p1, dp) - true.threshold_deg(p1, dp))
         assert off.max() > 0.5
         c = _const(doc, f"valve.{side}.c_flow")
-        assert c["value"] == pytest.approx(getattr(truth, f"{side}_c"), rel=0.03)
+        assert c["value_mm3_s_deg2_sqrtMPa"] == pytest.approx(getattr(truth, f"{side}_c"), rel=0.03)
 
 
 def test_servo_dead_time_plus_lag_and_rate(foreign_own):
     _, truth, doc = foreign_own
-    dead = _const(doc, "servo.dead_time_s")["value"]
-    tau = _const(doc, "servo.time_constant_s")["value"]
+    dead = _const(doc, "servo.dead_time_s")["value_s"]
+    tau = _const(doc, "servo.time_constant_s")["value_s"]
     assert dead + tau == pytest.approx(truth.servo_dead_s + truth.servo_tau_s, rel=0.15)
     assert tau == pytest.approx(truth.servo_tau_s, rel=0.15)
     rate = _const(doc, "servo.max_rate_deg_s")
-    assert rate["identified"] and rate["value"] == pytest.approx(truth.servo_rate_deg_s, rel=0.15)
-    lo, hi = _const(doc, "servo.dead_time_s")["ci95"]
+    assert rate["identified"] and rate["value_deg_s"] == pytest.approx(truth.servo_rate_deg_s, rel=0.15)
+    lo, hi = _const(doc, "servo.dead_time_s")["ci95_s"]
     assert lo <= truth.servo_dead_s <= hi
 
 
@@ -120,18 +121,18 @@ def test_friction(foreign_own):
     biased, outside in 1 of 8 bench seeds)."""
     _, truth, doc = foreign_own
     coulomb = _const(doc, "actuator.coulomb_friction_n")
-    assert coulomb["value"] == pytest.approx(truth.coulomb_n, rel=0.2)
-    assert coulomb["ci95"][0] <= truth.coulomb_n <= coulomb["ci95"][1], coulomb
+    assert coulomb["value_n"] == pytest.approx(truth.coulomb_n, rel=0.2)
+    assert coulomb["ci95_n"][0] <= truth.coulomb_n <= coulomb["ci95_n"][1], coulomb
     assert any("did not move at a steady speed" in n for n in doc["notes"]), doc["notes"]
     static = _const(doc, "actuator.static_friction_n")
     assert "starts after a hold" in static["constrained_by"]
-    assert static["value"] == pytest.approx(truth.static_n, rel=0.2)
+    assert static["value_n"] == pytest.approx(truth.static_n, rel=0.2)
     rig = load_rig()
     from seanv_analysis.sim import tube_constants
 
     line_pkg = tube_constants(rig)["R"] * rig.piston_area_mm2 ** 2
     line_true = truth.line_resistance_mpa_s_per_mm3 * rig.piston_area_mm2 ** 2
-    seen = _const(doc, "actuator.viscous_friction_n_s_per_mm")["value"] + line_pkg
+    seen = _const(doc, "actuator.viscous_friction_n_s_per_mm")["value_n_s_per_mm"] + line_pkg
     assert seen == pytest.approx(truth.viscous_n_s_per_mm + line_true, rel=0.2)
 
 
@@ -147,12 +148,12 @@ def test_supply_pressure_and_unidentified_mass(foreign_own):
 
     _, truth, doc = foreign_own
     p0 = _const(doc, "supply.pressure_mpag")
-    assert p0["value"] == pytest.approx(truth.supply_mpag, abs=0.005)
+    assert p0["value_mpag"] == pytest.approx(truth.supply_mpag, abs=0.005)
     droop = _const(doc, "supply.droop_mpa_s_per_mm3")
-    assert droop["identified"] and droop["default"] == 0.0
-    assert droop["value"] == pytest.approx(SUPPLY_DROOP_MPA_S_PER_MM3, rel=0.03)
-    lo, hi = droop["ci95"]
-    assert lo < droop["value"] < hi and hi - lo < 0.1 * SUPPLY_DROOP_MPA_S_PER_MM3
+    assert droop["identified"] and droop["default_mpa_s_per_mm3"] == 0.0
+    assert droop["value_mpa_s_per_mm3"] == pytest.approx(SUPPLY_DROOP_MPA_S_PER_MM3, rel=0.03)
+    lo, hi = droop["ci95_mpa_s_per_mm3"]
+    assert lo < droop["value_mpa_s_per_mm3"] < hi and hi - lo < 0.1 * SUPPLY_DROOP_MPA_S_PER_MM3
     mass = _const(doc, "actuator.moving_mass_kg")
     assert not mass["identified"] and mass["note"]
 
@@ -215,8 +216,8 @@ def test_line_found_lumped(foreign_own):
     rig file's tube (factor 1) outside its interval."""
     _, _, doc = foreign_own
     c = _const(doc, "tube.inertance_factor")
-    assert c["identified"] and c["default"] == 1.0
-    assert c["value"] <= 0.1 and c["ci95"][1] < 1.0, c
+    assert c["identified"] and c["default_ratio"] == 1.0
+    assert c["value_ratio"] <= 0.1 and c["ci95_ratio"][1] < 1.0, c
 
 
 def test_line_time_constant_holds_the_foreign_lag(foreign_own):
@@ -227,8 +228,8 @@ def test_line_time_constant_holds_the_foreign_lag(foreign_own):
     _, truth, doc = foreign_own
     tau = next(c for c in doc["constants"] if c["name"].startswith("line time constant"))
     lag = truth.flow_lag_s("position_control")
-    assert tau["value"] == pytest.approx(lag, rel=0.05)
-    assert tau["ci95"][0] <= lag <= tau["ci95"][1], (tau, lag)
+    assert tau["value_s"] == pytest.approx(lag, rel=0.05)
+    assert tau["ci95_s"][0] <= lag <= tau["ci95_s"][1], (tau, lag)
     assert "head chamber" in tau["constrained_by"]
 
 
@@ -243,7 +244,7 @@ def test_rig_file_round_trip(foreign_own):
             v = rig[section]
             for k in rest:
                 v = v[k]
-            assert v == pytest.approx(c["value"], rel=1e-5)
+            assert v == pytest.approx(c[f"value{suffix_of_unit(c['unit'])}"], rel=1e-5)
         elif c["key"]:
             assert c["key"].split(".")[-1] + " =" not in text
 

@@ -206,10 +206,10 @@ def test_field_slow_servo_limit_cycle(field_root, tmp_path):
     assert keys_without_unit(doc) == []
     by = {c["key"]: c for c in doc["constants"]}
     band, release = by["controller.convergence_band_mm"], by["controller.release_band_mm"]
-    assert band["identified"] and band["ci95"][0] <= 0.5 <= band["ci95"][1]
-    assert release["identified"] and release["value"] == band["value"]
-    assert by["controller.kp_cam_deg_per_mm"]["value"] == pytest.approx(15.0, rel=0.01)
-    assert by["servo.neutral_deg"]["value"] == pytest.approx(-15.0, abs=0.01)
+    assert band["identified"] and band["ci95_mm"][0] <= 0.5 <= band["ci95_mm"][1]
+    assert release["identified"] and release["value_mm"] == band["value_mm"]
+    assert by["controller.kp_cam_deg_per_mm"]["value_deg_per_mm"] == pytest.approx(15.0, rel=0.01)
+    assert by["servo.neutral_deg"]["value_deg"] == pytest.approx(-15.0, abs=0.01)
     res = CliRunner().invoke(cli, ["validate", str(data), "--rig",
                                    str(tmp_path / "id" / "rig-identified.toml"), "--json",
                                    "--no-figures", "--out", str(tmp_path / "val")])

@@ -34,8 +34,8 @@ def test_unit_of_key(key, expected):
 
 def test_unit_suffix_is_the_first_of_its_unit_and_round_trips():
     assert unit_suffix("mm^3/s") == "_mm3_s"
-    assert unit_suffix("MPa") == "_MPa"   # the identification's score keys (not "_mpa")
-    assert unit_suffix("N") == "_N"
+    assert unit_suffix("MPa") == "_mpa"   # one spelling (issue 33, point 4: not heldout_MPa)
+    assert unit_suffix("N") == "_n"       # as coulomb_friction_n (not train_N)
     assert unit_suffix("%") == "_pct"
     assert unit_suffix("furlong") is None
     for unit in UNIT_SUFFIXES.values():

@@ -16,7 +16,7 @@ BAD = [
     ("identify", "parts", '["geometry", "x"]'), ("identify", "parts", '"servo"'),
     ("identify", "parts", "[]"), ("identify", "n_boot", "-3"), ("identify", "seed", "1.0"),
     ("tracking", "shift_s", '"0.25"'), ("tracking", "shift_s", "nan"),
-    ("tracking", "shift_s", "-0.1"), ("tracking", "shift_s", "true"),
+    ("tracking", "shift_s", "-0.1"), ("tracking", "shift_s", "true"), ("tracking", "shift_s", "2.5"),
     ("tracking", "q_range", "[nan, 5]"), ("tracking", "q_range", "[5, 1]"),
     ("tracking", "q_range", "[1, inf]"), ("tracking", "q_range", "[1]"),
     ("validate", "threshold_pct", "nan"), ("validate", "threshold_pct", "150"),
@@ -56,3 +56,12 @@ def test_svg_only_writes_no_png(tmp_path, make_dataset):
     assert res.exit_code == 0, res.output
     assert list(out.rglob("*.svg")), "no figure drawn"
     assert not list(out.rglob("*.png"))
+
+
+def test_identify_default_parts_are_every_part():
+    """The identify stage checks ``parts`` against its default (so a
+    pipeline is checked without importing the identify layer): every part."""
+    from seanv_analysis.identify import PARTS
+    from seanv_analysis.stages import identify
+
+    assert tuple(identify.OPTIONS["parts"]) == PARTS

@@ -175,8 +175,8 @@ def _per_load() -> pd.DataFrame:
     for an 800 px window without scrolling."""
     rng = np.random.default_rng(0)
     cols = ["load_level_mpag", "n_runs", "p1_mpa", "dp_mpa", "p1_threshold_mpa",
-            "dp_threshold_mpa", "theta_d_deg", "theta_d_se_deg", "alpha", "alpha_se",
-            "rmse_mm3_s", "theta_d_model_deg", "alpha_model"]
+            "dp_threshold_mpa", "theta_d_deg", "theta_d_se_deg", "alpha_mm3_s_deg2",
+            "alpha_se_mm3_s_deg2", "rmse_mm3_s", "theta_d_model_deg", "alpha_model_mm3_s_deg2"]
     df = pd.DataFrame(rng.uniform(-30.0, 30.0, (10, len(cols))) * 1.2345678, columns=cols)
     df.insert(0, "side", ["supply"] * 5 + ["drain"] * 5)
     df["success"], df["message"] = True, ""
@@ -325,3 +325,29 @@ def test_model_table_never_ok_beside_a_discovery_finding(tmp_path, rig):
     assert "the model misses drift (drain)" in html and "effect_found" not in html
     assert "<th>why</th>" in html and "run_id" not in html.split("id='runs'")[1].split("<pre")[0]
     assert html.count("<div class='scroll'><table>") == html.count("<table>")
+
+
+def test_identify_table_gives_no_reason_of_its_own_for_a_missing_interval(rig):
+    """Issue 33, point 6: the identify table said 'no interval (singular
+    covariance)' where the constant's note (beside it) gives the reason."""
+    from types import SimpleNamespace
+
+    from seanv_analysis.report.sections import identify_section
+
+    html = identify_section(SimpleNamespace(identify=_identification(rig), stage_errors={}))
+    assert "singular covariance" not in html
+    assert "no interval" in html and "the fluid force spans 3.0 N only" in html
+
+
+def test_moving_mass_note_says_small_accelerations(rig, monkeypatch):
+    """Issue 33, point 6: '95th percentile |a| 0 mm/s^2' for accelerations
+    under 0.5 mm/s^2: three significant digits now."""
+    from types import SimpleNamespace
+
+    from seanv_analysis.identify import engine
+
+    t = np.linspace(0.0, 10.0, 1001)
+    fake = pd.DataFrame({"t_s": t, "velocity_mm_s": 5.0 + 0.15 * t})   # a = 0.15 mm/s^2
+    monkeypatch.setattr("seanv_analysis.signals.derive.derive_samples", lambda run: fake)
+    c = engine._mass([SimpleNamespace()], rig, rig)
+    assert "95th percentile |a| 0.15 mm/s^2" in c.note, c.note

@@ -236,6 +236,41 @@ def test_simulate_cli(tmp_path):
     assert "unknown parameter 'bogus'" in res.output
 
 
+def test_list_effects_says_whole_sentences():
+    """Issue 33, point 6: --list-effects cut the descriptions at their
+    docstring's first line break ("the needle lags width/2 behind")."""
+    import inspect
+
+    from click.testing import CliRunner
+
+    from seanv_analysis.cli import cli
+    from seanv_analysis.cli.simulate_cmd import effect_summary
+    from seanv_analysis.models.effects import EFFECTS
+
+    res = CliRunner().invoke(cli, ["simulate", "--list-effects"])
+    assert res.exit_code == 0
+    text = " ".join(res.output.split())
+    for name, cls in EFFECTS.items():
+        summary = effect_summary(cls)
+        first = inspect.cleandoc(cls.__doc__).split("\n\n")[0]
+        assert summary == " ".join(first.split()) and summary.rstrip().endswith((".", ")")), name
+        assert f"{name}: {summary}" in text, name
+    assert "the needle lags width/2 behind the servo in the direction it last moved." in text
+
+
+@pytest.mark.parametrize("effect", ["drfit:side=drain", "drift:side=drian"])
+def test_a_bad_effect_leaves_no_out_folder(tmp_path, effect):
+    """Issue 33, point 6: a typo'd --effect left an empty --out folder."""
+    from click.testing import CliRunner
+
+    from seanv_analysis.cli import cli
+
+    res = CliRunner().invoke(cli, ["simulate", "paper-position-model", "--out",
+                                   str(tmp_path / "new"), "--effect", effect])
+    assert res.exit_code == 2 and res.stderr.startswith("error: ")
+    assert not (tmp_path / "new").exists()
+
+
 #: a rig whose supply needle centre makes eq. (4) non-monotonic (no threshold inverse)
 BAD_GEOMETRY = "[valve.supply]\nneedle_x_c_mm = 0.0\nneedle_y_c_mm = 0.0\n"
 

@@ -82,7 +82,8 @@ def test_identified_geometry_holds_the_simulator_truth(fit, rig):
     for c in consts:
         assert c.identified, c.note
         assert c.ci95[0] <= c.default <= c.ci95[1], (c.key, c.value, c.ci95)
-    assert all(f["seat_leak"]["unit"] == "mm^3/(s MPa)" for f in fits.values())
+    assert all(f["seat_leak"]["ci95_mm3_s_per_mpa"][0] <= f["seat_leak"]["conductance_mm3_s_per_mpa"]
+               <= f["seat_leak"]["ci95_mm3_s_per_mpa"][1] for f in fits.values())
 
 
 def test_discover_says_nothing_about_geometry(summary, fit):

@@ -97,9 +97,9 @@ def test_stages_one_by_one_in_a_notebook(data):
     assert tr.to_json_dict() == same.result("tracking").to_json_dict()
     assert math.isfinite(tr.rmse_mm3_s)
     # notebook display: a one-line repr with units, a table, JSON text
-    assert repr(tr).startswith("<Tracking lag 0.050 s (given), RMSE ") and "mm^3/s" in repr(tr)
+    assert repr(tr).startswith("<Tracking shift 0.050 s (given), RMSE ") and "mm^3/s" in repr(tr)
     assert len(tr.to_frame()) == 2 and "<table" in tr._repr_html_()
-    assert json.loads(tr.to_json())["lag_s"] == 0.05
+    assert json.loads(tr.to_json())["shift_s"] == 0.05
     assert repr(ctx.rig).startswith("<RigConfig ") and len(repr(ctx.rig)) < 120
     import matplotlib
 

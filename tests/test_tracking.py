@@ -68,7 +68,7 @@ def delayed_runs(delayed_dataset):
 
 def test_estimates_known_delay(delayed_runs):
     tr = tracking_runs(delayed_runs)
-    assert tr.lag_source == "estimated"
+    assert tr.shift_source == "estimated" and tr.shift_s == tr.lag_s
     assert abs(tr.lag_s - 0.237) < 0.005
     lo, hi = tr.lag_ci95_s
     assert lo <= tr.lag_s <= hi
@@ -98,15 +98,18 @@ def _independent_rmse(runs, shift_s, lo, hi):
 def test_shift_025_is_the_papers_procedure_exactly(delayed_runs):
     tr = tracking_runs(delayed_runs, shift_s=0.25)
     rmse, bias, n = _independent_rmse(delayed_runs, 0.25, -2.5e3, 8e3)
-    assert tr.lag_s == 0.25 and tr.lag_source == "given" and tr.lag_ci95_s is None
+    assert tr.shift_s == 0.25 and tr.shift_source == "given"
+    assert tr.lag_s == tr.lag.lag_s and tr.lag_ci95_s == tr.lag.ci95_s   # the estimate, still
     assert tr.n_samples == n
     assert_allclose(tr.rmse_mm3_s, rmse, rtol=1e-9)
     assert_allclose(tr.bias_mm3_s, bias, rtol=1e-9)
     doc = tr.to_json_dict()
-    assert list(doc) == ["lag_s", "lag_source", "lag_ci95_s", "rmse_mm3_s", "bias_mm3_s",
-                         "range_mm3_s", "n_samples", "runs"]
-    assert doc["range_mm3_s"] == [-2500.0, 8000.0] and doc["lag_ci95_s"] is None
-    assert [set(r) for r in doc["runs"]] == [{"run_id", "lag_s", "rmse_mm3_s"}] * 2
+    assert list(doc) == ["shift_s", "shift_source", "lag_s", "lag_ci95_s", "rmse_mm3_s",
+                         "bias_mm3_s", "range_mm3_s", "n_samples", "pooled", "pooled_runs",
+                         "runs"]
+    assert doc["range_mm3_s"] == [-2500.0, 8000.0] and doc["shift_s"] == 0.25
+    assert [set(r) for r in doc["runs"]] == [{"run_id", "target_source", "pooled", "lag_s",
+                                              "rmse_mm3_s"}] * 2
 
 
 def test_range_is_inclusive_and_per_side(delayed_runs):
@@ -150,6 +153,35 @@ def test_target_from_kp_error_and_model(tmp_path):
     a = align_run(nomodel)
     assert_allclose(df.q_ref_mm3_s, model.net_flow(a.cam_cmd_deg, a.p_supply_mpag,
                                                    a.p_head_mpag, a.p_tank_mpag))
+
+
+def test_headline_pools_the_runs_with_a_commanded_target(tmp_path):
+    """Issue 33, point 2: the paper's RMSE is over runs with a commanded
+    Q_ref. A run whose target is only implied by a valve model gets its own
+    numbers but is not pooled, so the headline is the same with a model
+    (the pipeline) as without one (``tracking`` alone, which skips that run);
+    with no commanded run at all, every run is pooled and it says so."""
+    from seanv_analysis.analysis.tracking import POOLED_ALL, POOLED_COMMANDED
+    from seanv_analysis.models import ValveModel
+
+    commanded = read_run(write_delayed_run(tmp_path, "kp", q_ref_empty=True, duration_s=6.0))
+    implied = read_run(write_delayed_run(tmp_path, "cam", q_ref_empty=True, flow_model=False,
+                                         duration_s=6.0, seed=3))
+    model = ValveModel.from_rig(load_rig())
+    both = tracking_runs([commanded, implied], model=model)
+    with pytest.warns(UserWarning, match="skipped run cam"):
+        alone = tracking_runs([commanded, implied])
+    assert [r.target_source for r in both.runs] == ["kp_error", "model"]
+    assert both.pooled == POOLED_COMMANDED and both.pooled_runs == ["kp"]
+    assert both.rmse_mm3_s == alone.rmse_mm3_s == both.runs[0].rmse_mm3_s
+    assert both.shift_s == alone.shift_s and both.n_samples == both.runs[0].n_samples
+    assert both.runs[1].n_samples > 0 and math.isfinite(both.runs[1].rmse_mm3_s)
+    doc = both.to_json_dict()
+    assert [(r["run_id"], r["pooled"]) for r in doc["runs"]] == [("kp", True), ("cam", False)]
+    assert "runs with a commanded Q_ref (kp)" in both.report()
+    only = tracking_runs([implied], model=model, shift_s=0.25)
+    assert only.pooled == POOLED_ALL and only.pooled_runs == ["cam"]
+    assert only.rmse_mm3_s == only.runs[0].rmse_mm3_s
 
 
 def test_errors(delayed_runs, tmp_path):

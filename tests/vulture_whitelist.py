@@ -34,3 +34,8 @@ _.writeable
 # called from other processes' command lines and from the tests
 _child  # benchmarks/bench_ingest.py: `python -c "... _child(...)"`
 layout  # scripts/check_report_browser.py: tests/test_report.py renders with it
+# seanv_analysis/__init__.py: a command subpackage made callable (read by
+# inspect.signature, set on module objects: Python reads them)
+_.__signature__
+_.__class__
+_.eval  # fit.FlowFit.eval: a notebook user's model prediction (as lmfit's result.eval)

@@ -19,6 +19,12 @@ For each position_control run:
   ``q_range`` (inclusive; the paper's -2.5e3..8e3 mm^3/s): RMSE, bias, RMSE
   per side (target >= 0 supply, < 0 drain) and per load level.
 
+The headline numbers (the pooled delay estimate, RMSE, bias, per side and
+load) are the paper's: over the runs whose Q_ref the controller commanded
+(logged, or Kp e of the flow-model controller: :data:`COMMANDED`), in the
+stated Q_ref range. A run without the flow model has no commanded Q_ref (its
+target is only implied by a valve model): it gets its own numbers, and is
+pooled only when no run had a commanded Q_ref (``pooled`` says which).
 The paper reports RMSE = 0.516e3 mm^3/s with a 0.25 s shift.
 """
 from __future__ import annotations
@@ -37,13 +43,22 @@ from ..jsonable import JsonResult, json_num
 from ..signals.derive import derive_samples
 from .lag import LagEstimate, estimate_lag, estimate_lag_segments
 
-__all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "load_level_holds", "RunTracking", "Tracking",
-           "run_flows", "tracking_runs", "load_levels_mpag"]
+__all__ = ["DEFAULT_Q_RANGE_MM3_S", "LOAD_LEVEL_STEP_MPA", "COMMANDED", "load_level_holds",
+           "RunTracking", "Tracking", "run_flows", "tracking_runs", "load_levels_mpag"]
 
 #: The paper's fitting range of the target flow [mm^3/s] (Sec. III-C.2).
 DEFAULT_Q_RANGE_MM3_S = (-2.5e3, 8e3)
+#: Target sources that are the controller's commanded Q_ref: logged, or Kp e
+#: of the flow-model controller (``model``: only implied by a valve model).
+COMMANDED = ("q_ref", "kp_error")
 #: Load pressures are grouped into levels on this grid [MPa].
 LOAD_LEVEL_STEP_MPA = 0.05
+
+
+#: how the headline numbers' runs are said
+POOLED_COMMANDED = "runs with a commanded Q_ref"
+POOLED_ALL = ("all runs: none had a commanded Q_ref (targets implied by the valve model at "
+              "the commanded cam)")
 
 
 def _rmse(r: np.ndarray) -> float:
@@ -195,8 +210,9 @@ class RunTracking:
     ----------
     run_id : the run
     target_source : 'q_ref' | 'kp_error' | 'model'
-    lag : this run's own delay estimate (None if it failed)
-    lag_applied_s : shift applied to this run's actual flow [s]
+    lag : this run's own delay estimate (None if it failed; ``lag_s``)
+    shift_s : shift applied to this run's actual flow [s] (the data set's:
+        given, or the pooled estimate)
     rmse_mm3_s, bias_mm3_s : of (shifted actual - target) inside the range [mm^3/s]
     rmse_supply_mm3_s, rmse_drain_mm3_s : same, target >= 0 / < 0 [mm^3/s]
     n_samples : samples inside the range
@@ -209,7 +225,7 @@ class RunTracking:
     run_id: str
     target_source: str
     lag: LagEstimate | None
-    lag_applied_s: float
+    shift_s: float
     rmse_mm3_s: float
     bias_mm3_s: float
     rmse_supply_mm3_s: float
@@ -228,7 +244,7 @@ class RunTracking:
         ci = self.lag.ci95_s if self.lag is not None and self.lag.ci95_s else (math.nan, math.nan)
         return {"run_id": self.run_id, "target_source": self.target_source,
                 "lag_s": self.lag_s, "lag_ci95_lo_s": ci[0], "lag_ci95_hi_s": ci[1],
-                "lag_applied_s": self.lag_applied_s, "rmse_mm3_s": self.rmse_mm3_s,
+                "shift_s": self.shift_s, "rmse_mm3_s": self.rmse_mm3_s,
                 "bias_mm3_s": self.bias_mm3_s, "rmse_supply_mm3_s": self.rmse_supply_mm3_s,
                 "rmse_drain_mm3_s": self.rmse_drain_mm3_s, "n_samples": self.n_samples}
 
@@ -237,14 +253,19 @@ class RunTracking:
 class Tracking(JsonResult):
     """Flow tracking of a set of position_control runs (``tracking --json`` contract).
 
+    Names: a *lag* is an estimate (of the data set pooled, ``lag_s``, or of
+    a run, ``runs[].lag_s``); the *shift* is the delay compensated (``shift_s``).
+
     Attributes
     ----------
-    lag_s : delay applied [s] (given, or the pooled estimate)
-    lag_source : 'given' | 'estimated'
-    lag : pooled :class:`LagEstimate` (also computed when the lag is given,
-        for reference; None if it failed)
-    rmse_mm3_s, bias_mm3_s : pooled over all runs' in-range samples,
-        residual = shifted actual - target [mm^3/s]
+    shift_s : delay compensated [s]: given, or the pooled estimate
+    shift_source : 'given' | 'estimated'
+    lag : pooled :class:`LagEstimate` of the runs with a commanded Q_ref
+        (also computed when the shift is given, for reference; None if it
+        failed); ``lag_s`` and ``lag_ci95_s`` read it
+    rmse_mm3_s, bias_mm3_s : pooled over the in-range samples of the
+        ``pooled_runs`` (the runs with a commanded Q_ref, as the paper's
+        Fig. 7(b)), residual = shifted actual - target [mm^3/s]
     rmse_supply_mm3_s, rmse_drain_mm3_s : target >= 0 / < 0 [mm^3/s]
     rmse_by_load_mm3_s : {load level [MPaG]: RMSE}
     range_mm3_s : (lo, hi) target range, inclusive [mm^3/s]
@@ -252,10 +273,13 @@ class Tracking(JsonResult):
     runs : per-run :class:`RunTracking`
     skipped : {run_id: reason}
     warnings : messages worth reading
+    pooled_runs : run_ids the headline numbers pool
+    pooled : what they are, in words ("runs with a commanded Q_ref", or
+        "all runs: none had a commanded Q_ref ...")
     """
 
-    lag_s: float
-    lag_source: str
+    shift_s: float
+    shift_source: str
     lag: LagEstimate | None
     rmse_mm3_s: float
     bias_mm3_s: float
@@ -267,32 +291,43 @@ class Tracking(JsonResult):
     runs: list[RunTracking]
     skipped: dict[str, str] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    pooled_runs: list[str] = field(default_factory=list)
+    pooled: str = POOLED_COMMANDED
 
     @property
     def success(self) -> bool:
         return self.n_samples > 0 and math.isfinite(self.rmse_mm3_s)
 
     @property
+    def lag_s(self) -> float:
+        """The pooled delay estimate [s] (NaN when it failed)."""
+        return self.lag.lag_s if self.lag is not None else math.nan
+
+    @property
     def lag_ci95_s(self) -> tuple[float, float] | None:
-        """95 % interval of the estimated lag [s]; None when the lag was given."""
-        if self.lag_source != "estimated" or self.lag is None:
-            return None
-        return self.lag.ci95_s
+        """95 % interval of the pooled delay estimate [s]; None without one."""
+        return None if self.lag is None else self.lag.ci95_s
 
     @property
     def per_run(self) -> pd.DataFrame:
-        """One row per run (lag estimate, applied shift, RMSE, bias, per side)."""
-        return pd.DataFrame([r.row() for r in self.runs])
+        """One row per run (lag estimate, applied shift, RMSE, bias, per side;
+        ``pooled``: in the headline numbers)."""
+        return pd.DataFrame([{**r.row(), "pooled": r.run_id in self.pooled_runs}
+                             for r in self.runs])
 
     def to_json_dict(self) -> dict[str, Any]:
-        """The ``tracking --json`` document (``runs[].lag_s`` = the run's own estimate)."""
+        """The ``tracking --json`` document: ``shift_s`` the delay compensated,
+        ``lag_s`` the pooled estimate, ``runs[].lag_s`` each run's own estimate."""
         ci = self.lag_ci95_s
-        return {"lag_s": json_num(self.lag_s), "lag_source": self.lag_source,
+        return {"shift_s": json_num(self.shift_s), "shift_source": self.shift_source,
+                "lag_s": json_num(self.lag_s),
                 "lag_ci95_s": None if ci is None else [json_num(ci[0]), json_num(ci[1])],
                 "rmse_mm3_s": json_num(self.rmse_mm3_s), "bias_mm3_s": json_num(self.bias_mm3_s),
                 "range_mm3_s": [float(self.range_mm3_s[0]), float(self.range_mm3_s[1])],
                 "n_samples": int(self.n_samples),
-                "runs": [{"run_id": r.run_id, "lag_s": json_num(r.lag_s),
+                "pooled": self.pooled, "pooled_runs": list(self.pooled_runs),
+                "runs": [{"run_id": r.run_id, "target_source": r.target_source,
+                          "pooled": r.run_id in self.pooled_runs, "lag_s": json_num(r.lag_s),
                           "rmse_mm3_s": json_num(r.rmse_mm3_s)} for r in self.runs]}
 
     def details(self) -> dict[str, Any]:
@@ -309,7 +344,7 @@ class Tracking(JsonResult):
 
     def __repr__(self) -> str:
         lo, hi = self.range_mm3_s
-        return (f"<Tracking lag {self.lag_s:.3f} s ({self.lag_source}), RMSE "
+        return (f"<Tracking shift {self.shift_s:.3f} s ({self.shift_source}), RMSE "
                 f"{self.rmse_mm3_s:.4g} mm^3/s over Q_ref in [{lo:g}, {hi:g}] mm^3/s; "
                 f"{len(self.runs)} runs" + (f", {len(self.skipped)} skipped" if self.skipped
                                              else "") + ">")
@@ -322,7 +357,7 @@ class Tracking(JsonResult):
         return plot(self, ax, **kwargs)
 
     def to_frame(self) -> pd.DataFrame:
-        """One row per tracked run: lag_s, rmse_mm3_s (``per_run``)."""
+        """One row per tracked run: lag_s (its estimate), shift_s, rmse_mm3_s... (``per_run``)."""
         return self.per_run
 
     def skipped_runs(self) -> dict[str, str]:
@@ -333,29 +368,36 @@ class Tracking(JsonResult):
         """Plain-text summary."""
         lo, hi = self.range_mm3_s
         lines = ["Flow tracking during position control (paper Sec. III-C.2, Fig. 7)"]
-        if self.lag_source == "given":
+        if self.shift_source == "given":
             est = f" (estimated: {self.lag.report()})" if self.lag is not None else ""
-            lines.append(f"  delay: {self.lag_s:.3f} s given{est}")
+            lines.append(f"  delay: {self.shift_s:.3f} s given{est}")
         else:
             lines.append(f"  delay: estimated, {self.lag.report() if self.lag else 'failed'}")
-        lines.append(f"  actual shifted earlier by {self.lag_s:.4f} s; target range "
-                     f"[{lo:g}, {hi:g}] mm^3/s, {self.n_samples} samples")
-        lines.append(f"  RMSE {self.rmse_mm3_s:.1f} mm^3/s (paper: 516), bias "
-                     f"{self.bias_mm3_s:+.1f} mm^3/s (actual - target)")
+        lines.append(f"  actual shifted earlier by {self.shift_s:.4f} s; target range "
+                     f"[{lo:g}, {hi:g}] mm^3/s, {self.n_samples} samples of the "
+                     f"{self.pooled} ({', '.join(self.pooled_runs)})")
+        lines.append(f"  RMSE {self.rmse_mm3_s:.1f} mm^3/s (paper: 516, its run with a "
+                     f"commanded Q_ref), bias {self.bias_mm3_s:+.1f} mm^3/s (actual - target)")
         lines.append(f"  per side: supply {self.rmse_supply_mm3_s:.1f}, drain "
                      f"{self.rmse_drain_mm3_s:.1f} mm^3/s")
         if self.rmse_by_load_mm3_s:
             lines.append("  per load level: " + ", ".join(
                 f"{k:g} MPaG {v:.1f}" for k, v in sorted(self.rmse_by_load_mm3_s.items())))
-        lines.append(f"  {'run':<32} {'lag est [s]':>11} {'RMSE':>8} {'bias':>8} {'n':>7}")
+        lines.append(f"  {'run':<32} {'lag est [s]':>11} {'RMSE':>8} {'bias':>8} {'n':>7}  target")
         for r in self.runs:
             lines.append(f"  {r.run_id:<32} {r.lag_s:>11.4f} {r.rmse_mm3_s:>8.1f} "
-                         f"{r.bias_mm3_s:>+8.1f} {r.n_samples:>7d}")
+                         f"{r.bias_mm3_s:>+8.1f} {r.n_samples:>7d}  {_SOURCE_WORDS[r.target_source]}")
         for rid, why in self.skipped.items():
             lines.append(f"  skipped {rid}: {why}")
         for w in self.warnings:
             lines.append(f"  warning: {w}")
         return "\n".join(lines)
+
+#: a run's target, in words (the report's run table)
+_SOURCE_WORDS = {"q_ref": "commanded Q_ref (logged)",
+                 "kp_error": "commanded Q_ref = Kp e (from the logged error)",
+                 "model": "implied by the valve model (not pooled)"}
+
 
 def _summary(resid: np.ndarray, target: np.ndarray, load: np.ndarray):
     sup = target >= 0
@@ -397,7 +439,9 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
     -----
     RMSE = sqrt(mean((Q(t + lag) - Q_ref(t))^2)) over the samples with
     lo <= Q_ref(t) <= hi and Q(t + lag) inside the record; the per-run RMSE
-    uses the same (pooled or given) lag.
+    uses the same (pooled or given) lag. The pooled lag estimate and the
+    headline numbers are over the runs with a commanded Q_ref
+    (:data:`COMMANDED`; all runs when none has one): the paper's Fig. 7(b).
     """
     if len(q_range) != 2 or not float(q_range[0]) < float(q_range[1]):
         raise ConfigError(f"q_range: expected (lo, hi) with lo < hi, got {tuple(q_range)}")
@@ -424,9 +468,12 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
                         "target flow (q_ref_mm3_s, flow-model kp, or --model)")
     segs = [(df.t_s.to_numpy(), df.q_ref_mm3_s.to_numpy(), df.q_mm3_s.to_numpy())
             for _, df, _ in flows]
+    # the headline pools the runs with a commanded Q_ref (all, if none has one)
+    pool = [i for i, (_, _, src) in enumerate(flows) if src in COMMANDED] or list(range(len(flows)))
+    pooled_what = POOLED_COMMANDED if flows[pool[0]][2] in COMMANDED else POOLED_ALL
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        pooled = estimate_lag_segments(segs, max_lag_s=max_lag_s, seed=seed)
+        pooled = estimate_lag_segments([segs[i] for i in pool], max_lag_s=max_lag_s, seed=seed)
         per_run = []
         for seg in segs:
             try:
@@ -444,7 +491,7 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
         lag_s, source = pooled.lag_s, "estimated"
     results = []
     all_r, all_q, all_l = [], [], []
-    for (run, df, tsrc), lag in zip(flows, per_run):
+    for i, ((run, df, tsrc), lag) in enumerate(zip(flows, per_run)):
         t = df.t_s.to_numpy()
         q = df.q_ref_mm3_s.to_numpy()
         qs = _shifted(t, df.q_mm3_s.to_numpy(), lag_s)
@@ -456,6 +503,8 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
                                                df.load_level_mpag.to_numpy()[inside])
         results.append(RunTracking(run.run_id, tsrc, lag, lag_s,
                                    rmse, bias, rs, rd, int(inside.sum()), by_load, data, run))
+        if i not in pool:
+            continue
         all_r.append(resid)
         all_q.append(q[inside])
         all_l.append(df.load_level_mpag.to_numpy()[inside])
@@ -464,5 +513,6 @@ def tracking_runs(runs: Iterable[Run], *, shift_s: float | None = None,
     if resid.size == 0:
         notes.append(f"no sample has its target inside [{lo:g}, {hi:g}] mm^3/s")
     return Tracking(lag_s, source, pooled if pooled.success else None, rmse, bias, rs, rd,
-                    by_load, (lo, hi), int(resid.size), results, skipped, notes)
+                    by_load, (lo, hi), int(resid.size), results, skipped, notes,
+                    pooled_runs=[flows[i][0].run_id for i in pool], pooled=pooled_what)
 

@@ -126,10 +126,12 @@ def progress_enabled(quiet: bool = False) -> bool | None:
 
 
 def _bar(total: int, desc: str, quiet: bool):
-    from tqdm import tqdm
+    """The bar of a batch: drawn where the package's bars are
+    (:func:`seanv_analysis.log.progress`: a terminal, logging configured) and
+    not ``quiet``."""
+    from ..log import progress
 
-    return tqdm(total=total, desc=desc, unit="run", file=sys.stderr, leave=False,
-                disable=progress_enabled(quiet))
+    return progress(total=total, desc=desc, disable=bool(progress_enabled(quiet)))
 
 
 class Executor:

@@ -26,6 +26,7 @@ from ..io.atomic import atomic_folder, check_not_foreign, is_owned, remove_stale
 from ..io.outdir import check_out_dir, out_lock
 from ..jsonable import JsonResult
 from ..stages import STAGES, Context, FailedRun, RunOutcome, execute, one_blas_thread, results_of
+from ..stages.base import stage_info
 from ..stages.pipeline import Pipeline, load_pipeline
 from .cache import CACHE_DIRNAME, RunCache, run_key
 from .executor import Executor, TaskResult, make_executor, one_line_error
@@ -356,7 +357,9 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     quiet : no progress bars
     rig : rig config or rig TOML path (default: the shipped one)
     client : an existing ``dask.distributed.Client`` (never closed)
-    log : called with one plain line per stage (e.g. ``print`` to stderr)
+    log : called with one plain line per stage (default: INFO on the
+        ``seanv_analysis.stages`` logger, printed where logging is configured:
+        the CLI on a terminal, or with -v)
     command : command line for the manifest (default: ``sys.argv``)
     reuse : when nothing changed since the last successful run into
         ``out_dir`` (inputs' content, pipeline, rig, code, library versions;
@@ -382,7 +385,8 @@ def run_pipeline(pipeline: str | Path | Pipeline | Mapping[str, Any],
     """
     t_start = time.perf_counter()
     pipe = load_pipeline(pipeline)
-    say = log or (lambda msg: None)
+    say = log or stage_info
+    say(f"[{pipe.name}] {len(pipe.stages)} stage(s) on {', '.join(map(str, _as_list(data)))}")
     datas = [data] if isinstance(data, (str, Path)) else list(data)
     check_out_dir(out_dir, data=datas, owned=owned_outputs(pipe), label="out_dir",
                   files=[pipe.source, rig if isinstance(rig, (str, Path)) else None])
@@ -431,7 +435,7 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             mapper = CachedMapper(ex, cache, force=force, quiet=quiet)
             ctx.map_runs = mapper
             with one_blas_thread():     # the data-set stages, here (the workers have one)
-                _run_stages(pipe, ctx, result, say)
+                _run_stages(pipe, ctx, result)
             result.computed, result.cached = mapper.computed, mapper.cached
             cache.save_index(force=True)
             if cache.rejected:
@@ -449,22 +453,23 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
     return result
 
 
-def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, say) -> None:
+def _as_list(data) -> list:
+    return [data] if isinstance(data, (str, Path)) else list(data)
+
+
+def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult) -> None:
     """Each stage of ``pipe`` in order (:func:`~seanv_analysis.stages.execute`),
     timed and logged; a stage that fails on the data is recorded and the
     others go on; each value is recorded and written."""
     started: dict[str, float] = {}
 
-    def start(name: str) -> None:
-        say(f"[{pipe.name}] stage {name} ...")
+    def start(name: str) -> None:   # the stage's lines: stages.execute
         if name == "report":
             _write_manifest(result, ctx)
         started[name] = time.perf_counter()
 
     def finish(name: str) -> None:
         result.timings_s[name] = time.perf_counter() - started[name]
-        status = "FAILED: " + result.stage_errors[name] if name in result.stage_errors else "done"
-        say(f"[{pipe.name}] stage {name} {status} ({result.timings_s[name]:.1f} s)")
 
     def on_error(name: str, exc: BaseException) -> bool:
         if isinstance(exc, (ConfigError, OutputError, OSError)) or (

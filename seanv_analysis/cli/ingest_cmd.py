@@ -92,10 +92,10 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[st
     with ExitStack() as stack:
         writer = _SampleWriter(out_dir, stack, meta)
         bar = None
-        if progress and len(ctx.run_dirs) > 1:
-            from tqdm import tqdm
-            bar = stack.enter_context(tqdm(total=len(ctx.run_dirs), unit="run", file=sys.stderr,
-                                           desc="ingest", leave=False, disable=None))
+        if progress and len(ctx.run_dirs) > 1:   # drawn on a terminal (seanv_analysis.log)
+            from ..log import progress as progress_bar
+
+            bar = stack.enter_context(progress_bar(total=len(ctx.run_dirs), desc="ingest"))
 
         def summarize_and_write(run, *, method):
             samples = derive_samples(run)  # the derived table is computed once

@@ -1,7 +1,6 @@
 """``seanv-analyze plots``: the paper-style figures for a whole data set."""
 from __future__ import annotations
 
-import os
 import sys
 from pathlib import Path
 
@@ -10,7 +9,7 @@ import click
 from . import cli
 from ._common import OUT_FOLDER, check_out_dir, default_out_dir, formats_option, unusable, verbosity
 
-__all__ = ["plots_cmd", "plots_pipeline"]
+__all__ = ["plots_cmd", "plots_pipeline", "analyses_run", "not_drawn"]
 
 
 def plots_pipeline(figs: list[int | str]) -> dict:
@@ -92,14 +91,16 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
     figs = [f.number if f.number is not None else f.name for f in selected_figures(chosen)]
     out = Path(out_dir) if out_dir else default_out_dir(data, "plots")
     check_out_dir(data, out)
-    interactive = sys.stderr.isatty() and not os.environ.get("CI")
-    # a line per stage where no progress bar is drawn (-q: none)
-    log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
+    pipe = plots_pipeline(figs)
+    analyses = analyses_run(pipe)
+    if analyses and not quiet:   # said, not done silently: they may take a minute
+        click.echo(f"plots: the figures asked for need the results of {', '.join(analyses)}: "
+                   "running them first (seanv-analyze run keeps them, with its report)",
+                   err=True)
     try:
-        pipe = plots_pipeline(figs)
         pipe["stages"][-1]["formats"] = list(formats)
         result = run_pipeline(pipe, data, out_dir=out, workers=workers,
-                              quiet=quiet, rig=rig_file, log=log, command=sys.argv)
+                              quiet=quiet, rig=rig_file, command=sys.argv)
     except DataError as exc:  # no run could be read: say which runs were bad and why
         from .run_cmd import bad_runs
         return unusable(data, bad_runs([data], rig_file, exc), exc)
@@ -107,9 +108,42 @@ def plots_cmd(data: Path, fig: tuple[str, ...], out_dir: Path | None, workers: i
     for p in (p for paths in result.figures.values() for p in paths):
         click.echo(str(p))
         n += 1
+    missing = not_drawn(figs, result)
+    if n == 0:   # nothing the user asked for could be drawn: not a success
+        from ..errors import DataError
+
+        raise DataError("no figure written: " + "; ".join(missing), path=data)
     click.echo(f"{n} figure file(s) under {out / 'figures'}", err=True)
+    for line in missing:
+        click.echo(f"note: not drawn: {line}", err=True)
     for stage, msg in {**result.stage_notes, **result.stage_errors}.items():
         click.echo(f"note: {stage}: {msg}", err=True)
     for f in result.failed:
         click.echo(f"  failed [{f.stage}] {f.message}", err=True)
     return 0 if result.success else 1
+
+
+def analyses_run(pipe: dict) -> list[str]:
+    """The analysis stages ``plots`` runs to get its figures' inputs (all
+    but ingest and figures)."""
+    return [s["name"] for s in pipe["stages"] if s["name"] not in ("ingest", "figures")]
+
+
+def not_drawn(figs: list, result) -> list[str]:
+    """One phrase per figure of ``figs`` that wrote no file, with why (the
+    note or error of the stage that gives its input)."""
+    from ..stages import producers_of
+    from ..stages.figures import selected_figures
+
+    out = []
+    for f in selected_figures(figs):
+        if result.figures.get(f.name):
+            continue
+        label = f"fig {f.number}" if f.number is not None else f.name
+        whys = [f"{stage}: {msg}" for need in f.needs for stage in producers_of(need)
+                for msg in [result.stage_errors.get(stage) or result.stage_notes.get(stage)]
+                if msg]
+        if f.per_run and f.run_kind:
+            whys = whys or [f"no {f.run_kind} run in the data"]
+        out.append(f"{label} ({'; '.join(whys) or 'nothing to draw it from'})")
+    return out

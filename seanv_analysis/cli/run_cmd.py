@@ -10,7 +10,7 @@ import click
 from . import cli
 from ._common import OUT_FOLDER, check_out_dir, default_out_dir, figure_options, unusable, verbosity
 
-__all__ = ["run_cmd"]
+__all__ = ["run_cmd", "failures_to_stderr"]
 
 
 @cli.command("run")
@@ -98,25 +98,34 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
         datas = [data]
         out = Path(out_dir) if out_dir else default_out_dir(data, f"run-{pipe.name}")
     check_out_dir(datas, out, files=[pipe.source, rig_file], owned=owned_outputs(pipe))
-    interactive = sys.stderr.isatty() and not os.environ.get("CI")
-    # a line per stage where no progress bar is drawn (-q: none)
-    log = None if quiet or interactive else (lambda msg: click.echo(msg, err=True))
     if scheduler is None and workers is None and os.environ.get("DASK_SCHEDULER_ADDRESS"):
         scheduler = os.environ["DASK_SCHEDULER_ADDRESS"]
     try:
         result = run_pipeline(pipe, datas, out_dir=out, workers=workers, scheduler=scheduler,
-                              force=force, quiet=quiet, rig=rig_file, log=log, command=sys.argv,
+                              force=force, quiet=quiet, rig=rig_file, command=sys.argv,
                               reuse=True)
     except DataError as exc:  # no run could be read: say which runs were bad and why
         return unusable(data, bad_runs(datas, rig_file, exc), exc)
     if as_json:
         click.echo(result.to_json())
-        text = result.summary_text()
-        if result.failed or result.stage_errors:
-            click.echo(text, err=True)
     else:
         click.echo(result.summary_text())
+    failures_to_stderr(result)   # what went wrong is an error: on stderr, -q or not
     return 0 if result.success else 1
+
+
+def failures_to_stderr(result) -> None:
+    """The bad runs and the failed stages of ``result``, one line each, on
+    stderr (the exit code 1 says there are some; the summary on stdout lists
+    them too)."""
+    if result.stage_errors:
+        click.echo(f"{len(result.stage_errors)} stage(s) failed:", err=True)
+        for name, msg in result.stage_errors.items():
+            click.echo(f"  {name}: {msg}", err=True)
+    if result.failed:
+        click.echo(f"{len(result.failed)} bad run(s) skipped:", err=True)
+        for f in result.failed:
+            click.echo(f"  [{f.stage}] {f.message}", err=True)
 
 
 def with_figure_options(pipe, *, no_figures: bool, formats: tuple[str, ...]):

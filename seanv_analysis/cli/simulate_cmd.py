@@ -1,7 +1,6 @@
 """``seanv-analyze simulate``: write a built-in scenario as a data set."""
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import click
@@ -66,37 +65,55 @@ def simulate_cmd(scenario, out_dir, seed, effects, write_truth, rig_file, fmt, q
     from ..sim.scenarios import simulate_scenario
 
     rig = load_rig(rig_file)
-    probe_writable(out_dir)
-    try:
+    try:   # before --out is made: a typo leaves no empty folder behind
         parsed = parse_effects(effects)
     except ValueError as exc:  # the CLI's one-line error
         raise ConfigError(str(exc)) from None
-    bar = progress = None
-    if not quiet and sys.stderr.isatty():  # tqdm (and its ~40 ms import) only if seen
-        from tqdm import tqdm
+    made = not Path(out_dir).exists()
+    probe_writable(out_dir)
+    from ..log import progress as progress_bar
+    from ..sim.scenarios import scenario_size
 
-        bar = tqdm(desc=scenario, unit="run", leave=False)
+    # drawn on a terminal unless -q (tqdm and its ~40 ms import only if seen)
+    bar = progress_bar(total=scenario_size(scenario), desc=scenario)
+    done_runs = [0]
 
-        def progress(done, total):
-            bar.total = total
-            bar.update(done - bar.n)
+    def progress(done, total):
+        bar.update(done - done_runs[0])
+        done_runs[0] = done
 
     try:
         path = simulate_scenario(scenario, out_dir, seed=seed, effects=parsed, rig=rig,
                                  write_truth=write_truth, fmt=fmt, progress=progress)
+    except BaseException:
+        if made and not any(Path(out_dir).iterdir()):   # ours, and nothing in it
+            Path(out_dir).rmdir()
+        raise
     finally:
-        if bar is not None:
-            bar.close()
+        bar.close()
     n = sum(1 for _ in path.rglob("run.json"))
     click.echo(f"wrote {n} runs of {scenario} to {path}"
                + (f" with {', '.join(e.spec() for e in parsed)}" if parsed else ""))
 
 
+def effect_summary(cls) -> str:
+    """The first paragraph of an effect's docstring, on one line: whole
+    sentences, never cut at the docstring's first line break."""
+    import inspect
+
+    paragraph = inspect.cleandoc(cls.__doc__ or "").split("\n\n", 1)[0]
+    return " ".join(paragraph.split())
+
+
 def _list_effects(ctx: click.Context) -> None:
+    import shutil
+
     from ..models.effects import EFFECTS
 
+    width = min(100, shutil.get_terminal_size((100, 24)).columns)
     for name, cls in EFFECTS.items():
-        click.echo(f"{name}: {cls.__doc__.strip().splitlines()[0]}")
+        click.echo(click.wrap_text(f"{name}: {effect_summary(cls)}", width=width,
+                                   subsequent_indent="    "))
         for param, meaning in cls.PARAMS.items():
             default = getattr(cls, param, None)
             click.echo(f"    {param} = {default!r}   {meaning}")

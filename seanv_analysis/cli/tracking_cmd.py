@@ -25,9 +25,10 @@ __all__ = ["tracking_cmd"]
 @cli.command("tracking", short_help="Flow delay, lag compensation and tracking RMSE (Sec. III-C); Fig. 6/7.")
 @verbosity
 @click.argument("data", required=False, type=click.Path(exists=True, file_okay=False, path_type=Path))
-@click.option("--shift", "shift_s", type=float, default=None,
-              help="Delay [s] to compensate (the paper's: 0.25). Default: estimated by "
-                   "cross-correlation of actual vs target flow, with a 95 % interval.")
+@click.option("--shift", "shift_s", type=float, default=None, metavar="0..2",
+              help="Delay [s] to compensate, from 0 to 2 (the paper's: 0.25). Default: "
+                   "estimated by cross-correlation of actual vs target flow, with a 95 % "
+                   "interval.")
 @click.option("--range", "q_range", type=(float, float), default=(-2.5e3, 8e3), show_default=True,
               metavar="LO HI", help="Target-flow range [mm^3/s] of the RMSE (inclusive).")
 @click.option("--model", "model_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),

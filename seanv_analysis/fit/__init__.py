@@ -2,7 +2,9 @@
 
 - :func:`fit_flow` (per-run summary -> :class:`FlowFit`) and
 - :class:`FlowFit`, :class:`SideFit`: parameters, 95 % intervals, per-run
-  and per-load tables, ``.report()``, ``.to_json_dict()`` (files are written by
+  and per-load tables, ``fit.params["supply.C"]`` (:class:`Parameter`:
+  value, stderr, ci95, as lmfit) and ``fit.eval(theta, dp, side)``,
+  ``.report()``, ``.to_json_dict()`` (files are written by
   :mod:`seanv_analysis.stages.flowfit`);
 - :class:`LeakageFit`: the needles' seat-leakage conductance fitted beside
   eq. (5), and the helpers ``identify`` and ``discover`` share with it
@@ -10,7 +12,17 @@
   :func:`prior_sd_mm3_s_per_mpa`).
 """
 from ._leakage import LeakageFit, cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
-from .flowfit import LEAKAGE_MODES, PROCEDURES, UNITS, FlowFit, SideFit, fit_flow
+from .flowfit import (
+    LEAKAGE_MODES,
+    PEAK_BIAS,
+    PROCEDURES,
+    UNITS,
+    FlowFit,
+    Parameter,
+    SideFit,
+    fit_flow,
+)
 
-__all__ = ["FlowFit", "SideFit", "LeakageFit", "fit_flow", "PROCEDURES", "LEAKAGE_MODES", "UNITS",
-           "cluster_covariance", "soft_l1_weights", "prior_sd_mm3_s_per_mpa"]
+__all__ = ["FlowFit", "SideFit", "Parameter", "LeakageFit", "fit_flow", "PROCEDURES",
+           "LEAKAGE_MODES", "UNITS", "PEAK_BIAS", "cluster_covariance", "soft_l1_weights",
+           "prior_sd_mm3_s_per_mpa"]

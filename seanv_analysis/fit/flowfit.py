@@ -110,8 +110,8 @@ from ._perload import (
     two_step,
 )
 
-__all__ = ["SideFit", "FlowFit", "fit_flow", "PROCEDURES", "LEAKAGE_MODES", "UNITS", "C_KEY",
-           "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
+__all__ = ["SideFit", "FlowFit", "Parameter", "fit_flow", "PROCEDURES", "LEAKAGE_MODES", "UNITS",
+           "C_KEY", "PEAK_BIAS", "CAM_SOURCES", "DEFAULT_FLOW_SCALE_U95", "DEFAULT_CAM_U95_DEG"]
 
 #: Fit procedures: 'joint' (default, eq. 5 on all runs) and the paper's 'two_step'.
 PROCEDURES = ("joint", "two_step")
@@ -267,6 +267,35 @@ def _clean(d: dict) -> dict:
     return {k: (json_num(v) if isinstance(v, float) else v) for k, v in d.items()}
 
 
+@dataclass(frozen=True)
+class Parameter:
+    """One fitted number of a :class:`FlowFit`, as lmfit gives it:
+    ``fit.params["supply.C"].value / .stderr / .ci95``.
+
+    Attributes
+    ----------
+    name : '<side>.z0' or '<side>.C'
+    value : the estimate (of the fit's procedure, joint or two-step)
+    stderr : its standard error (1 sigma, from the procedure's covariance;
+        NaN when singular)
+    ci95 : the 95 % interval of the fit (bootstrap over conditions plus the
+        calibration terms, ``SideFit.z0_ci95`` / ``c_ci95``): use it for
+        statements, ``stderr`` for a quick look
+    unit : 'mm' (z0) or 'mm^3/(s deg^2 MPa^0.5)' (C)
+    """
+
+    name: str
+    value: float
+    stderr: float
+    ci95: tuple[float, float]
+    unit: str
+
+    def __repr__(self) -> str:
+        lo, hi = self.ci95
+        return (f"<Parameter {self.name} = {self.value:.6g} {self.unit} (stderr "
+                f"{self.stderr:.2g}, 95 % [{lo:.6g}, {hi:.6g}])>")
+
+
 @dataclass
 class FlowFit(JsonResult):
     """Result of :func:`fit_flow`: per-side parameters with 95 % intervals,
@@ -286,10 +315,10 @@ class FlowFit(JsonResult):
         measured flow with the fitted C, eq. 6) [deg], sigma_mm3_s (noise scale),
         z_score, used
     per_load : one row per side and load level: theta_d_deg +- theta_d_se_deg [deg],
-        alpha +- alpha_se [mm^3/(s deg^2)], p1_mpa, dp_mpa (medians of the runs used),
+        alpha_mm3_s_deg2 +- alpha_se_mm3_s_deg2, p1_mpa, dp_mpa (medians of the runs used),
         p1/dp_threshold_mpa (the pressures theta_d refers to: the same medians; each
         run's threshold movement about them is taken out), n_runs,
-        theta_d_model_deg and alpha_model (the fitted model at those pressures)
+        theta_d_model_deg and alpha_model_mm3_s_deg2 (the fitted model at those pressures)
     excluded : runs excluded per reason {'leakage', 'friction', 'cam_range', 'invalid'}
     success, message : True when every side asked for was fitted
     warnings : recoverable oddities met on the way
@@ -315,15 +344,73 @@ class FlowFit(JsonResult):
         out: dict[str, Any] = {s: f.to_json_dict() for s, f in self.sides.items()}
         out["excluded"] = {k: int(v) for k, v in self.excluded.items()}
         out["units"] = dict(UNITS)
+        out["flow_method"] = self.flow_method
         return out
 
-    def to_frame(self) -> pd.DataFrame:
-        """One row per side: z0_mm, C with their 95 % intervals, RMSE, runs, status."""
-        rows = []
+    @property
+    def flow_method(self) -> str:
+        """The per-run flow estimate fitted: 'steady', 'peak' (biased:
+        :data:`PEAK_BIAS`), 'mixed' or '' (not said)."""
+        return str(self.settings.get("flow_method", ""))
+
+    @property
+    def params(self) -> dict[str, Parameter]:
+        """The fitted numbers by name, as lmfit's ``result.params``:
+        ``'supply.z0'``, ``'supply.C'``, ``'drain.z0'``, ``'drain.C'`` (the
+        sides fitted), each a :class:`Parameter` (value, stderr, ci95, unit)."""
+        out: dict[str, Parameter] = {}
         for side, f in self.sides.items():
-            rows.append({"side": side, "z0_mm": f.z0_mm, "z0_lo_mm": f.z0_ci95[0],
-                         "z0_hi_mm": f.z0_ci95[1], "c_flow": f.c_flow, "c_lo": f.c_ci95[0],
-                         "c_hi": f.c_ci95[1], "rmse_mm3_s": f.rmse_mm3_s, "n_runs": f.n_runs,
+            est = f.joint if f.procedure == "joint" else f.two_step
+            out[f"{side}.z0"] = Parameter(f"{side}.z0", f.z0_mm,
+                                          float(est.get("z0_se_mm", math.nan)),
+                                          tuple(f.z0_ci95), UNITS["z0_mm"])
+            out[f"{side}.C"] = Parameter(f"{side}.C", f.c_flow, float(est.get("c_se", math.nan)),
+                                         tuple(f.c_ci95), UNITS[C_KEY])
+        return out
+
+    def eval(self, theta_deg, dp_mpa, side: str, *, p1_mpa=None) -> np.ndarray:
+        """The fitted model's flow through the opened needle, eq. (3)-(5):
+        Q = C (theta - theta_d)^2 sqrt(dp) [mm^3/s] at cam angle ``theta_deg``
+        [deg] and pressure difference ``dp_mpa`` [MPa] across ``side`` (arrays
+        broadcast). The seat leakage of both needles, fitted beside it, is not
+        in it (it depends on both sides' pressures: ``per_run``'s
+        ``q_leak_mm3_s``; ``q_model_mm3_s`` is the sum).
+
+        ``p1_mpa`` [MPa] is the pressure on the needle, which moves the
+        sealing threshold theta_d (eq. 4); default as in the runs fitted:
+        the supply pressure (median of the supply runs) on the supply side,
+        dp plus the tank pressure (median) on the drain side.
+
+        Raises
+        ------
+        ValueError
+            ``side`` is not a side of this fit.
+        """
+        if side not in self.sides:
+            raise ValueError(f"side: expected one of {', '.join(self.sides)}, got {side!r}")
+        dp = np.asarray(dp_mpa, dtype=float)
+        if p1_mpa is None:
+            rows = self.per_run[(self.per_run["side"] == side) & self.per_run["used"].astype(bool)] \
+                if len(self.per_run) else self.per_run
+            if side == "supply":
+                p1_mpa = float(np.median(rows["p1_mpa"])) if len(rows) else 3.3
+            else:
+                p1_mpa = dp + (float(np.median(rows["p1_mpa"] - rows["dp_mpa"])) if len(rows)
+                               else 0.0)
+        return np.asarray(self.model.side(side).flow(np.asarray(theta_deg, dtype=float),
+                                                     np.asarray(p1_mpa, dtype=float), dp),
+                          dtype=float)
+
+    def to_frame(self) -> pd.DataFrame:
+        """One row per side: z0_mm, C_mm3_s_deg2_sqrtMPa (the JSON's names),
+        their 95 % intervals (``z0_ci95_lo_mm``, ``z0_ci95_hi_mm``,
+        ``C_ci95_lo_mm3_s_deg2_sqrtMPa``...), rmse_mm3_s, n_runs, status."""
+        rows = []
+        c_lo, c_hi = ("C_ci95_lo" + C_KEY[1:], "C_ci95_hi" + C_KEY[1:])
+        for side, f in self.sides.items():
+            rows.append({"side": side, "z0_mm": f.z0_mm, "z0_ci95_lo_mm": f.z0_ci95[0],
+                         "z0_ci95_hi_mm": f.z0_ci95[1], C_KEY: f.c_flow, c_lo: f.c_ci95[0],
+                         c_hi: f.c_ci95[1], "rmse_mm3_s": f.rmse_mm3_s, "n_runs": f.n_runs,
                          "status": f.status})
         return pd.DataFrame(rows).set_index("side")
 
@@ -368,6 +455,9 @@ class FlowFit(JsonResult):
         for s, f in self.sides.items():
             if f.status == "lack of fit":
                 lines.append(f"{s}: lack of fit: {f.message}")
+            elif f.success and self.flow_method == "peak":
+                lines.append(f"{s}: fitted on the biased 'peak' flow estimate (see the warning "
+                             "below; the intervals do not hold its bias)")
             else:
                 lines.append(f"{s}: {'ok' if f.success else 'FAILED'}"
                              + (f" ({f.message})" if f.message else ""))
@@ -405,6 +495,23 @@ class FlowFit(JsonResult):
         return "\n".join(lines)
 
 # ---------------------------------------------------------------------------
+
+#: what a fit on the paper's peak-velocity flows must say (docs/flow_estimate.md)
+PEAK_BIAS = ("flow estimate 'peak' (the paper's peak velocity) is biased: +16 % / -14 % "
+             "median on the supply / drain side against simulated truth, +28 % / -33 % below "
+             "1500 mm^3/s where the actuator stick-slips (docs/flow_estimate.md); the 95 % "
+             "intervals do not include that bias, so they may exclude the true z0 and C. "
+             "Use the default 'steady' estimate for numbers you quote")
+
+
+def _flow_method(steps: pd.DataFrame) -> str:
+    """The per-run flow estimate of the flow steps ('steady', 'peak', or
+    'mixed'; '' when the summary does not say)."""
+    if "flow_method" not in steps or steps.empty:
+        return ""
+    found = {m for m in steps["flow_method"].astype(str) if m}
+    return found.pop() if len(found) == 1 else ("mixed" if found else "")
+
 
 def _check_summary(summary: pd.DataFrame) -> None:
     need = ("kind", "side", "load_mpag", "cam_deg", "q_mm3_s", "dp_mpa", "p1_mpa", "excluded")
@@ -500,7 +607,7 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
                           "p1_mpa": p1_med, "dp_mpa": dp_med,
                           "p1_threshold_mpa": p1_med, "dp_threshold_mpa": dp_med,
                           "theta_d_deg": lf.theta_d_deg, "theta_d_se_deg": lf.theta_d_se_deg,
-                          "alpha": lf.alpha, "alpha_se": lf.alpha_se,
+                          "alpha_mm3_s_deg2": lf.alpha, "alpha_se_mm3_s_deg2": lf.alpha_se,
                           "rmse_mm3_s": lf.rmse_mm3_s, "success": lf.success,
                           "message": lf.message})
     per_load = pd.DataFrame(load_rows)
@@ -511,7 +618,8 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
 
     # (b)+(c) two-step
     pl = per_load[ok] if len(per_load) else per_load
-    ts = two_step(side, pl["theta_d_deg"], pl["theta_d_se_deg"], pl["alpha"], pl["alpha_se"],
+    ts = two_step(side, pl["theta_d_deg"], pl["theta_d_se_deg"], pl["alpha_mm3_s_deg2"],
+                  pl["alpha_se_mm3_s_deg2"],
                   pl["p1_mpa"], pl["dp_mpa"]) if len(pl) else {
         "z0_mm": math.nan, "c_flow": math.nan, "success": False, "message": "no per-load fit"}
     result.two_step = ts
@@ -754,6 +862,9 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
     fitted = base
     results: dict[str, SideFit] = {}
     per_runs, per_loads, warns = [], [], []
+    method = _flow_method(asked)
+    if method == "peak":
+        warns.append(PEAK_BIAS)
     opts = dict(procedure=procedure, seed=seed, load_tol_mpag=load_tol_mpag, cam=cam,
                 flow_scale_u95=flow_scale_u95, cam_u95_deg=cam_u95_deg)
     rows_of = {}
@@ -779,7 +890,7 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
             if side_model is not None:
                 pl["theta_d_model_deg"] = side_model.threshold_deg(pl["p1_mpa"].to_numpy(),
                                                                    pl["dp_mpa"].to_numpy())
-                pl["alpha_model"] = side_model.c_flow * signed_power(pl["dp_mpa"].to_numpy(),
+                pl["alpha_model_mm3_s_deg2"] = side_model.c_flow * signed_power(pl["dp_mpa"].to_numpy(),
                                                                      side_model.dp_exponent)
             per_loads.append(pl)
     if leak.message and leakage == "fit":
@@ -807,7 +918,7 @@ def fit_flow(summary: pd.DataFrame, rig: Any, *, sides: Sequence[str] = SIDES,
                            "sides": list(sides), "load_tol_mpag": load_tol_mpag, "cam": cam,
                            "flow_scale_u95": flow_scale_u95, "cam_u95_deg": cam_u95_deg,
                            "loss": "soft_l1", "ci": "bootstrap percentile 95 %",
-                           "leakage": leakage},
+                           "leakage": leakage, "flow_method": method},
                    leak)
 
 

@@ -257,7 +257,7 @@ def _mass(runs, rig, current) -> Constant:
         force = mass * a95 * 1e-3
         verdict = ("too small to tell the mass" if force < 0.2 * coulomb else
                    "large enough to matter, but identify does not fit the mass yet")
-        note = (f"m a reaches {force:.2g} N (95th percentile |a| {a95:.0f} mm/s^2 x {mass:g} kg) "
+        note = (f"m a reaches {force:.2g} N (95th percentile |a| {a95:.3g} mm/s^2 x {mass:g} kg) "
                 f"against {coulomb:.3g} N of Coulomb friction: {verdict}")
     else:
         note = "no position-control run to see accelerations in"

@@ -445,8 +445,8 @@ def geometry_constants(per_run, model, rig, *, leak_mm3_s_per_mpa: float | None 
                       f"{part}_default": g.rmse_default_mm3_s, part: g.rmse_mm3_s,
                       "n_train_runs": len(train), "n_heldout_runs": n_held,
                       "z0_mm": g.z0_mm, C_KEY: g.c_flow,
-                      "seat_leak": {"conductance": g.leak_mm3_s_per_mpa,
-                                    "ci95": list(g.leak_ci95), "unit": "mm^3/(s MPa)"},
+                      "seat_leak": {"conductance_mm3_s_per_mpa": g.leak_mm3_s_per_mpa,
+                                    "ci95_mm3_s_per_mpa": list(g.leak_ci95)},
                       "threshold_range_deg": [float(np.min(thr_new)), float(np.max(thr_new))],
                       "threshold_range_default_deg": [float(np.min(thr_default)),
                                                       float(np.max(thr_default))]}

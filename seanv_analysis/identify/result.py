@@ -15,7 +15,7 @@ from typing import Any
 from ..jsonable import JsonResult, clean_json, json_num
 from ..units import unit_suffix
 
-__all__ = ["Constant", "Identification", "json_num", "nest_constants"]
+__all__ = ["Constant", "Identification", "json_num", "nest_constants", "suffix_of_unit"]
 
 
 @dataclass
@@ -48,9 +48,19 @@ class Constant:
     note: str = ""
     confounded_with: tuple[str, ...] = ()
 
+    @property
+    def suffix(self) -> str:
+        """The unit's key suffix (:data:`~seanv_analysis.units.UNIT_SUFFIXES`:
+        ``'_mm'``, ``'_mpag'``, ``'_n_s_per_mm'``...; ``'_ratio'`` for a
+        dimensionless factor): the JSON's numbers end in it."""
+        return suffix_of_unit(self.unit)
+
     def to_json_dict(self) -> dict[str, Any]:
-        return {"key": self.key, "name": self.name, "value": json_num(self.value),
-                "ci95": [json_num(v) for v in self.ci95], "default": json_num(self.default),
+        """``value_<unit>``, ``ci95_<unit>``, ``default_<unit>`` (every
+        number's unit is the end of its key; ``unit`` says it in words)."""
+        u = self.suffix
+        return {"key": self.key, "name": self.name, f"value{u}": json_num(self.value),
+                f"ci95{u}": [json_num(v) for v in self.ci95], f"default{u}": json_num(self.default),
                 "unit": self.unit, "identified": bool(self.identified),
                 "constrained_by": self.constrained_by, "note": self.note,
                 "confounded_with": list(self.confounded_with)}
@@ -66,6 +76,18 @@ class Constant:
         extra = f"; {self.note}" if self.note else ""
         ref = f"rig file {self.default:.4g}; " if self.key else ""
         return f"{head}  ({ref}from {self.constrained_by}{extra})"
+
+
+def suffix_of_unit(unit: str) -> str:
+    """Key suffix of a constant's unit: the units table's, ``'_ratio'`` for a
+    dimensionless one ('')."""
+    if not unit:
+        return "_ratio"
+    suffix = unit_suffix(unit)
+    if suffix is None:
+        raise ValueError(f"unit: {unit!r} has no key suffix in seanv_analysis.units."
+                         "UNIT_SUFFIXES; add it there")
+    return suffix
 
 
 def nest_constants(constants) -> dict[str, Any]:
@@ -114,7 +136,7 @@ class Identification(JsonResult):
         return nest_constants(self.constants)
 
     def to_json_dict(self) -> dict[str, Any]:
-        return {"schema": "seanv-identify/2",
+        return {"schema": "seanv-identify/3",
                 "constants": [c.to_json_dict() for c in self.constants],
                 "identified_keys": [c.key for c in self.identified()],
                 "not_separable": [{"key": c.key, "from": list(c.confounded_with),
@@ -141,13 +163,15 @@ class Identification(JsonResult):
         return "\n".join(lines)
 
     def to_frame(self):
-        """One row per constant: key, value, 95 % interval, rig-file default,
-        unit, identified, what constrains it."""
+        """One row per constant (a long table: each row's numbers are in its
+        ``unit``): key, value, 95 % interval (ci95_lo, ci95_hi), rig-file
+        default, unit, identified, what constrains it."""
         import pandas as pd
 
-        return pd.DataFrame([{"key": c.key, "value": c.value, "lo": c.ci95[0], "hi": c.ci95[1],
-                              "default": c.default, "unit": c.unit, "identified": c.identified,
-                              "constrained_by": c.constrained_by} for c in self.constants])
+        return pd.DataFrame([{"key": c.key, "value": c.value, "ci95_lo": c.ci95[0],
+                              "ci95_hi": c.ci95[1], "default": c.default, "unit": c.unit,
+                              "identified": c.identified, "constrained_by": c.constrained_by}
+                             for c in self.constants])
 
     def __repr__(self) -> str:
         return (f"<Identification: {len(self.identified())}/{len(self.constants)} constants "

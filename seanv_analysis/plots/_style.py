@@ -18,8 +18,8 @@ import numpy as np
 
 from ..io.atomic import atomic_path
 
-__all__ = ["paper_style", "thin", "shade_high_load", "high_load_spans", "new_figure",
-           "check_formats", "save_figure", "DEFAULT_FORMATS",
+__all__ = ["paper_style", "thin", "shade_high_load", "shade_loads", "high_load_spans",
+           "legend_outside", "new_figure", "check_formats", "save_figure", "DEFAULT_FORMATS",
            "TARGET_COLOUR", "ACTUAL_COLOUR", "SIM_COLOUR", "SHADE_COLOUR"]
 
 TARGET_COLOUR = "tab:red"
@@ -139,6 +139,48 @@ def shade_high_load(axes, spans, *, label: str | None = None) -> None:
         for j, (a, b) in enumerate(spans):
             ax.axvspan(a, b, color=SHADE_COLOUR, lw=0, zorder=0,
                        label=label if (i == 0 and j == 0) else None)
+
+
+def shade_loads(axes, t_s, level_mpag) -> list:
+    """Shade the periods at the highest load level on every axis and name
+    each level once (the paper's Fig. 7: "shaded regions correspond to a
+    0.45 MPaG load"): the band is labelled ``load 0.45 MPaG (shaded)`` on
+    the first axis, and a legend entry ``load 0.35 MPaG`` (unshaded) is
+    returned for the other levels, to pass to :func:`legend_outside` as
+    ``extra``. Nothing is shaded with fewer than two levels.
+
+    Parameters
+    ----------
+    axes : an axis or several sharing the time axis
+    t_s : time [s]; level_mpag : load level of each sample [MPaG]
+        (:func:`seanv_analysis.analysis.tracking.load_levels_mpag`)
+    """
+    from matplotlib.patches import Patch
+
+    lv = np.asarray(level_mpag, dtype=float)
+    levels = np.unique(lv[np.isfinite(lv)])
+    if levels.size < 2:
+        return []
+    hi = float(levels.max())
+    shade_high_load(axes, high_load_spans(t_s, lv, level=hi), label=f"load {hi:g} MPaG (shaded)")
+    others = ", ".join(f"{v:g}" for v in levels[:-1])
+    return [Patch(facecolor="white", edgecolor="0.6", lw=0.6, label=f"load {others} MPaG")]
+
+
+def legend_outside(ax, *, extra: Sequence = (), **kwargs):
+    """The axis' legend beside it, right of the axes and never over the data
+    (its handles and labels, then ``extra`` handles such as the unshaded load
+    of :func:`shade_loads`); the figure's layout (tight or constrained)
+    makes room for it. Returns the legend, or None when there is nothing to list."""
+    handles, labels = ax.get_legend_handles_labels()
+    # the extra entries (the unshaded load) right after the shaded load's, if any
+    at = next((i + 1 for i, lab in enumerate(labels) if lab.startswith("load ")), len(labels))
+    handles = [*handles[:at], *extra, *handles[at:]]
+    labels = [*labels[:at], *(h.get_label() for h in extra), *labels[at:]]
+    if not handles:
+        return None
+    opts = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0, **kwargs}
+    return ax.legend(handles, labels, **opts)
 
 
 def check_formats(formats: str | Sequence[str]) -> tuple[str, ...]:

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ._style import DEFAULT_FORMATS, new_figure, save_figure
+from ._style import DEFAULT_FORMATS, legend_outside, new_figure, save_figure
 from .registry import Figure, register_figure
 
 __all__ = ["plot_fig4", "draw_fig4", "draw"]
@@ -99,8 +99,9 @@ def _panel_a(ax, fit) -> None:
     handles += [Line2D([], [], color="0.2", marker=_SIDE_STYLE[s][0], lw=0, ms=4,
                        label=f"{s} side") for s in fit.sides]
     h_ex, _ = ax.get_legend_handles_labels()
-    ax.legend(handles=handles + h_ex, fontsize=7, ncol=2, loc="upper left", frameon=False,
-              title="Load (model: lines)", title_fontsize=7)
+    ax.legend(handles=handles + h_ex, fontsize=7, ncol=1, loc="upper left",
+              bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, frameon=False,
+              title="Load (model: lines)", title_fontsize=7)   # beside the axes, off the data
     ax.grid(True, lw=0.3, alpha=0.5)
 
 
@@ -132,7 +133,7 @@ def _panel_b(axes, fit) -> None:
                 label=f"{side}: eq. (3)+(4), $z_0$ = {sf.z0_mm:.3f} mm")
     for side, ax in zip(fit.sides, axes):
         ax.set_ylabel(f"{side.capitalize()} threshold $\\theta_d$ [deg]")
-        ax.legend(fontsize=7, frameon=False, loc="best")
+        legend_outside(ax, fontsize=7, frameon=False)
         ax.grid(True, lw=0.3, alpha=0.5)
     axes[-1].set_xlabel("Pressure difference $\\Delta p$ [MPa]")
     axes[0].set_title("(b) Sealing threshold angle vs pressure difference", loc="left",
@@ -146,14 +147,14 @@ def draw_fig4(fit: Any, fig=None):
     ----------
     fit : result of :func:`seanv_analysis.fit.fit_flow`
     fig : matplotlib Figure to draw into (empty, with constrained layout);
-        default: a new 10.5 x 4.2 inch Agg figure
+        default: a new 12.5 x 4.4 inch Agg figure
 
     Returns
     -------
     the matplotlib Figure, for showing in a notebook or saving
     """
     if fig is None:
-        fig = new_figure(figsize=(10.5, 4.2), layout="constrained")
+        fig = new_figure(figsize=(12.5, 4.4), layout="constrained")
     grid = fig.add_gridspec(len(fit.sides), 2, width_ratios=[1.35, 1.0])
     ax_a = fig.add_subplot(grid[:, 0])
     axes_b = [fig.add_subplot(grid[i, 1]) for i in range(len(fit.sides))]

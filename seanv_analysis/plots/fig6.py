@@ -4,7 +4,8 @@ Stacked panels sharing the time axis: target and actual position [mm];
 measured pressures (supply, head, load) [MPaG]; cam angle (command and
 feedback, dashed black: servo neutral) [deg]; position error x_ref - x [mm]
 (with the +-0.5 mm convergence band). Periods at the higher load level
-(0.45 MPaG in the paper) are shaded. The pipeline draws one figure per
+(0.45 MPaG in the paper) are shaded and both loads named in the legend,
+which sits beside the panels. The pipeline draws one figure per
 position-control run (:func:`draw_run`); :func:`plot_fig6_dataset` puts
 several runs side by side.
 """
@@ -22,11 +23,11 @@ from ._style import (
     ACTUAL_COLOUR,
     DEFAULT_FORMATS,
     TARGET_COLOUR,
-    high_load_spans,
+    legend_outside,
     new_figure,
     paper_style,
     save_figure,
-    shade_high_load,
+    shade_loads,
     thin,
 )
 from .registry import Figure, register_figure
@@ -52,14 +53,9 @@ def draw_fig6_column(axes: Sequence, run, *, legend: bool = True) -> None:
     t = a["t_s"].to_numpy(float)
     x = a["position_mm"].to_numpy(float)
     x_ref = a["x_ref_mm"].to_numpy(float) if "x_ref_mm" in a else np.full(t.size, np.nan)
-    spans = high_load_spans(t, load_levels_mpag(t, a["p_load_mpag"].to_numpy(float))) \
-        if "p_load_mpag" in a else []
-    hi = None
-    if spans:
-        lv = load_levels_mpag(t, a["p_load_mpag"].to_numpy(float))
-        hi = float(np.nanmax(lv))
     ax_x, ax_p, ax_c, ax_e = axes
-    shade_high_load(axes, spans, label=f"load {hi:g} MPaG" if hi is not None else None)
+    loads = (shade_loads(axes, t, load_levels_mpag(t, a["p_load_mpag"].to_numpy(float)))
+             if "p_load_mpag" in a else [])
     ax_x.plot(t, x_ref, color=TARGET_COLOUR, ls="--", label="target $x_{ref}$", drawstyle="steps-post")
     ax_x.plot(t, x, color=ACTUAL_COLOUR, label="actual $x$")
     ax_x.set_ylabel("Position [mm]")
@@ -85,9 +81,8 @@ def draw_fig6_column(axes: Sequence, run, *, legend: bool = True) -> None:
     ax_e.set_xlabel("Time [s]")
     ax_e.set_xlim(t[0], t[-1])
     if legend:
-        for ax in axes:
-            # beside the panel, never over the traces
-            ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
+        for i, ax in enumerate(axes):   # beside the panel, never over the traces
+            legend_outside(ax, extra=loads if i == 0 else ())
 
 
 def plot_fig6(run, out_dir: str | Path, *, stem: str | None = None,

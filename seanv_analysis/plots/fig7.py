@@ -1,7 +1,7 @@
 """Fig. 7 of the paper: flow control performance during position control.
 
-(a) target Q_ref and actual Q flow against time [mm^3/s] (higher-load
-periods shaded); (b) actual flow shifted earlier by the delay against the
+(a) target Q_ref and actual Q flow against time [mm^3/s] (the higher
+load's periods shaded, both loads named); (b) actual flow shifted earlier by the delay against the
 target, with the identity line (solid inside the fitting range, dashed
 outside), the range bounds and the RMSE in the title. One figure for the
 data set (``fig7``) and one per run (``fig7_<run_id>``).
@@ -19,16 +19,17 @@ from ._style import (
     ACTUAL_COLOUR,
     DEFAULT_FORMATS,
     TARGET_COLOUR,
-    high_load_spans,
+    legend_outside,
     new_figure,
     paper_style,
     save_figure,
-    shade_high_load,
+    shade_loads,
     thin,
 )
 from .registry import Figure, register_figure
 
-__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", "draw"]
+__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", "draw",
+           "scatter_runs"]
 
 _K = 1e-3  # axes in 10^3 mm^3/s, as the paper
 
@@ -39,23 +40,13 @@ TARGET_LABELS = {"q_ref": "target $Q_{ref}$ (logged)",
                  "model": "$Q_{ref}$ implied by the flow model (not commanded)"}
 
 
-def pooled_rmse(runs) -> float:
-    """RMSE [mm^3/s] over the in-range samples of ``runs`` pooled (each run's
-    RMSE weighted by its sample count, as the tracking stage pools them)."""
-    n = np.array([r.n_samples for r in runs], dtype=float)
-    e = np.array([r.rmse_mm3_s for r in runs], dtype=float)
-    ok = (n > 0) & np.isfinite(e)
-    return float(np.sqrt(np.sum(n[ok] * e[ok] ** 2) / np.sum(n[ok]))) if ok.any() else np.nan
-
-
 def scatter_runs(tracking) -> tuple[list, str]:
-    """The runs of panel (b) and how to say it: as the paper (Fig. 7(b)
-    shows the run with the flow model, Fig. 6(b)), the runs whose target
-    Q_ref was logged; all runs when none was."""
-    logged = [r for r in tracking.runs if r.target_source == "q_ref"]
-    if logged and len(logged) < len(tracking.runs):
-        return logged, "runs with a logged $Q_{ref}$ (flow-model controller)"
-    return list(tracking.runs), "all runs"
+    """The runs of panel (b) and how to say it: the runs the tracking
+    headline pools (``tracking.pooled_runs``: those with a commanded Q_ref,
+    as the paper's Fig. 7(b); all runs when none had one), so the panel's
+    RMSE is the headline's."""
+    pooled = set(tracking.pooled_runs)
+    return [r for r in tracking.runs if r.run_id in pooled], tracking.pooled
 
 
 def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = True) -> None:
@@ -63,21 +54,19 @@ def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = Tr
     d = run_tracking.data
     d = d.iloc[thin(len(d))]
     t = d["t_s"].to_numpy(float)
-    spans = high_load_spans(t, d["load_level_mpag"].to_numpy(float))
-    hi = float(np.nanmax(d["load_level_mpag"])) if spans else None
-    shade_high_load(ax, spans, label=f"load {hi:g} MPaG" if hi is not None else None)
+    loads = shade_loads(ax, t, d["load_level_mpag"].to_numpy(float))
     ax.plot(t, d["q_ref_mm3_s"] * _K, color=TARGET_COLOUR, lw=0.9, drawstyle="steps-post",
             label=TARGET_LABELS.get(run_tracking.target_source, "target $Q_{ref}$"),
             ls="-" if run_tracking.target_source == "q_ref" else "--")
     ax.plot(t, d["q_mm3_s"] * _K, color=ACTUAL_COLOUR, lw=0.8, label="actual $Q$")
     if shifted:
         ax.plot(t, d["q_shifted_mm3_s"] * _K, color="tab:cyan", lw=0.7,
-                label=f"actual shifted by -{run_tracking.lag_applied_s:.3g} s")
+                label=f"actual shifted by -{run_tracking.shift_s:.3g} s")
     ax.set_xlabel("Time [s]")
     ax.set_ylabel("Flow rate [$10^3$ mm$^3$/s]")
     ax.set_xlim(t[0], t[-1])
     if legend:
-        ax.legend(loc="upper right", ncol=2)
+        legend_outside(ax, extra=loads)
 
 
 def draw_flow_scatter(ax, datas, *, q_range, lag_s: float, rmse_mm3_s: float) -> None:
@@ -113,7 +102,7 @@ def draw_flow_scatter(ax, datas, *, q_range, lag_s: float, rmse_mm3_s: float) ->
     ax.set_ylabel(f"Actual flow rate $Q(t + {lag_s:.3g}$ s) [$10^3$ mm$^3$/s]")
     ax.set_title(f"RMSE {rmse_mm3_s * _K:.3f} $\\times 10^3$ mm$^3$/s in "
                  f"[{lo * _K:g}, {hi * _K:g}] $\\times 10^3$")
-    ax.legend(loc="upper left", markerscale=4)
+    legend_outside(ax, markerscale=4)
 
 
 def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *, stem: str | None = None,
@@ -121,13 +110,13 @@ def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *, stem: str | No
     """Fig. 7 of one run: (a) flows against time, (b) shifted actual vs target,
     written in ``formats`` as ``<stem>.<format>`` (default stem ``fig7_<run_id>``)."""
     with paper_style():
-        fig = new_figure(figsize=(10.0, 3.8))
+        fig = new_figure(figsize=(12.5, 3.8))
         ax_a, ax_b = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1.6, 1]})
         draw_flow_time(ax_a, run_tracking)
         ax_a.set_title(f"(a) {run_tracking.run_id}: target and actual flow rate")
         draw_flow_scatter(ax_b, [run_tracking.data], q_range=tracking.range_mm3_s,
-                          lag_s=run_tracking.lag_applied_s, rmse_mm3_s=run_tracking.rmse_mm3_s)
-        ax_b.set_title(f"(b) shifted {run_tracking.lag_applied_s:.3g} s; " + ax_b.get_title())
+                          lag_s=run_tracking.shift_s, rmse_mm3_s=run_tracking.rmse_mm3_s)
+        ax_b.set_title(f"(b) shifted {run_tracking.shift_s:.3g} s; " + ax_b.get_title())
         fig.tight_layout()
         return save_figure(fig, out_dir, stem or f"fig7_{safe_name(run_tracking.run_id)}",
                            formats=formats)
@@ -139,10 +128,9 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
 
     The data-set figure has (a) one time panel per run (up to ``max_runs``;
     the run with a logged Q_ref first; a target only implied by the flow
-    model is dashed and labelled so) and (b) the scatter of the runs whose
-    Q_ref was logged (the paper's Fig. 7(b): the run with the flow model;
-    all runs when no run or every run logged it), with the RMSE of exactly
-    those runs.
+    model is dashed and labelled so) and (b) the scatter of the runs the
+    tracking headline pools (those with a commanded Q_ref, the paper's
+    Fig. 7(b); :func:`scatter_runs`), titled with the headline RMSE.
 
     Parameters
     ----------
@@ -165,21 +153,21 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
     shown = ordered[:max_runs]
     in_b, which = scatter_runs(tracking)
     with paper_style():
-        fig = new_figure(figsize=(11.0, max(3.8, 2.4 * len(shown))))
+        fig = new_figure(figsize=(13.0, max(3.8, 2.6 * len(shown))))
         gs = fig.add_gridspec(len(shown), 2, width_ratios=[1.6, 1])
         for i, r in enumerate(shown):
             ax = fig.add_subplot(gs[i, 0])
             draw_flow_time(ax, r, legend=(i == 0))  # one legend: it would cover the others' data
             label = "(a)" if i == 0 else f"(a{i + 1})"
             target = "" if i == 0 and r.target_source == "q_ref" else \
-                f"; red: {TARGET_LABELS.get(r.target_source, 'target')}"
+                f"\nred dashed: {TARGET_LABELS.get(r.target_source, 'target')}"
             ax.set_title(f"{label} {r.run_id}{target}", loc="left")
             if i < len(shown) - 1:
                 ax.set_xlabel("")
         ax_b = fig.add_subplot(gs[:, 1])
         draw_flow_scatter(ax_b, [r.data for r in in_b], q_range=tracking.range_mm3_s,
-                          lag_s=tracking.lag_s, rmse_mm3_s=pooled_rmse(in_b))
-        ax_b.set_title(f"(b) {which}, shift {tracking.lag_s:.3g} s ({tracking.lag_source})\n"
+                          lag_s=tracking.shift_s, rmse_mm3_s=tracking.rmse_mm3_s)
+        ax_b.set_title(f"(b) {which}, shift {tracking.shift_s:.3g} s ({tracking.shift_source})\n"
                        + ax_b.get_title())
         fig.tight_layout()
         paths += save_figure(fig, out_dir, stem, formats=formats)

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from ._style import legend_outside
+
 __all__ = ["plot"]
 
 
@@ -62,13 +64,13 @@ def _dataset(ds, ax):
     ax.set_title(f"{ds.runs_read} runs read"
                  + (f", {len(ds.failed)} bad" if ds.failed else ""), loc="left", fontsize=10)
     if ax.get_legend_handles_labels()[0]:
-        ax.legend(fontsize=7, frameon=False)
+        legend_outside(ax, fontsize=7, frameon=False)
     ax.grid(True, lw=0.3, alpha=0.5)
     return ax
 
 
 def _tracking(tr, ax, panel: str = "b", run: str | None = None):
-    from .fig7 import draw_flow_scatter, draw_flow_time, pooled_rmse, scatter_runs
+    from .fig7 import draw_flow_scatter, draw_flow_time, scatter_runs
 
     if panel == "a":
         r = next((r for r in tr.runs if run in (None, r.run_id)), None)
@@ -82,8 +84,8 @@ def _tracking(tr, ax, panel: str = "b", run: str | None = None):
     if panel == "b":
         ax = _axes(ax, figsize=(5.0, 4.6))
         runs, which = scatter_runs(tr)
-        draw_flow_scatter(ax, [r.data for r in runs], q_range=tr.range_mm3_s, lag_s=tr.lag_s,
-                          rmse_mm3_s=pooled_rmse(runs))
+        draw_flow_scatter(ax, [r.data for r in runs], q_range=tr.range_mm3_s, lag_s=tr.shift_s,
+                          rmse_mm3_s=tr.rmse_mm3_s)
         ax.set_title(f"(b) {which}\n" + ax.get_title(), fontsize=9)
         return ax
     raise ValueError(f"panel: expected 'a' (flows against time) or 'b' (actual vs target), "
@@ -105,7 +107,7 @@ def _validation(val, ax, quantity: str = "position"):
                 label=f"{r.run_id}: simulated")
     ax.set_xlabel("Time [s]")
     ax.set_ylabel(label)
-    ax.legend(fontsize=7, frameon=False)
+    legend_outside(ax, fontsize=7, frameon=False)
     ax.grid(True, lw=0.3, alpha=0.5)
     return ax
 
@@ -135,7 +137,7 @@ def _discovery(d, ax, variable: str = "run_index"):
     ax.axhline(0.0, color="k", lw=0.8)
     ax.set_xlabel(LABELS.get(variable, variable.replace("_", " ")))
     ax.set_ylabel("Residual $Q - Q_{model}$ [mm$^3$/s]")
-    ax.legend(fontsize=7, frameon=False)
+    legend_outside(ax, fontsize=7, frameon=False)
     ax.grid(True, lw=0.3, alpha=0.5)
     return ax
 

@@ -15,11 +15,11 @@ from ._style import (
     SIM_COLOUR,
     TARGET_COLOUR,
     check_formats,
-    high_load_spans,
+    legend_outside,
     new_figure,
     paper_style,
     save_figure,
-    shade_high_load,
+    shade_loads,
     thin,
 )
 from .registry import Figure, register_figure
@@ -39,11 +39,10 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
     ov = ov.iloc[thin(len(ov))]
     row = run_validation.row
     t = ov["t_s"].to_numpy(float)
-    spans = high_load_spans(t, load_levels_mpag(t, ov["p_load_mpag"].to_numpy(float)))
     with paper_style():
-        fig = new_figure(figsize=(6.4, 6.0))
+        fig = new_figure(figsize=(7.6, 6.0))
         axes = fig.subplots(3, 1, sharex=True)
-        shade_high_load(axes, spans, label="higher load")
+        loads = shade_loads(axes, t, load_levels_mpag(t, ov["p_load_mpag"].to_numpy(float)))
         ax_x, ax_q, ax_c = axes
         ax_x.plot(t, ov["x_ref_mm"], color=TARGET_COLOUR, ls="--", drawstyle="steps-post",
                   label="reference")
@@ -72,8 +71,8 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
         ax_c.set_ylabel("Cam angle [deg]")
         ax_c.set_xlabel("Time [s]")
         ax_c.set_xlim(t[0], t[-1])
-        for ax in axes:
-            ax.legend(loc="upper right", ncol=4)
+        for i, ax in enumerate(axes):   # beside the panel, never over the traces
+            legend_outside(ax, extra=loads if i == 0 else ())
         fig.align_ylabels(axes)
         fig.tight_layout(h_pad=0.4)
         return save_figure(fig, out_dir, stem or f"validate_{safe_name(run_validation.run_id)}",
@@ -113,7 +112,7 @@ def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True,
             ax.set_ylabel("Fit [%]")
             ax.set_ylim(min(0.0, float(np.nanmin(np.clip(tab[[b[0] for b in bars]].to_numpy(float),
                                                            -50, 100), initial=0.0)) - 5), 105)
-            ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), ncol=1)
+            legend_outside(ax)
             ax.set_title("Measured vs simulated: fit % = 100 (1 - ||y - y_sim|| / ||y - mean y||)")
             fig.tight_layout()
             paths += save_figure(fig, out_dir, "validate_fit", formats=formats)

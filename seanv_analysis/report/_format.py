@@ -38,13 +38,19 @@ def _fmt(v: Any, digits: int = 4) -> str:
     return f"{f:.{digits}g}" if abs(f) >= 1 else f"{f:.{digits}f}".rstrip("0").rstrip(".")
 
 
-def _ci(ci: Any, digits: int = 4) -> str:
+#: why a fit's interval is missing, unless the caller knows better
+FIT_NO_INTERVAL = "singular covariance / too few runs"
+
+
+def _ci(ci: Any, digits: int = 4, *, why: str | None = FIT_NO_INTERVAL) -> str:
+    """'[lo, hi]', or 'no interval' with ``why`` (None: no reason given here,
+    e.g. where a note beside it says it)."""
     try:
         lo, hi = (float(c) for c in ci)
     except (TypeError, ValueError):
         return "<span class='warn'>no interval</span>"
     if not (math.isfinite(lo) and math.isfinite(hi)):
-        return "<span class='warn'>no interval (singular covariance / too few runs)</span>"
+        return f"<span class='warn'>no interval{f' ({_e(why)})' if why else ''}</span>"
     return f"[{_fmt(lo, digits)}, {_fmt(hi, digits)}]"
 
 
@@ -62,16 +68,16 @@ _HEADERS = {"run_id": "run", "run_index": "run #", "fit_position_pct": "position
             "dp_threshold_mpa": "Δp at θ_d [MPa]",
             "load_mpag": "load [MPaG]", "load_level_mpag": "load level [MPaG]",
             "cam_deg": "cam [deg]", "excluded": "excluded by", "excluded_detail": "why",
-            "started_at": "started (UTC)", "lag_s": "delay [s]", "target_source": "target Q_ref",
-            "lag_ci95_lo_s": "delay 95 % interval, low [s]",
-            "lag_ci95_hi_s": "delay 95 % interval, high [s]", "lag_applied_s": "delay applied [s]",
+            "started_at": "started (UTC)", "lag_s": "delay estimate [s]", "target_source": "target Q_ref",
+            "lag_ci95_lo_s": "delay estimate 95 % interval, low [s]",
+            "lag_ci95_hi_s": "delay estimate 95 % interval, high [s]", "shift_s": "delay compensated (shift) [s]",
             "rmse_mm3_s": f"RMSE [{MM3_S}]", "bias_mm3_s": f"bias [{MM3_S}]",
             "rmse_supply_mm3_s": f"RMSE, supply targets [{MM3_S}]",
             "rmse_drain_mm3_s": f"RMSE, drain targets [{MM3_S}]", "n_samples": "samples",
             "theta_d_deg": "θ_d [deg]", "theta_d_se_deg": "θ_d standard error [deg]",
-            "theta_d_model_deg": "θ_d of the model [deg]", "alpha": f"α [{ALPHA_UNIT}]",
-            "alpha_se": f"α standard error [{ALPHA_UNIT}]",
-            "alpha_model": f"α of the model [{ALPHA_UNIT}]", "success": "fit converged",
+            "theta_d_model_deg": "θ_d of the model [deg]", "alpha_mm3_s_deg2": f"α [{ALPHA_UNIT}]",
+            "alpha_se_mm3_s_deg2": f"α standard error [{ALPHA_UNIT}]",
+            "alpha_model_mm3_s_deg2": f"α of the model [{ALPHA_UNIT}]", "success": "fit converged",
             "flagged": "flagged", "n_runs": "runs", "steps": "reference steps",
             "sha256": "SHA-256", "overshoot_measured_mm": "overshoot, measured [mm]",
             "overshoot_simulated_mm": "overshoot, simulated [mm]"}

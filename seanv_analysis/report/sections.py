@@ -45,7 +45,7 @@ def flowfit_section(r) -> str:
             f"<td>{_fmt(f.c_flow, 4)}</td><td>{_ci(f.c_ci95)}</td>"
             f"<td>{_fmt(ref_c, 4)}</td>"
             f"<td>{_fmt(f.rmse_mm3_s, 4)}</td><td>{f.n_runs}</td>"
-            f"<td class='l'>{_side_verdict(f, r.discovery)}</td></tr>")
+            f"<td class='l'>{_side_verdict(f, r.discovery, getattr(fit, 'flow_method', ''))}</td></tr>")
     methods = sorted({f.ci_method for f in fit.sides.values() if f.ci_method})
     table = ("<table><tr><th class='l'>side</th><th>z0 [mm]</th><th>z0 95 % interval [mm]</th>"
              f"<th>z0 paper/rig [mm]</th><th>C [{C_UNIT}]</th><th>C 95 % interval [{C_UNIT}]</th>"
@@ -59,6 +59,10 @@ def flowfit_section(r) -> str:
         table += (f"<p>Discovery also found {_e(names)}: the plant, not eq. (5); see "
                   "<a href='#discovery'>Discovery</a>.</p>")
     notes = [f"Residual = measured &minus; model. Intervals: {_e('; '.join(methods) or 'n/a')}."]
+    if getattr(fit, "flow_method", "") == "peak":   # the biased estimate: said first
+        from ..fit import PEAK_BIAS
+
+        notes.insert(0, f"<span class='warn'>{_e(PEAK_BIAS)}.</span>")
     for side, f in fit.sides.items():  # the lack-of-fit check of every side, flagged or not
         line = f.lack_of_fit_line() if hasattr(f, "lack_of_fit_line") else ""
         if line:
@@ -96,12 +100,14 @@ def _side_findings(side: str, discovery) -> list[str]:
     return out
 
 
-def _side_verdict(f, discovery) -> str:
+def _side_verdict(f, discovery, flow_method: str = "") -> str:
     """The model table's verdict cell of one side: flowfit's status
     (``SideFit.status``: failed / lack of fit / ok) and discovery's findings;
     green "ok" only when neither flags the side."""
     status = getattr(f, "status", None) or ("ok" if f.success else "failed")
     flags = _side_findings(f.side, discovery)
+    if flow_method == "peak":
+        flags.insert(0, "on the biased 'peak' flow estimate (note below)")
     if status == "lack of fit":
         flags.insert(0, "lack of fit (flowfit's check against the repeated runs, below)")
     msg = f" <small>{_e(f.message)}</small>" if f.message else ""
@@ -126,7 +132,8 @@ def identify_section(r) -> str:
                   else "<span class='warn'>rig file</span>")
         key = _e(c.key).replace(".", ".<wbr>") if c.key else "(reported)"  # may wrap at a dot
         rows.append(f"<tr><td class='l'>{_e(c.name)}</td><td class='l'><code>{key}</code>"
-                    f"</td><td>{_fmt(c.value)}</td><td>{_ci(c.ci95)}</td><td>{_fmt(c.default)}</td>"
+                    f"</td><td>{_fmt(c.value)}</td><td>{_ci(c.ci95, why=None)}</td>"
+                    f"<td>{_fmt(c.default)}</td>"
                     f"<td class='l'>{_e(_unit(c.unit))}</td><td class='l'>{status} {_e(c.constrained_by)}"
                     f"{'; ' + _e(c.note) if c.note else ''}</td></tr>")
     table = ("<table><tr><th class='l'>constant</th><th class='l'>rig key</th><th>identified</th>"
@@ -191,14 +198,17 @@ def tracking_section(r) -> str:
         out.append(f"<p>No tracking result ({_e(why)}).</p>")
     else:
         ci = tr.lag_ci95_s
-        lag = f"{_fmt(tr.lag_s, 3)} s ({_e(tr.lag_source)}" + (f", 95 % interval {_ci(ci, 3)} s, block bootstrap"
-                                                              if ci else "") + ")"
+        lag = (f"{_fmt(tr.lag_s, 3)} s (estimated" + (f", 95 % interval {_ci(ci, 3)} s, block "
+                                                      "bootstrap" if ci else "") + ")"
+               + ("" if tr.shift_source == "estimated"
+                  else f"; shift {_fmt(tr.shift_s, 3)} s given"))
         lo, hi = tr.range_mm3_s
         out.append("<table>"
                    f"<tr><td class='l'>flow delay (actual behind target)</td><td>{lag}</td></tr>"
                    f"<tr><td class='l'>RMSE of shifted actual &minus; target, targets in "
-                   f"[{_fmt(lo)}, {_fmt(hi)}] {MM3_S}</td><td>{_fmt(tr.rmse_mm3_s, 4)} {MM3_S} "
-                   f"(paper: 516 {MM3_S})</td></tr>"
+                   f"[{_fmt(lo)}, {_fmt(hi)}] {MM3_S}, pooled over the {_e(tr.pooled)} "
+                   f"({_e(', '.join(tr.pooled_runs))})</td><td>{_fmt(tr.rmse_mm3_s, 4)} {MM3_S} "
+                   f"(paper: 516 {MM3_S}, its run with a commanded Q_ref)</td></tr>"
                    f"<tr><td class='l'>bias (actual &minus; target)</td><td>{_fmt(tr.bias_mm3_s, 4)} {MM3_S}"
                    "</td></tr>"
                    f"<tr><td class='l'>RMSE supply / drain targets</td><td>{_fmt(tr.rmse_supply_mm3_s, 4)} / "
@@ -392,8 +402,9 @@ def tracking_cards(r) -> list[tuple[str, str]]:
     """The overview's tracking numbers: RMSE and delay."""
     if r.tracking is None:
         return []
-    return [(f"{_fmt(r.tracking.rmse_mm3_s, 3)}", "flow tracking RMSE [mm³/s]"),
-            (f"{_fmt(r.tracking.lag_s, 3)}", "flow delay [s]")]
+    return [(f"{_fmt(r.tracking.rmse_mm3_s, 3)}",
+             f"flow tracking RMSE [mm³/s], {r.tracking.pooled}"),
+            (f"{_fmt(r.tracking.shift_s, 3)}", f"flow delay compensated [s], {r.tracking.shift_source}")]
 
 
 def discovery_cards(r) -> list[tuple[str, str]]:

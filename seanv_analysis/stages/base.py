@@ -39,7 +39,7 @@ from ..io.validate import one_line
 from ..models import ValveModel
 
 __all__ = ["Context", "FailedRun", "RunOutcome", "RunMapper", "serial_map", "one_line",
-           "with_path", "find_run_dirs", "one_blas_thread", "Result"]
+           "with_path", "find_run_dirs", "one_blas_thread", "Result", "stage_info"]
 
 
 @dataclass(frozen=True)
@@ -143,7 +143,7 @@ def serial_map(stage: str, func: Callable[..., Any], run_dirs: Sequence[Path], *
     return out
 
 
-def _stage_info(msg: str) -> None:
+def stage_info(msg: str) -> None:
     """INFO on the ``seanv_analysis.stages`` logger."""
     import logging
 
@@ -227,7 +227,7 @@ class Context:
     quiet: bool = True
     #: one plain line per step (default: INFO on the ``seanv_analysis.stages``
     #: logger, which prints nothing until logging is configured, as the CLI does)
-    log: Callable[[str], None] = field(default_factory=lambda: _stage_info)
+    log: Callable[[str], None] = field(default_factory=lambda: stage_info)
 
     @classmethod
     def for_data(cls, data: str | Path | Sequence[str | Path], *, rig: RigConfig | str | Path | None = None,
@@ -251,7 +251,7 @@ class Context:
         source = model_source or ("given model" if model is not None
                                   else "rig config (paper's z0, C)")
         return cls(rig, datas, run_dirs, dataset_of, out, map_runs, model, source,
-                   quiet=quiet, log=log or _stage_info)
+                   quiet=quiet, log=log or stage_info)
 
     def add(self, name: str, result: Any) -> None:
         """Store a stage's result for the stages after it."""

@@ -86,6 +86,9 @@ class DatasetResult(JsonResult):
     input_hashes: Mapping[str, str] = field(default_factory=dict)
     #: the rig config the runs were read with (set by ``seanv_analysis.load_dataset``)
     rig: Any = field(default=None, repr=False, compare=False)
+    #: the data folders read (set by ``seanv_analysis.load_dataset``: the
+    #: notebook's commands take the result in place of the folders)
+    folders: tuple = field(default=(), repr=False, compare=False)
 
     def to_frame(self) -> pd.DataFrame:
         """The per-run summary (one row per run read)."""

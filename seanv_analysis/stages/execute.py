@@ -18,6 +18,10 @@ def execute(pipe, ctx: Context, *,
     """Run the stages of ``pipe`` (a :class:`~seanv_analysis.stages.pipeline.Pipeline`)
     in order on ``ctx``; each value that is not None is added to the context.
 
+    Each stage is announced on ``ctx.log`` before it runs and after it
+    ended (with its wall time), and a progress bar over the stages is drawn
+    on a terminal where logging is configured (:func:`seanv_analysis.log.progress`).
+
     Parameters
     ----------
     start : called with a stage's name before it runs
@@ -34,32 +38,55 @@ def execute(pipe, ctx: Context, *,
         a stage needs a stage's result that neither ran before it nor is in
         the context already.
     """
+    from ..log import progress
     from .catalogue import STAGES
 
-    for stage in pipe.stages:
-        mod = STAGES[stage.name]
-        missing = [n for n in mod.NEEDS if ctx.result(n) is None]
-        ran = [s.name for s in pipe.stages[:pipe.stages.index(stage)]]
-        if missing and not set(missing) <= set(ran):
-            where = pipe.source or "pipeline " + pipe.name
-            raise ConfigError(f"{where}: stage '{stage.name}' needs the result of "
-                              f"{', '.join(repr(m) for m in missing)}; add that stage before it")
-        if start is not None:
-            start(stage.name)
-        try:
-            if missing:   # in the pipeline, but it failed or gave nothing
-                raise DataError(f"nothing to work on: stage {', '.join(map(repr, missing))} "
-                                "gave no result")
-            value = mod.run(ctx, stage.options)
-        except Exception as exc:
-            if on_error is None or not on_error(stage.name, exc):
-                raise
-            continue
-        if value is not None:
-            ctx.add(stage.name, value)
-        if done is not None:
-            done(stage.name, value)
+    tag = f"[{pipe.name}] " if pipe.name else ""
+    bar = progress(total=len(pipe.stages), desc=pipe.name or "stages", unit="stage")
+    try:
+        for stage in pipe.stages:
+            bar.set_postfix_str(stage.name, refresh=False)
+            bar.refresh()
+            _run_one(pipe, stage, ctx, STAGES[stage.name], tag,
+                     start=start, on_error=on_error, done=done)
+            bar.update()
+    finally:
+        bar.close()
     return ctx
+
+
+def _run_one(pipe, stage, ctx: Context, mod, tag: str, *, start, on_error, done) -> None:
+    """One stage of :func:`execute`: its line before and after (``ctx.log``,
+    with the time it took), its value added to the context."""
+    import time
+
+    missing = [n for n in mod.NEEDS if ctx.result(n) is None]
+    ran = [s.name for s in pipe.stages[:pipe.stages.index(stage)]]
+    if missing and not set(missing) <= set(ran):
+        where = pipe.source or "pipeline " + pipe.name
+        raise ConfigError(f"{where}: stage '{stage.name}' needs the result of "
+                          f"{', '.join(repr(m) for m in missing)}; add that stage before it")
+    if start is not None:
+        start(stage.name)
+    ctx.log(f"{tag}stage {stage.name} ...")
+    t0 = time.perf_counter()
+    try:
+        if missing:   # in the pipeline, but it failed or gave nothing
+            raise DataError(f"nothing to work on: stage {', '.join(map(repr, missing))} "
+                            "gave no result")
+        value = mod.run(ctx, stage.options)
+    except Exception as exc:
+        if on_error is None or not on_error(stage.name, exc):
+            raise
+        first = " ".join(str(exc).split())[:200]
+        ctx.log(f"{tag}stage {stage.name} FAILED ({time.perf_counter() - t0:.1f} s): {first}")
+        return
+    if value is not None:
+        ctx.add(stage.name, value)
+    if done is not None:
+        done(stage.name, value)
+    ctx.log(f"{tag}stage {stage.name} {'done' if value is not None else 'gave nothing'} "
+            f"({time.perf_counter() - t0:.1f} s)")
 
 
 def run_stages(data, names: Sequence[str] = ("ingest", "flowfit"), *, rig=None, model=None,

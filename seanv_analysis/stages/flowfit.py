@@ -96,7 +96,5 @@ def write(fit, folder: Path) -> list[Path]:
                                 "(paper eq. 3-5). Units: mm, deg, MPa, mm^3/s."),
         write_table_parquet(fit.per_run, out / "per_run.parquet",
                             units={"residual_mm3_s": "mm^3/s", "z_score": ""}),
-        write_table_parquet(fit.per_load, out / "per_load.parquet",
-                            units={"alpha": "mm^3/(s deg^2)", "alpha_se": "mm^3/(s deg^2)",
-                                   "alpha_model": "mm^3/(s deg^2)"}),
+        write_table_parquet(fit.per_load, out / "per_load.parquet"),
     ]
