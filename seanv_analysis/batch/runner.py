@@ -14,6 +14,7 @@ import time
 import traceback
 import warnings
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -434,6 +435,11 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             say(f"[{pipe.name}] {len(ctx.run_dirs)} run folder(s), executor: {result.executor}")
             mapper = CachedMapper(ex, cache, force=force, quiet=quiet)
             ctx.map_runs = mapper
+            ctx.map_tasks = partial(ex.tasks, quiet=quiet)   # the figures, each a task
+            if any(s.name == "figures" for s in pipe.stages):
+                from ..plots._style import warm_up
+
+                ex.warm(warm_up)   # the workers load matplotlib while the analysis runs
             with one_blas_thread():     # the data-set stages, here (the workers have one)
                 _run_stages(pipe, ctx, result)
             result.computed, result.cached = mapper.computed, mapper.cached
