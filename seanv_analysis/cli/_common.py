@@ -183,17 +183,38 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
         yield ctx
         return
     with make_executor(workers=os.cpu_count()) as ex:
+        warm = None
         if figures:
             from ..plots._style import warm_up
 
-            ex.warm(warm_up)
+            warm = partial(ex.warm, warm_up)
             ctx.map_tasks = partial(ex.tasks, quiet=quiet)
         if big:
-            ctx.map_runs = CachedMapper(ex, None, quiet=quiet)
+            ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm)
+        elif warm is not None:
+            warm()
         try:
             yield ctx
         finally:  # the pool is gone after the block
             ctx.map_runs, ctx.map_tasks = serial_map, serial_tasks
+
+
+class _WarmAfter:
+    """A run mapper that calls ``warm()`` once its first batch (ingest) has
+    ended: the workers are idle from then on, while the analysis runs in
+    the main process, and load matplotlib then rather than delaying the
+    runs' reading."""
+
+    def __init__(self, mapper, warm):
+        self.mapper, self.warm = mapper, warm
+
+    def __call__(self, *args, **kwargs):
+        try:
+            return self.mapper(*args, **kwargs)
+        finally:
+            if self.warm is not None:
+                self.warm, warm = None, self.warm
+                warm()
 
 
 def command_pipeline(command: str, stages: Sequence[dict], *, ingest: dict | None = None,
