@@ -18,7 +18,7 @@ import numpy as np
 
 from ..io.atomic import atomic_path
 
-__all__ = ["paper_style", "warm_up", "trace", "TRACE_PIXELS", "thin", "shade_high_load", "shade_loads", "high_load_spans",
+__all__ = ["paper_style", "warm_up", "trace", "TRACE_PIXELS", "thin", "align_ylabels", "shade_high_load", "shade_loads", "high_load_spans",
            "legend_outside", "new_figure", "check_formats", "save_figure", "DEFAULT_FORMATS",
            "TARGET_COLOUR", "ACTUAL_COLOUR", "SIM_COLOUR", "SHADE_COLOUR"]
 
@@ -245,6 +245,20 @@ def legend_outside(ax, *, extra: Sequence = (), **kwargs):
         return None
     opts = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0, **kwargs}
     return ax.legend(handles, labels, **opts)
+
+
+#: where :func:`align_ylabels` puts the y labels: left of the axes [axes fraction]
+YLABEL_X = -0.075
+
+
+def align_ylabels(axes, *, x: float = YLABEL_X) -> None:
+    """The y labels of stacked axes at one distance ``x`` [axes fraction]
+    left of their axes, in line: what ``Figure.align_ylabels`` does, without
+    its cost (it measures every sibling's tick labels at each draw: 1.9 s
+    of Fig. 6's 6.4 s). The distance leaves room for tick labels such as
+    "-40" at the figures' sizes."""
+    for ax in np.atleast_1d(axes).ravel():
+        ax.yaxis.set_label_coords(x, 0.5)
 
 
 def check_formats(formats: str | Sequence[str]) -> tuple[str, ...]:

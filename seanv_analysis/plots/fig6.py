@@ -23,6 +23,7 @@ from ._style import (
     ACTUAL_COLOUR,
     DEFAULT_FORMATS,
     TARGET_COLOUR,
+    align_ylabels,
     legend_outside,
     new_figure,
     paper_style,
@@ -106,9 +107,10 @@ def plot_fig6(run, out_dir: str | Path, *, stem: str | None = None,
         axes = fig.subplots(_PANELS, 1, sharex=True)
         draw_fig6_column(axes, run)
         axes[0].set_title(f"{run.run_id}: position control {_controller_label(run)}")
-        fig.align_ylabels(axes)
-        fig.tight_layout(h_pad=0.4)
-        return save_figure(fig, out_dir, stem or f"fig6_{safe_name(run.run_id)}", formats=formats)
+        align_ylabels(axes)
+        fig.tight_layout(h_pad=0.4)   # room for the legends beside: no tight crop needed
+        return save_figure(fig, out_dir, stem or f"fig6_{safe_name(run.run_id)}", formats=formats,
+                           tight=False)
 
 
 def plot_fig6_dataset(runs: Sequence, out_dir: str | Path, *, stem: str = "fig6",
@@ -126,9 +128,9 @@ def plot_fig6_dataset(runs: Sequence, out_dir: str | Path, *, stem: str = "fig6"
         for j, run in enumerate(runs):
             draw_fig6_column(axes[:, j], run, legend=(j == len(runs) - 1))
             axes[0, j].set_title(f"({chr(97 + j)}) {run.run_id}\n{_controller_label(run)}")
-        fig.align_ylabels(axes[:, 0])
+        align_ylabels(axes)
         fig.tight_layout(h_pad=0.4)
-        return save_figure(fig, out_dir, stem, formats=formats)
+        return save_figure(fig, out_dir, stem, formats=formats, tight=False)
 
 
 def draw_runs(results: Mapping[str, Any], folder: Path, *,

@@ -120,6 +120,7 @@ def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *, stem: str | No
         ax_b.set_title(f"(b) shifted {run_tracking.shift_s:.3g} s; " + ax_b.get_title())
         fig.tight_layout()
         return save_figure(fig, out_dir, stem or f"fig7_{safe_name(run_tracking.run_id)}",
+                           tight=False,
                            formats=formats)
 
 
@@ -171,7 +172,7 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
         ax_b.set_title(f"(b) {which}, shift {tracking.shift_s:.3g} s ({tracking.shift_source})\n"
                        + ax_b.get_title())
         fig.tight_layout()
-        paths += save_figure(fig, out_dir, stem, formats=formats)
+        paths += save_figure(fig, out_dir, stem, formats=formats, tight=False)
     if per_run:
         for r in tracking.runs:
             paths += plot_fig7_run(tracking, r, out_dir, formats=formats)

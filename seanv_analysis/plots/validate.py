@@ -14,6 +14,7 @@ from ._style import (
     DEFAULT_FORMATS,
     SIM_COLOUR,
     TARGET_COLOUR,
+    align_ylabels,
     check_formats,
     legend_outside,
     new_figure,
@@ -72,10 +73,10 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
         ax_c.set_xlim(t[0], t[-1])
         for i, ax in enumerate(axes):   # beside the panel, never over the traces
             legend_outside(ax, extra=loads if i == 0 else ())
-        fig.align_ylabels(axes)
+        align_ylabels(axes)
         fig.tight_layout(h_pad=0.4)
         return save_figure(fig, out_dir, stem or f"validate_{safe_name(run_validation.run_id)}",
-                           formats=formats)
+                           formats=formats, tight=False)
 
 
 def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True,
