@@ -55,6 +55,9 @@ def test_the_samples_are_written_only_when_asked(mixed, tmp_path):
                                   pd.read_parquet(tmp_path / "full" / "summary.parquet"))
     manifest = json.loads((tmp_path / "plain" / "manifest.json").read_text())
     assert {e["path"] for e in manifest["outputs"]} == {"summary.parquet"}
+    # the manifest names the folder as it is, not the one it was written in
+    assert manifest["extra"]["ingest"]["out"] == str(tmp_path / "plain")
+    assert manifest["extra"]["ingest"]["summary"] == str(tmp_path / "plain" / "summary.parquet")
 
 
 def test_the_executor_gives_the_same_tables(mixed, tmp_path, monkeypatch):

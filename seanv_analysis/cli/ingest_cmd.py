@@ -103,7 +103,7 @@ def _merge_samples(parts: Path, out_dir: Path, summary, metadata: dict[str, Any]
 
 
 def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False,
-           samples: bool = False) -> dict[str, Any]:
+           samples: bool = False, final_dir: Path | None = None) -> dict[str, Any]:
     """Library side of the command: the ``ingest`` stage
     (:mod:`seanv_analysis.stages.dataset`, every run's samples aligned and
     derived, so a run whose streams cannot be aligned is a bad run), per-run
@@ -111,8 +111,10 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False,
     ``out_dir``: ``summary.parquet`` and ``manifest.json``, and with
     ``samples`` each run's derived samples in ``<kind>.parquet``.
 
-    Returns a result dict (also the ``--json`` document); raises
-    :class:`~seanv_analysis.errors.DataError` for a single bad run folder.
+    Returns a result dict (also the ``--json`` document; its paths, and the
+    manifest's, under ``final_dir`` where ``out_dir`` is a folder to be
+    renamed there); raises :class:`~seanv_analysis.errors.DataError` for a
+    single bad run folder.
     """
     import shutil
 
@@ -153,8 +155,9 @@ def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False,
     result = _result(root, out_dir, by_kind, ds, tables, summary_path,
                      excluded={k: v for k, v in ds.excluded.items() if v}, samples=samples)
     result["rows"] = rows
+    final = _moved(result, out_dir, Path(final_dir)) if final_dir is not None else result
     manifest = write_manifest(out_dir, config=rig, inputs=ds.input_hashes, command=sys.argv,
-                              extra={"ingest": {k: v for k, v in result.items() if k != "manifest"}},
+                              extra={"ingest": {k: v for k, v in final.items() if k != "manifest"}},
                               outputs=[*tables.values(), summary_path])
     result["manifest"] = str(manifest)
     return result
@@ -206,7 +209,8 @@ def ingest_into(data: Path, out: Path, *, rig, progress: bool = False,
             out.rmdir()
         try:
             with atomic_folder(out) as tmp:
-                result = ingest(data, out_dir=tmp, rig=rig, progress=progress, samples=samples)
+                result = ingest(data, out_dir=tmp, rig=rig, progress=progress, samples=samples,
+                                final_dir=out)
                 if result["runs"] == 0:
                     raise _NothingRead(result)
         except _NothingRead as exc:

@@ -201,10 +201,14 @@ def is_summary_entry(value: Any) -> bool:
 def summarize_derived(run, *, method: str) -> dict[str, Any]:
     """:func:`summarize` of a run whose samples are derived first, position-control
     runs too (their summary does not need it), so a run whose streams cannot
-    be aligned is a failed run here rather than later."""
+    be aligned is a failed run here rather than later. A flow step's
+    summary derives its samples itself (:func:`~seanv_analysis.signals.derive.summarize_run`,
+    the same :func:`~seanv_analysis.signals.derive.derive_columns`): they
+    are not derived twice."""
     from ..signals.derive import derive_columns
 
-    derive_columns(run)
+    if run.meta.kind != "flow_step":
+        derive_columns(run)
     return summarize(run, method=method)
 
 
