@@ -86,7 +86,8 @@ def replicate(src: Path, dst: Path, n: int) -> Path:
     runs = sorted(p for p in src.iterdir() if (p / "run.json").is_file())
     dst.mkdir(parents=True)
     for i in range(n):
-        k, run = divmod(i, len(runs))
+        k, j = divmod(i, len(runs))
+        run = runs[j]
         target = dst / f"c{k:02d}-{run.name}"
         shutil.copytree(run, target)
         doc = json.loads((run / "run.json").read_text())
@@ -95,6 +96,12 @@ def replicate(src: Path, dst: Path, n: int) -> Path:
         doc["started_at"] = (start + timedelta(days=k)).strftime("%Y-%m-%dT%H:%M:%SZ")
         (target / "run.json").write_text(json.dumps(doc, indent=2) + "\n")
     return dst
+
+
+def _save(out: dict) -> None:
+    """Write the results so far (a later comparison that fails loses none)."""
+    RESULTS.parent.mkdir(exist_ok=True)
+    RESULTS.write_text(json.dumps(out, indent=2) + "\n")
 
 
 def main(quick: bool | None = None) -> dict:
@@ -114,11 +121,13 @@ def main(quick: bool | None = None) -> dict:
             out[f"flowfit_vs_pandas_{runs}"] = pairs(
                 [*CLI, "flowfit", data, "--out", str(tmp / f"ff{runs}"), "-q"],
                 [*script, data], tmp, n)
+            _save(out)
         for cmd in ("tracking", "validate"):
             base = [*CLI, cmd, str(tmp / "pos"), "-q"]
             out[f"{cmd}_figures"] = pairs([*base, "--out", str(tmp / f"{cmd}-fig")],
                                           [*base, "--out", str(tmp / f"{cmd}-nofig"),
                                            "--no-figures"], tmp, n)
+            _save(out)
         many = replicate(tmp / "flow345", tmp / "many", n_ingest)
         out["ingest_vs_flowfit"] = {"runs": n_ingest, **pairs(
             [*CLI, "ingest", str(many), "--out", str(tmp / "ing"), "-q"],
@@ -131,8 +140,7 @@ def main(quick: bool | None = None) -> dict:
         "validate_figures_le_1.5": out["validate_figures"]["ratio_median"] <= 1.5,
         "ingest_vs_flowfit_no_figures_le_2.0": out["ingest_vs_flowfit"]["ratio_median"] <= 2.0,
     }
-    RESULTS.parent.mkdir(exist_ok=True)
-    RESULTS.write_text(json.dumps(out, indent=2) + "\n")
+    _save(out)
     return out
 
 
