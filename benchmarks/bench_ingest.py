@@ -10,7 +10,7 @@ position-control style log; worst case for per-run memory). For each:
 - ``ingest_hash``: the same plus the SHA-256 of every file (for the manifest);
 - ``ingest_derive``: plus ``derive.derive_samples`` + ``derive.summarize_run``
   (when ``seanv_analysis.signals.derive`` exists; another engineer's stage);
-- ``cli``: the whole ``ingest`` command function (also writes the Parquet
+- ``cli``: the whole ``ingest --samples`` command function (also writes the Parquet
   tables, the summary and the manifest).
 
 Every mode runs in a fresh interpreter (cold allocator, warm page cache:
@@ -138,7 +138,7 @@ def cli(root: Path, out: Path) -> int:
     from seanv_analysis.cli.ingest_cmd import ingest as ingest_command
     from seanv_analysis.config import load_rig
 
-    result = ingest_command(root, out_dir=out, rig=load_rig())
+    result = ingest_command(root, out_dir=out, rig=load_rig(), samples=True)
     return sum(result["rows"].values())
 
 

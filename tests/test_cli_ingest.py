@@ -18,6 +18,7 @@ from test_io_bad_input import CASES
 
 from seanv_analysis.cli import cli
 from seanv_analysis.io import SUMMARY_COLUMNS, read_dataset
+from seanv_analysis.io.atomic import OWNER_MARKER
 from seanv_analysis.signals.align import align_run
 
 CLI_MATCH = {  # where the CLI sees a different first problem than read_run
@@ -48,7 +49,7 @@ def test_dataset_writes_tables_summary_manifest(tmp_path, make_dataset):
     data = make_dataset(tmp_path / "data" / "flow", n_flow=4, n_position=2, duration_s=0.3)
     before = snapshot(data)
     out = tmp_path / "out"
-    result = invoke(data, "--out", out, "--json")
+    result = invoke(data, "--out", out, "--json", "--samples")
     assert result.exit_code == 0, result.output
     assert result.stderr == ""
     doc = json.loads(result.stdout)
@@ -58,8 +59,8 @@ def test_dataset_writes_tables_summary_manifest(tmp_path, make_dataset):
     check_schema("ingest", doc)  # data_schema/json/ingest.schema.json
     assert keys_without_unit(doc) == []
     assert snapshot(data) == before
-    assert sorted(p.name for p in out.iterdir()) == ["flow_step.parquet", "manifest.json",
-                                                     "position_control.parquet", "summary.parquet"]
+    assert sorted(p.name for p in out.iterdir() if p.name != OWNER_MARKER) == [
+        "flow_step.parquet", "manifest.json", "position_control.parquet", "summary.parquet"]
     ds = read_dataset(data)
     # aligned samples: run_id + the run's aligned columns, units in the schema metadata
     for kind in ("flow_step", "position_control"):
@@ -119,7 +120,7 @@ def test_default_out_dir(tmp_path, make_run, monkeypatch):
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.chdir(work)
-    result = invoke(run_dir)
+    result = invoke(run_dir, "--samples")
     assert result.exit_code == 0, result.output
     assert (work / "outputs" / "one" / "ingest" / "flow_step.parquet").is_file()
     assert (work / "outputs" / "one" / "ingest" / "manifest.json").is_file()

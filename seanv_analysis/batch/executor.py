@@ -278,6 +278,26 @@ class Executor:
                 raise ConfigError(f"executor: unknown kind {self.kind!r}")
         return [r for r in out if r is not None]
 
+    def tasks(self, func: Callable, items: Sequence[Any], *,
+              kwargs: dict[str, Any] | None = None, desc: str = "",
+              quiet: bool = True) -> list[tuple[bool, Any]]:
+        """:meth:`map` as a :class:`~seanv_analysis.stages.TaskMapper`:
+        ``[(ok, value or one-line error)]`` in the order of ``items`` (the
+        independent tasks of a data-set stage, such as its figures)."""
+        return [(r.ok, r.value if r.ok else r.error)
+                for r in self.map(func, items, kwargs=kwargs, desc=desc, quiet=quiet)]
+
+    def warm(self, func: Callable[[], Any]) -> None:
+        """Start a process pool's workers now and run ``func()`` once on each
+        worker, without waiting (e.g. import matplotlib and lay out a first
+        figure while the main process analyses, so the figures drawn there
+        later pay none of it). Nothing for the serial and Dask back ends; a
+        warm-up that fails is ignored (the task that needs it pays)."""
+        if self.kind != "process":
+            return
+        pool = self._process_pool()
+        self._warming = [pool.submit(func) for _ in range(self.workers)]
+
 
 def _cancel_quietly(client: Any, futures: list) -> None:
     """Cancel dask futures not yet done (best effort: a lost connection is ignored)."""

@@ -14,6 +14,7 @@ import time
 import traceback
 import warnings
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
@@ -434,8 +435,14 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             say(f"[{pipe.name}] {len(ctx.run_dirs)} run folder(s), executor: {result.executor}")
             mapper = CachedMapper(ex, cache, force=force, quiet=quiet)
             ctx.map_runs = mapper
+            ctx.map_tasks = partial(ex.tasks, quiet=quiet)   # the figures, each a task
+            warm = None
+            if any(s.name == "figures" for s in pipe.stages):
+                from ..plots._style import warm_up
+
+                warm = partial(ex.warm, warm_up)
             with one_blas_thread():     # the data-set stages, here (the workers have one)
-                _run_stages(pipe, ctx, result)
+                _run_stages(pipe, ctx, result, after_ingest=warm)
             result.computed, result.cached = mapper.computed, mapper.cached
             cache.save_index(force=True)
             if cache.rejected:
@@ -457,10 +464,13 @@ def _as_list(data) -> list:
     return [data] if isinstance(data, (str, Path)) else list(data)
 
 
-def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult) -> None:
+def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, *,
+                after_ingest: Callable[[], None] | None = None) -> None:
     """Each stage of ``pipe`` in order (:func:`~seanv_analysis.stages.execute`),
     timed and logged; a stage that fails on the data is recorded and the
-    others go on; each value is recorded and written."""
+    others go on; each value is recorded and written. ``after_ingest``:
+    called once the runs are read (the workers are idle from then on while
+    the data-set stages run here: they load matplotlib for the figures)."""
     started: dict[str, float] = {}
 
     def start(name: str) -> None:   # the stage's lines: stages.execute
@@ -480,6 +490,8 @@ def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult) -> None:
         return True
 
     def done(name: str, value: Any) -> None:
+        if name == "ingest" and after_ingest is not None:
+            after_ingest()
         if value is None:
             result.stage_notes[name] = "no position-control runs in the data: skipped"
             _retire_stage_folder(result.out_dir, name)

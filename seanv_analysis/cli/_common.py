@@ -162,28 +162,59 @@ AUTO_PARALLEL_MIN_RUNS = 64
 
 
 @contextmanager
-def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True):
+def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures: bool = False):
     """The :class:`~seanv_analysis.stages.Context` of a single command: per-run
     work in this process, or on all cores for large data sets (no cache)
-    inside the block; in this process after it."""
+    inside the block; in this process after it. With ``figures`` (the
+    command draws some) the figures are tasks on all cores too, and the
+    worker processes load matplotlib at once, while the analysis runs here
+    (:func:`seanv_analysis.plots._style.warm_up`)."""
     import multiprocessing as mp
     import os
+    from functools import partial
 
     from ..batch import CachedMapper, make_executor
-    from ..stages import Context, serial_map
+    from ..stages import Context, serial_map, serial_tasks
 
     ctx = Context.for_data(data, rig=rig, out_dir=out_dir, model=model,
                            model_source="--model" if model is not None else None, quiet=quiet)
-    big = len(ctx.run_dirs) >= AUTO_PARALLEL_MIN_RUNS and mp.parent_process() is None
-    if not big or (os.cpu_count() or 1) < 2:
+    big = len(ctx.run_dirs) >= AUTO_PARALLEL_MIN_RUNS
+    if not (big or figures) or mp.parent_process() is not None or (os.cpu_count() or 1) < 2:
         yield ctx
         return
     with make_executor(workers=os.cpu_count()) as ex:
-        ctx.map_runs = CachedMapper(ex, None, quiet=quiet)
+        warm = None
+        if figures:
+            from ..plots._style import warm_up
+
+            warm = partial(ex.warm, warm_up)
+            ctx.map_tasks = partial(ex.tasks, quiet=quiet)
+        if big:
+            ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm)
+        elif warm is not None:
+            warm()
         try:
             yield ctx
         finally:  # the pool is gone after the block
-            ctx.map_runs = serial_map
+            ctx.map_runs, ctx.map_tasks = serial_map, serial_tasks
+
+
+class _WarmAfter:
+    """A run mapper that calls ``warm()`` once its first batch (ingest) has
+    ended: the workers are idle from then on, while the analysis runs in
+    the main process, and load matplotlib then rather than delaying the
+    runs' reading."""
+
+    def __init__(self, mapper, warm):
+        self.mapper, self.warm = mapper, warm
+
+    def __call__(self, *args, **kwargs):
+        try:
+            return self.mapper(*args, **kwargs)
+        finally:
+            if self.warm is not None:
+                self.warm, warm = None, self.warm
+                warm()
 
 
 def command_pipeline(command: str, stages: Sequence[dict], *, ingest: dict | None = None,
@@ -304,7 +335,9 @@ def _run_in(pipe, data, first, folder: Path, *, rig, model, quiet, folders, main
         if value is not None and name != "ingest":
             written.extend(Path(p) for p in stages[name].write(value, folder / folders.get(name, ".")))
 
-    with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet) as ctx, \
+    figures = any(s.name == "figures" for s in pipe.stages)
+    with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet,
+                       figures=figures) as ctx, \
             warnings.catch_warnings(record=True):
         warnings.simplefilter("always")   # a result keeps what matters (skipped runs, notes)
         try:

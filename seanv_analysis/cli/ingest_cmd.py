@@ -2,6 +2,7 @@
 Parquet tables, a per-run summary and a manifest."""
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import sys
@@ -14,7 +15,7 @@ import click
 from . import cli
 from ._common import OUT_FOLDER, check_out_dir, default_out_dir, echo_bad_runs, verbosity
 
-__all__ = ["ingest_cmd", "ingest"]
+__all__ = ["ingest_cmd", "ingest", "ingest_into", "summarize_keeping_samples", "part_path"]
 
 
 def _inside(child: Path, parent: Path) -> bool:
@@ -22,113 +23,147 @@ def _inside(child: Path, parent: Path) -> bool:
     return child == parent or parent in child.parents
 
 
-class _SampleWriter:
-    """One Parquet file per run kind, written run by run (bounded memory),
-    atomically (temp file renamed when the command succeeds)."""
-
-    def __init__(self, out_dir: Path, stack: ExitStack, metadata: dict[str, Any]):
-        self.out_dir, self.stack, self.metadata = out_dir, stack, metadata
-        self.writers: dict[str, Any] = {}
-        self.schemas: dict[str, Any] = {}
-        self.rows: dict[str, int] = {}
-
-    def path(self, kind: str) -> Path:
-        return self.out_dir / f"{kind}.parquet"
-
-    def write(self, kind: str, run_id: str, samples) -> None:
-        import pyarrow as pa
-        import pyarrow.compute as pc
-        import pyarrow.parquet as pq
-
-        from ..io.atomic import atomic_path
-        from ..io.writer import units_from_columns
-
-        if kind in self.schemas:
-            samples = samples.reindex(columns=[n for n in self.schemas[kind].names if n != "run_id"])
-        table = pa.Table.from_pandas(samples, preserve_index=False)
-        ids = pc.fill_null(pa.nulls(table.num_rows, pa.string()), run_id)
-        table = table.add_column(0, "run_id", ids)
-        if kind not in self.writers:
-            units = units_from_columns(table.column_names)
-            fields = [f.with_metadata({b"unit": units[f.name].encode()}) for f in table.schema]
-            meta = {b"seanv.units": json.dumps(units).encode(),
-                    b"seanv.meta": json.dumps({**self.metadata, "kind": kind}, default=str).encode()}
-            schema = pa.schema(fields, metadata=meta)
-            tmp = self.stack.enter_context(atomic_path(self.path(kind)))
-            writer = pq.ParquetWriter(tmp, schema)
-            self.stack.callback(writer.close)
-            self.writers[kind], self.schemas[kind], self.rows[kind] = writer, schema, 0
-        table = table.cast(self.schemas[kind])
-        self.writers[kind].write_table(table)
-        self.rows[kind] += table.num_rows
+#: the folder of the per-run sample parts inside the output folder being
+#: written (merged into ``<kind>.parquet`` and removed before the swap)
+PARTS = ".samples-parts"
 
 
-def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False) -> dict[str, Any]:
+def part_path(parts: str | Path, run_dir: str | Path) -> Path:
+    """Where the derived samples of the run in ``run_dir`` go before they are
+    merged: ``<parts>/<SHA-256 of the folder path, 16 hex>.parquet``."""
+    digest = hashlib.sha256(str(Path(run_dir)).encode()).hexdigest()[:16]
+    return Path(parts) / f"{digest}.parquet"
+
+
+def summarize_keeping_samples(run, *, method: str, parts: str) -> dict[str, Any]:
+    """Per-run function of ``ingest --samples`` (module level: it runs in
+    worker processes): the run's summary row, as the ``ingest`` stage makes
+    it from the derived samples (:func:`~seanv_analysis.signals.derive.derive_samples`,
+    computed once), and those samples with a ``run_id`` column first written
+    to :func:`part_path` (atomically) for the command to merge."""
+    import pyarrow as pa
+    import pyarrow.compute as pc
+    import pyarrow.parquet as pq
+
+    from ..io.atomic import atomic_path
+    from ..signals.derive import derive_samples, summarize_run
+
+    samples = derive_samples(run)
+    meta = run.meta
+    value = {"row": summarize_run(run, method=method, derived=samples),
+             "meta": {"path": str(Path(meta.path)), "run_id": meta.run_id, "kind": meta.kind,
+                      "controller": dict(meta.controller or {})}}
+    table = pa.Table.from_pandas(samples, preserve_index=False)
+    table = table.add_column(0, "run_id", pc.fill_null(pa.nulls(table.num_rows, pa.string()),
+                                                       run.run_id))
+    path = part_path(parts, meta.path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        pq.write_table(table, tmp)
+    return value
+
+
+def _merge_samples(parts: Path, out_dir: Path, summary, metadata: dict[str, Any]
+                   ) -> tuple[dict[str, str], dict[str, int]]:
+    """One Parquet file per run kind from the runs' sample parts, in the
+    summary's (``started_at``) order, part by part (bounded memory), written
+    atomically: the first run of a kind sets the columns; a later run's
+    missing column is null, an extra one dropped. Units in the schema
+    metadata. Returns ({kind: path}, {kind: rows})."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from ..io.atomic import atomic_path
+    from ..io.writer import units_from_columns
+
+    tables: dict[str, str] = {}
+    rows: dict[str, int] = {}
+    with ExitStack() as stack:
+        writers: dict[str, Any] = {}
+        schemas: dict[str, Any] = {}
+        for run_dir, kind in zip(summary["path"], summary["kind"]):
+            table = pq.read_table(part_path(parts, run_dir))
+            if kind not in writers:
+                units = units_from_columns(table.column_names)
+                fields = [f.with_metadata({b"unit": units[f.name].encode()}) for f in table.schema]
+                meta = {b"seanv.units": json.dumps(units).encode(),
+                        b"seanv.meta": json.dumps({**metadata, "kind": kind}, default=str).encode()}
+                schemas[kind] = pa.schema(fields, metadata=meta)
+                path = out_dir / f"{kind}.parquet"
+                tmp = stack.enter_context(atomic_path(path))
+                writers[kind] = pq.ParquetWriter(tmp, schemas[kind])
+                stack.callback(writers[kind].close)
+                tables[kind], rows[kind] = str(path), 0
+            schema = schemas[kind]
+            table = pa.table({f.name: (table[f.name] if f.name in table.column_names
+                                       else pa.nulls(table.num_rows, f.type)) for f in schema})
+            writers[kind].write_table(table.cast(schema))
+            rows[kind] += table.num_rows
+    return tables, rows
+
+
+def ingest(data: Path, *, out_dir: Path, rig, progress: bool = False,
+           samples: bool = False, final_dir: Path | None = None) -> dict[str, Any]:
     """Library side of the command: the ``ingest`` stage
-    (:mod:`seanv_analysis.stages.dataset`), each run's aligned, derived
-    samples also written to ``<kind>.parquet`` as it is read.
+    (:mod:`seanv_analysis.stages.dataset`, every run's samples aligned and
+    derived, so a run whose streams cannot be aligned is a bad run), per-run
+    work on all cores for large data sets (as the other commands'), into
+    ``out_dir``: ``summary.parquet`` and ``manifest.json``, and with
+    ``samples`` each run's derived samples in ``<kind>.parquet``.
 
-    Returns a result dict (also the ``--json`` document); raises
-    :class:`~seanv_analysis.errors.DataError` for a single bad run folder.
+    Returns a result dict (also the ``--json`` document; its paths, and the
+    manifest's, under ``final_dir`` where ``out_dir`` is a folder to be
+    renamed there); raises :class:`~seanv_analysis.errors.DataError` for a
+    single bad run folder.
     """
+    import shutil
+
     from ..errors import DataError
     from ..io.manifest import write_manifest
-    from ..io.reader import dataset_plan, is_run_dir
+    from ..io.reader import is_run_dir
     from ..io.writer import write_table_parquet
-    from ..signals.derive import derive_samples, summarize_run
-    from ..stages import Context, dataset
+    from ..stages import dataset
+    from ._common import stage_context
 
     root = Path(data)
-    ctx = Context.for_data(root, rig=rig)  # missing / not a folder / no run -> DataError
-    if _inside(out_dir, root):
-        raise DataError(f"--out: {out_dir} is inside the data folder; outputs never go into raw "
-                        "data: choose another --out (default: outputs/<dataset-name>/ingest/ under "
-                        "the current folder)", path=root)
-    # samples are written in time order (the plan's started_at order), bad metadata last
-    order = {str(m.path): i for i, m in enumerate(dataset_plan(root, rig=rig)[0])}
-    ctx.run_dirs.sort(key=lambda d: (order.get(str(d), len(order)), str(d)))
+    out_dir = Path(out_dir)
+    parts = out_dir / PARTS
     meta = {"rig_source": rig.source, "data": str(root)}
-    by_kind: dict[str, int] = {}
-    with ExitStack() as stack:
-        writer = _SampleWriter(out_dir, stack, meta)
-        bar = None
-        if progress and len(ctx.run_dirs) > 1:   # drawn on a terminal (seanv_analysis.log)
-            from ..log import progress as progress_bar
-
-            bar = stack.enter_context(progress_bar(total=len(ctx.run_dirs), desc="ingest"))
-
-        def summarize_and_write(run, *, method):
-            samples = derive_samples(run)  # the derived table is computed once
-            try:
-                value = {"row": summarize_run(run, method=method, derived=samples),
-                         "meta": {"controller": dict(run.meta.controller or {})}}
-                writer.write(run.kind, run.run_id, samples)
-                by_kind[run.kind] = by_kind.get(run.kind, 0) + 1
-            finally:
-                if bar is not None:
-                    bar.update()
-            return value
-
-        ds = dataset.collect(ctx, {}, func=summarize_and_write)
+    # missing / not a folder / no run -> DataError
+    with stage_context(root, rig=rig, out_dir=None, quiet=not progress) as ctx:
+        if _inside(out_dir, root):
+            raise DataError(f"--out: {out_dir} is inside the data folder; outputs never go into "
+                            "raw data: choose another --out (default: outputs/<dataset-name>/"
+                            "ingest/ under the current folder)", path=root)
+        if samples:
+            ds = dataset.collect(ctx, {}, func=summarize_keeping_samples,
+                                 kwargs={"parts": str(parts)})
+        else:
+            ds = dataset.collect(ctx, {"derive": True})
+    try:
         errors = list(ds.failed)
         if is_run_dir(root) and errors:
             raise DataError(errors[0].message)
-        if ds.runs_read == 0:  # no writer was opened: nothing is written
-            return _result(root, out_dir, by_kind, ds, {}, None, excluded={})
+        if ds.runs_read == 0:  # nothing is written
+            return _result(root, out_dir, {}, ds, {}, None, excluded={}, samples=samples)
         summary = ds.contract_table()
-    tables = {kind: str(writer.path(kind)) for kind in writer.rows}
+        by_kind = {str(k): int(n) for k, n in summary["kind"].value_counts(sort=False).items()}
+        tables, rows = (_merge_samples(parts, out_dir, ds.summary, meta) if samples else ({}, {}))
+    finally:
+        shutil.rmtree(parts, ignore_errors=True)
     summary_path = write_table_parquet(summary, out_dir / "summary.parquet", metadata=meta)
     result = _result(root, out_dir, by_kind, ds, tables, summary_path,
-                     excluded={k: v for k, v in ds.excluded.items() if v})
-    result["rows"] = dict(writer.rows)
+                     excluded={k: v for k, v in ds.excluded.items() if v}, samples=samples)
+    result["rows"] = rows
+    final = _moved(result, out_dir, Path(final_dir)) if final_dir is not None else result
     manifest = write_manifest(out_dir, config=rig, inputs=ds.input_hashes, command=sys.argv,
-                              extra={"ingest": {k: v for k, v in result.items() if k != "manifest"}},
+                              extra={"ingest": {k: v for k, v in final.items() if k != "manifest"}},
                               outputs=[*tables.values(), summary_path])
     result["manifest"] = str(manifest)
     return result
 
 
-def _result(root, out_dir, by_kind, ds, tables, summary_path, *, excluded):
+def _result(root, out_dir, by_kind, ds, tables, summary_path, *, excluded, samples: bool):
     return {
         "data": str(root),
         "out": str(out_dir),
@@ -143,8 +178,58 @@ def _result(root, out_dir, by_kind, ds, tables, summary_path, *, excluded):
         "excluded": excluded,
         "derived": True,
         "filtered": True,
+        "samples": bool(samples),
         "manifest": None,
     }
+
+
+class _NothingRead(Exception):
+    """No run could be read: the result rides along; raised inside the
+    output folder's swap, so nothing is swapped in."""
+
+    def __init__(self, result: dict[str, Any]):
+        super().__init__("no run read")
+        self.result = result
+
+
+def ingest_into(data: Path, out: Path, *, rig, progress: bool = False,
+                samples: bool = False) -> dict[str, Any]:
+    """:func:`ingest` into a new folder beside ``out``, swapped in whole when
+    it is complete (as the other single commands write theirs: no file of an
+    earlier data set stays), one command at a time per folder (a lock beside
+    it); the result's paths are the final ones. When no run could be read,
+    or on an error, ``out`` is left as it was."""
+    from ..io.atomic import atomic_folder
+    from ..io.outdir import out_lock
+
+    out = Path(out)
+    with out_lock(out, beside=True):
+        empty = out.is_dir() and not out.is_symlink() and not any(out.iterdir())
+        if empty:       # an empty folder (the probe made it, or the user): taken
+            out.rmdir()
+        try:
+            with atomic_folder(out) as tmp:
+                result = ingest(data, out_dir=tmp, rig=rig, progress=progress, samples=samples,
+                                final_dir=out)
+                if result["runs"] == 0:
+                    raise _NothingRead(result)
+        except _NothingRead as exc:
+            result = exc.result
+        finally:
+            if empty and not out.exists():
+                out.mkdir()
+    return _moved(result, tmp, out)
+
+
+def _moved(value: Any, tmp: Path, out: Path) -> Any:
+    """``value`` with every path string under ``tmp`` put under ``out``."""
+    if isinstance(value, dict):
+        return {k: _moved(v, tmp, out) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_moved(v, tmp, out) for v in value]
+    if isinstance(value, str) and (value == str(tmp) or value.startswith(str(tmp) + os.sep)):
+        return str(out) + value[len(str(tmp)):]
+    return value
 
 
 @cli.command("ingest")
@@ -157,10 +242,13 @@ def _result(root, out_dir, by_kind, ds, tables, summary_path, *, excluded):
               help="Rig config TOML with only the keys you change (calibration, "
                    "analysis.max_plausible_pressure_mpag, ...). Default: "
                    "data_schema/rig/default.toml.")
+@click.option("--samples", is_flag=True,
+              help="Also write every run's aligned, derived samples (<kind>.parquet; about "
+                   "the size of the CSV logs). Default: the per-run summary only.")
 @click.option("--json", "as_json", is_flag=True,
               help="Print the result as one JSON document on stdout (nothing else on stdout).")
-def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, as_json: bool,
-               quiet: bool) -> int:
+def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, samples: bool,
+               as_json: bool, quiet: bool) -> int:
     """Validate, calibrate and align the runs in DATA; write Parquet tables.
 
     DATA is a data set folder (sub-folders at any depth holding run.json) or
@@ -172,8 +260,9 @@ def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, as_json:
     interpolated linearly, commands held), and flow is derived.
 
     \b
-    Writes (under --out, default outputs/<dataset-name>/ingest/):
-      flow_step.parquet, position_control.parquet
+    Writes (under --out, default outputs/<dataset-name>/ingest/; the folder
+    is written whole and swapped in, no file of an earlier run stays):
+      flow_step.parquet, position_control.parquet   (only with --samples)
           aligned samples, one row per encoder sample: run_id, t_s [s],
           position_mm, p_supply/head/load/tank_mpag [MPa gauge],
           cam_cmd_deg, cam_deg [deg] (x_ref_mm, q_ref_mm3_s for position
@@ -191,15 +280,16 @@ def ingest_cmd(data: Path, out_dir: Path | None, rig_file: Path | None, as_json:
     \b
     Example:
       seanv-analyze ingest data/flow --json
+      seanv-analyze ingest data/flow --samples --out /tmp/flow-samples
       seanv-analyze ingest data/flow/supply-load0.35-cam-8.0-r2 --out /tmp/one
     """
     from ..config import load_rig
 
     rig = load_rig(rig_file)
     out = Path(out_dir) if out_dir else default_out_dir(data, "ingest")
-    check_out_dir(data, out)
+    check_out_dir(data, out, files=[rig_file], owned=(".",))
     progress = not quiet and not os.environ.get("CI")
-    result = ingest(data, out_dir=out, rig=rig, progress=progress)
+    result = ingest_into(data, out, rig=rig, progress=progress, samples=samples)
     if as_json:
         click.echo(json.dumps(result))
     else:

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..io.atomic import atomic_path
 
-__all__ = ["paper_style", "thin", "shade_high_load", "shade_loads", "high_load_spans",
+__all__ = ["paper_style", "warm_up", "trace", "TRACE_PIXELS", "thin", "align_ylabels", "shade_high_load", "shade_loads", "high_load_spans",
            "legend_outside", "new_figure", "check_formats", "save_figure", "DEFAULT_FORMATS",
            "TARGET_COLOUR", "ACTUAL_COLOUR", "SIM_COLOUR", "SHADE_COLOUR"]
 
@@ -109,6 +109,70 @@ def new_figure(**kwargs: Any):
     return fig
 
 
+def warm_up() -> None:
+    """Pay a process's first-figure costs now (import matplotlib, load the
+    fonts, build the math-text parser, lay out and render a small figure
+    with the paper's style in both formats, in memory): what a worker
+    process runs while the analysis goes on (:meth:`Executor.warm
+    <seanv_analysis.batch.executor.Executor.warm>`), so the figures it
+    draws later cost only themselves. Writes nothing."""
+    import io
+
+    with paper_style():
+        fig = new_figure(figsize=(3.0, 2.0), layout="constrained")
+        ax = fig.add_subplot()
+        ax.plot([0.0, 1.0], [0.0, 1.0], label="$Q_{ref}$ [mm$^3$/s]")
+        ax.set_xlabel(r"$\theta$ [deg]")
+        legend_outside(ax)
+        for ext in DEFAULT_FORMATS:
+            fig.savefig(io.BytesIO(), format=ext, metadata=_METADATA.get(ext))
+
+
+#: pixel columns a time trace is decimated to (:func:`trace`): a little more
+#: than the widest time axis fills (13 inch x 150 dpi x ~0.6 of the width)
+TRACE_PIXELS = 1500
+
+
+def trace(t_s, y, *, pixels: int = TRACE_PIXELS) -> tuple[np.ndarray, np.ndarray]:
+    """``(t_s, y)`` decimated to about the ``pixels`` columns a time axis
+    fills: per column (equal spans of time), the first and last sample and
+    the lowest and highest value of ``y``, in time order, so every peak,
+    step edge and gap (NaN) a full line would show still shows, and a
+    figure's cost does not grow with the samples. Traces of up to 4
+    samples per column are returned whole.
+
+    Parameters
+    ----------
+    t_s : time [s], non-decreasing
+    y : values of any unit, one per time
+    pixels : pixel columns of the time axis
+
+    Returns
+    -------
+    (t_s, y) at the kept samples, at most ``4 pixels`` of them
+    """
+    t = np.asarray(t_s, dtype=float)
+    v = np.asarray(y, dtype=float)
+    n = t.size
+    if n <= 4 * pixels or not (np.isfinite(t[0]) and np.isfinite(t[-1]) and t[-1] > t[0]):
+        return t, v
+    col = np.minimum(((t - t[0]) * (pixels / (t[-1] - t[0]))).astype(np.int64), pixels - 1)
+    starts = np.flatnonzero(np.diff(col, prepend=-1))     # first sample of each column
+    ends = np.append(starts[1:], n) - 1
+    keep = [starts, ends]
+    finite = np.isfinite(v)
+    if finite.any():
+        for reduce, fill in ((np.fmin, np.inf), (np.fmax, -np.inf)):
+            extreme = reduce.reduceat(np.where(finite, v, fill), starts)
+            hit = finite & (v == np.repeat(extreme, ends - starts + 1))
+            where = np.flatnonzero(hit)
+            keep.append(where[np.unique(col[where], return_index=True)[1]])   # first per column
+    # a gap (NaN) between finite samples stays a gap: its first sample is kept
+    gaps = np.flatnonzero(~finite[1:] & finite[:-1]) + 1
+    idx = np.unique(np.concatenate([*keep, gaps]))
+    return t[idx], v[idx]
+
+
 def thin(n: int, *, max_points: int = 6000) -> slice:
     """Stride slice keeping at most ~``max_points`` of ``n`` samples (light figures)."""
     return slice(None, None, max(1, int(np.ceil(n / max_points))))
@@ -181,6 +245,20 @@ def legend_outside(ax, *, extra: Sequence = (), **kwargs):
         return None
     opts = {"loc": "upper left", "bbox_to_anchor": (1.01, 1.0), "borderaxespad": 0.0, **kwargs}
     return ax.legend(handles, labels, **opts)
+
+
+#: where :func:`align_ylabels` puts the y labels: left of the axes [axes fraction]
+YLABEL_X = -0.075
+
+
+def align_ylabels(axes, *, x: float = YLABEL_X) -> None:
+    """The y labels of stacked axes at one distance ``x`` [axes fraction]
+    left of their axes, in line: what ``Figure.align_ylabels`` does, without
+    its cost (it measures every sibling's tick labels at each draw: 1.9 s
+    of Fig. 6's 6.4 s). The distance leaves room for tick labels such as
+    "-40" at the figures' sizes."""
+    for ax in np.atleast_1d(axes).ravel():
+        ax.yaxis.set_label_coords(x, 0.5)
 
 
 def check_formats(formats: str | Sequence[str]) -> tuple[str, ...]:

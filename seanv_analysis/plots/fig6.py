@@ -23,12 +23,13 @@ from ._style import (
     ACTUAL_COLOUR,
     DEFAULT_FORMATS,
     TARGET_COLOUR,
+    align_ylabels,
     legend_outside,
     new_figure,
     paper_style,
     save_figure,
     shade_loads,
-    thin,
+    trace,
 )
 from .registry import Figure, register_figure
 
@@ -48,34 +49,34 @@ def draw_fig6_column(axes: Sequence, run, *, legend: bool = True) -> None:
     """Draw the four Fig. 6 panels of ``run`` on ``axes`` (4 axes, top to bottom)."""
     from ..analysis.tracking import load_levels_mpag
 
-    a = align_run(run)
-    a = a.iloc[thin(len(a))]
+    a = align_run(run)   # every sample; each trace decimated to the pixels it fills
     t = a["t_s"].to_numpy(float)
     x = a["position_mm"].to_numpy(float)
     x_ref = a["x_ref_mm"].to_numpy(float) if "x_ref_mm" in a else np.full(t.size, np.nan)
     ax_x, ax_p, ax_c, ax_e = axes
     loads = (shade_loads(axes, t, load_levels_mpag(t, a["p_load_mpag"].to_numpy(float)))
              if "p_load_mpag" in a else [])
-    ax_x.plot(t, x_ref, color=TARGET_COLOUR, ls="--", label="target $x_{ref}$", drawstyle="steps-post")
-    ax_x.plot(t, x, color=ACTUAL_COLOUR, label="actual $x$")
+    ax_x.plot(*trace(t, x_ref), color=TARGET_COLOUR, ls="--", label="target $x_{ref}$",
+              drawstyle="steps-post")
+    ax_x.plot(*trace(t, x), color=ACTUAL_COLOUR, label="actual $x$")
     ax_x.set_ylabel("Position [mm]")
     for col, colour, label in (("p_supply_mpag", "tab:green", "supply $p_s$"),
                                ("p_head_mpag", "tab:purple", "head $p_h$"),
                                ("p_load_mpag", "tab:brown", "load $p_l$")):
         if col in a:
-            ax_p.plot(t, a[col].to_numpy(float), color=colour, lw=0.7, label=label)
+            ax_p.plot(*trace(t, a[col].to_numpy(float)), color=colour, lw=0.7, label=label)
     ax_p.set_ylabel("Pressure [MPaG]")
     if "cam_cmd_deg" in a:
-        ax_c.plot(t, a["cam_cmd_deg"].to_numpy(float), color=TARGET_COLOUR, lw=0.8,
+        ax_c.plot(*trace(t, a["cam_cmd_deg"].to_numpy(float)), color=TARGET_COLOUR, lw=0.8,
                   label=r"command $\theta_{cmd}$", drawstyle="steps-post")
     if "cam_deg" in a and np.isfinite(a["cam_deg"].to_numpy(float)).any():
-        ax_c.plot(t, a["cam_deg"].to_numpy(float), color=ACTUAL_COLOUR, lw=0.8,
+        ax_c.plot(*trace(t, a["cam_deg"].to_numpy(float)), color=ACTUAL_COLOUR, lw=0.8,
                   label=r"measured $\theta$")
     neutral = float(run.rig["servo"]["neutral_deg"])
     ax_c.axhline(neutral, color="k", ls="--", lw=0.9, label=f"neutral ({neutral:g} deg)")
     ax_c.set_ylabel("Cam angle [deg]")
     band = float(run.rig["controller"]["convergence_band_mm"])
-    ax_e.plot(t, x_ref - x, color="k", lw=0.8, label="error $e = x_{ref} - x$")
+    ax_e.plot(*trace(t, x_ref - x), color="k", lw=0.8, label="error $e = x_{ref} - x$")
     ax_e.axhspan(-band, band, color="tab:green", alpha=0.15, lw=0, label=f"$\\pm${band:g} mm")
     ax_e.set_ylabel("Error [mm]")
     ax_e.set_xlabel("Time [s]")
@@ -106,9 +107,10 @@ def plot_fig6(run, out_dir: str | Path, *, stem: str | None = None,
         axes = fig.subplots(_PANELS, 1, sharex=True)
         draw_fig6_column(axes, run)
         axes[0].set_title(f"{run.run_id}: position control {_controller_label(run)}")
-        fig.align_ylabels(axes)
-        fig.tight_layout(h_pad=0.4)
-        return save_figure(fig, out_dir, stem or f"fig6_{safe_name(run.run_id)}", formats=formats)
+        align_ylabels(axes)
+        fig.tight_layout(h_pad=0.4)   # room for the legends beside: no tight crop needed
+        return save_figure(fig, out_dir, stem or f"fig6_{safe_name(run.run_id)}", formats=formats,
+                           tight=False)
 
 
 def plot_fig6_dataset(runs: Sequence, out_dir: str | Path, *, stem: str = "fig6",
@@ -126,9 +128,9 @@ def plot_fig6_dataset(runs: Sequence, out_dir: str | Path, *, stem: str = "fig6"
         for j, run in enumerate(runs):
             draw_fig6_column(axes[:, j], run, legend=(j == len(runs) - 1))
             axes[0, j].set_title(f"({chr(97 + j)}) {run.run_id}\n{_controller_label(run)}")
-        fig.align_ylabels(axes[:, 0])
+        align_ylabels(axes)
         fig.tight_layout(h_pad=0.4)
-        return save_figure(fig, out_dir, stem, formats=formats)
+        return save_figure(fig, out_dir, stem, formats=formats, tight=False)
 
 
 def draw_runs(results: Mapping[str, Any], folder: Path, *,

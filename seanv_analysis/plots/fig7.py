@@ -24,7 +24,7 @@ from ._style import (
     paper_style,
     save_figure,
     shade_loads,
-    thin,
+    trace,
 )
 from .registry import Figure, register_figure
 
@@ -51,16 +51,17 @@ def scatter_runs(tracking) -> tuple[list, str]:
 
 def draw_flow_time(ax, run_tracking, *, shifted: bool = False, legend: bool = True) -> None:
     """Panel (a): target and actual flow [10^3 mm^3/s] against time [s]."""
-    d = run_tracking.data
-    d = d.iloc[thin(len(d))]
+    d = run_tracking.data   # every sample; each trace decimated to the pixels it fills
     t = d["t_s"].to_numpy(float)
     loads = shade_loads(ax, t, d["load_level_mpag"].to_numpy(float))
-    ax.plot(t, d["q_ref_mm3_s"] * _K, color=TARGET_COLOUR, lw=0.9, drawstyle="steps-post",
+    ax.plot(*trace(t, d["q_ref_mm3_s"].to_numpy(float) * _K), color=TARGET_COLOUR, lw=0.9,
+            drawstyle="steps-post",
             label=TARGET_LABELS.get(run_tracking.target_source, "target $Q_{ref}$"),
             ls="-" if run_tracking.target_source == "q_ref" else "--")
-    ax.plot(t, d["q_mm3_s"] * _K, color=ACTUAL_COLOUR, lw=0.8, label="actual $Q$")
+    ax.plot(*trace(t, d["q_mm3_s"].to_numpy(float) * _K), color=ACTUAL_COLOUR, lw=0.8,
+            label="actual $Q$")
     if shifted:
-        ax.plot(t, d["q_shifted_mm3_s"] * _K, color="tab:cyan", lw=0.7,
+        ax.plot(*trace(t, d["q_shifted_mm3_s"].to_numpy(float) * _K), color="tab:cyan", lw=0.7,
                 label=f"actual shifted by -{run_tracking.shift_s:.3g} s")
     ax.set_xlabel("Time [s]")
     ax.set_ylabel("Flow rate [$10^3$ mm$^3$/s]")
@@ -119,6 +120,7 @@ def plot_fig7_run(tracking, run_tracking, out_dir: str | Path, *, stem: str | No
         ax_b.set_title(f"(b) shifted {run_tracking.shift_s:.3g} s; " + ax_b.get_title())
         fig.tight_layout()
         return save_figure(fig, out_dir, stem or f"fig7_{safe_name(run_tracking.run_id)}",
+                           tight=False,
                            formats=formats)
 
 
@@ -170,7 +172,7 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
         ax_b.set_title(f"(b) {which}, shift {tracking.shift_s:.3g} s ({tracking.shift_source})\n"
                        + ax_b.get_title())
         fig.tight_layout()
-        paths += save_figure(fig, out_dir, stem, formats=formats)
+        paths += save_figure(fig, out_dir, stem, formats=formats, tight=False)
     if per_run:
         for r in tracking.runs:
             paths += plot_fig7_run(tracking, r, out_dir, formats=formats)

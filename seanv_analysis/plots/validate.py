@@ -14,13 +14,14 @@ from ._style import (
     DEFAULT_FORMATS,
     SIM_COLOUR,
     TARGET_COLOUR,
+    align_ylabels,
     check_formats,
     legend_outside,
     new_figure,
     paper_style,
     save_figure,
     shade_loads,
-    thin,
+    trace,
 )
 from .registry import Figure, register_figure
 
@@ -35,8 +36,7 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
     ``validate_<run_id>``)."""
     from ..analysis.tracking import load_levels_mpag
 
-    ov = run_validation.overlay
-    ov = ov.iloc[thin(len(ov))]
+    ov = run_validation.overlay   # every sample; each trace decimated to the pixels it fills
     row = run_validation.row
     t = ov["t_s"].to_numpy(float)
     with paper_style():
@@ -44,14 +44,14 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
         axes = fig.subplots(3, 1, sharex=True)
         loads = shade_loads(axes, t, load_levels_mpag(t, ov["p_load_mpag"].to_numpy(float)))
         ax_x, ax_q, ax_c = axes
-        ax_x.plot(t, ov["x_ref_mm"], color=TARGET_COLOUR, ls="--", drawstyle="steps-post",
+        ax_x.plot(*trace(t, ov["x_ref_mm"]), color=TARGET_COLOUR, ls="--", drawstyle="steps-post",
                   label="reference")
-        ax_x.plot(t, ov["position_mm"], color=ACTUAL_COLOUR, label="measured")
-        ax_x.plot(t, ov["position_sim_mm"], color=SIM_COLOUR, label="simulated")
+        ax_x.plot(*trace(t, ov["position_mm"]), color=ACTUAL_COLOUR, label="measured")
+        ax_x.plot(*trace(t, ov["position_sim_mm"]), color=SIM_COLOUR, label="simulated")
         ax_x.set_ylabel("Position [mm]")
         seg = "position_seg_mm" in ov and bool(np.isfinite(ov["position_seg_mm"]).any())
         if seg:
-            ax_x.plot(t, ov["position_seg_mm"], color=SIM_COLOUR, ls=":", lw=1.0,
+            ax_x.plot(*trace(t, ov["position_seg_mm"]), color=SIM_COLOUR, ls=":", lw=1.0,
                       label="per segment")
         ax_x.set_title(f"{run_validation.run_id} ({row['controller']}): position fit "
                        f"{row['fit_position_pct']:.1f} %, flow fit {row['fit_flow_pct']:.1f} %, "
@@ -60,23 +60,23 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
                           f"{row['fit_position_segments_pct']:.1f} %, flow fit "
                           f"{row['fit_flow_segments_pct']:.1f} %" if seg else "")
                        + ("  [FLAGGED]" if row.get("flagged") else ""), fontsize=8)
-        ax_q.plot(t, ov["q_mm3_s"] * 1e-3, color=ACTUAL_COLOUR, lw=0.8, label="measured")
-        ax_q.plot(t, ov["q_sim_mm3_s"] * 1e-3, color=SIM_COLOUR, lw=0.8, label="simulated")
+        ax_q.plot(*trace(t, ov["q_mm3_s"] * 1e-3), color=ACTUAL_COLOUR, lw=0.8, label="measured")
+        ax_q.plot(*trace(t, ov["q_sim_mm3_s"] * 1e-3), color=SIM_COLOUR, lw=0.8, label="simulated")
         if seg:
-            ax_q.plot(t, ov["q_seg_mm3_s"] * 1e-3, color=SIM_COLOUR, ls=":", lw=0.9,
+            ax_q.plot(*trace(t, ov["q_seg_mm3_s"] * 1e-3), color=SIM_COLOUR, ls=":", lw=0.9,
                       label="per segment")
         ax_q.set_ylabel("Flow rate [$10^3$ mm$^3$/s]")
-        ax_c.plot(t, ov["cam_deg"], color=ACTUAL_COLOUR, lw=0.8, label="measured")
-        ax_c.plot(t, ov["cam_sim_deg"], color=SIM_COLOUR, lw=0.8, label="simulated")
+        ax_c.plot(*trace(t, ov["cam_deg"]), color=ACTUAL_COLOUR, lw=0.8, label="measured")
+        ax_c.plot(*trace(t, ov["cam_sim_deg"]), color=SIM_COLOUR, lw=0.8, label="simulated")
         ax_c.set_ylabel("Cam angle [deg]")
         ax_c.set_xlabel("Time [s]")
         ax_c.set_xlim(t[0], t[-1])
         for i, ax in enumerate(axes):   # beside the panel, never over the traces
             legend_outside(ax, extra=loads if i == 0 else ())
-        fig.align_ylabels(axes)
+        align_ylabels(axes)
         fig.tight_layout(h_pad=0.4)
         return save_figure(fig, out_dir, stem or f"validate_{safe_name(run_validation.run_id)}",
-                           formats=formats)
+                           formats=formats, tight=False)
 
 
 def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True,

@@ -38,7 +38,17 @@ or stage by stage:
 """
 from __future__ import annotations
 
-from .base import Context, FailedRun, Result, RunMapper, RunOutcome, one_blas_thread, serial_map
+from .base import (
+    Context,
+    FailedRun,
+    Result,
+    RunMapper,
+    RunOutcome,
+    TaskMapper,
+    one_blas_thread,
+    serial_map,
+    serial_tasks,
+)
 from .catalogue import (
     STAGES,
     describe_stages,
@@ -52,5 +62,6 @@ from .catalogue import (
 from .execute import execute, run_stages
 
 __all__ = ["STAGES", "Context", "FailedRun", "Result", "RunMapper", "RunOutcome", "serial_map",
+           "TaskMapper", "serial_tasks",
            "one_blas_thread", "describe_stages", "run_stages", "execute", "stage_names",
            "result_names", "results_of", "producers_of", "report_sections", "figures_reading"]

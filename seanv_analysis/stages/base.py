@@ -38,7 +38,8 @@ from ..io.outdir import check_out_dir
 from ..io.validate import one_line
 from ..models import ValveModel
 
-__all__ = ["Context", "FailedRun", "RunOutcome", "RunMapper", "serial_map", "one_line",
+__all__ = ["Context", "FailedRun", "RunOutcome", "RunMapper", "TaskMapper", "serial_map",
+           "serial_tasks", "one_line",
            "with_path", "find_run_dirs", "one_blas_thread", "Result", "stage_info"]
 
 
@@ -110,6 +111,30 @@ class RunMapper(Protocol):
     def __call__(self, stage: str, func: Callable[..., Any], run_dirs: Sequence[Path], *,
                  rig: RigConfig, params: Mapping[str, Any], kwargs: Mapping[str, Any],
                  valid: Callable[[Any], bool] | None = None) -> dict[str, RunOutcome]: ...
+
+
+class TaskMapper(Protocol):
+    """Applies ``func(item, **kwargs)`` to each item, independent tasks
+    (figures, ...): ``[(ok, value or one-line error)]`` in the order of
+    ``items``. The batch runner and the commands pass their executor's
+    (worker processes or Dask); :func:`serial_tasks` runs them here."""
+
+    def __call__(self, func: Callable[..., Any], items: Sequence[Any], *,
+                 kwargs: Mapping[str, Any], desc: str = "") -> list[tuple[bool, Any]]: ...
+
+
+def serial_tasks(func: Callable[..., Any], items: Sequence[Any], *,
+                 kwargs: Mapping[str, Any], desc: str = "") -> list[tuple[bool, Any]]:
+    """The :class:`TaskMapper` of a single process: each task in turn here;
+    a task that raises a :class:`~seanv_analysis.errors.SeanvError` gives
+    (False, its line), any other exception propagates."""
+    out: list[tuple[bool, Any]] = []
+    for item in items:
+        try:
+            out.append((True, func(item, **kwargs)))
+        except SeanvError as exc:
+            out.append((False, one_line(exc)))
+    return out
 
 
 def one_blas_thread():
@@ -228,6 +253,9 @@ class Context:
     #: one plain line per step (default: INFO on the ``seanv_analysis.stages``
     #: logger, which prints nothing until logging is configured, as the CLI does)
     log: Callable[[str], None] = field(default_factory=lambda: stage_info)
+    #: independent tasks of a data-set stage (the figures): here by default,
+    #: on the run's executor (worker processes, Dask) in a command or ``run``
+    map_tasks: TaskMapper = serial_tasks
 
     @classmethod
     def for_data(cls, data: str | Path | Sequence[str | Path], *, rig: RigConfig | str | Path | None = None,

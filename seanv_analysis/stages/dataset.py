@@ -201,10 +201,14 @@ def is_summary_entry(value: Any) -> bool:
 def summarize_derived(run, *, method: str) -> dict[str, Any]:
     """:func:`summarize` of a run whose samples are derived first, position-control
     runs too (their summary does not need it), so a run whose streams cannot
-    be aligned is a failed run here rather than later."""
+    be aligned is a failed run here rather than later. A flow step's
+    summary derives its samples itself (:func:`~seanv_analysis.signals.derive.summarize_run`,
+    the same :func:`~seanv_analysis.signals.derive.derive_columns`): they
+    are not derived twice."""
     from ..signals.derive import derive_columns
 
-    derive_columns(run)
+    if run.meta.kind != "flow_step":
+        derive_columns(run)
     return summarize(run, method=method)
 
 
@@ -239,10 +243,14 @@ def run(ctx: Context, options: Mapping[str, Any]) -> DatasetResult:
     return result
 
 
-def collect(ctx: Context, options: Mapping[str, Any], *, func=None) -> DatasetResult:
+def collect(ctx: Context, options: Mapping[str, Any], *, func=None,
+            kwargs: Mapping[str, Any] | None = None) -> DatasetResult:
     """:func:`run` without raising when no run is usable (empty summary): a
     command can then list every bad run. ``func``: per-run function in place
-    of :func:`summarize` (same result, e.g. also keeping the derived samples)."""
+    of :func:`summarize` (same result, e.g. also writing the derived
+    samples; module level, so the context's mapper can run it in worker
+    processes), called with ``method`` and ``kwargs`` (also part of the
+    cache key)."""
     from ..signals.filters import exclusion_counts
 
     method = options.get("method", OPTIONS["method"])
@@ -251,8 +259,9 @@ def collect(ctx: Context, options: Mapping[str, Any], *, func=None) -> DatasetRe
         func = summarize_derived if derive else summarize
     ctx.log(f"ingest: reading, checking and summarising {len(ctx.run_dirs)} run folder(s)")
     res = ctx.map_runs("ingest", func, ctx.run_dirs, rig=ctx.rig,
-                       params={"method": method, **({"derive": True} if derive else {})},
-                       kwargs={"method": method}, valid=is_summary_entry)
+                       params={"method": method, **({"derive": True} if derive else {}),
+                               **dict(kwargs or {})},
+                       kwargs={"method": method, **dict(kwargs or {})}, valid=is_summary_entry)
     failed: list[FailedRun] = []
     hashes: dict[str, str] = {}
     rows = []

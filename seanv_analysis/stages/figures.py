@@ -28,7 +28,8 @@ from .base import Context, one_line, with_path
 from .validate import position_paths
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "FiguresResult", "check_option", "run", "write",
-           "draw_figures", "results_for_figures", "selected_figures", "draw_run_figure"]
+           "draw_figures", "draw_figure_task", "results_for_figures", "selected_figures",
+           "draw_run_figure"]
 
 NAME = "figures"
 ORDER = 90
@@ -156,7 +157,20 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
                  per_run_folders: bool = True) -> FiguresResult:
     """Draw the figures ``figs`` selects ("all", or numbers/names) from the
     context's results into ``folder`` (per-run figures into ``folder/<name>/``
-    when ``per_run_folders``)."""
+    when ``per_run_folders``).
+
+    Each figure is an independent task on the context's task mapper
+    (:attr:`Context.map_tasks`: the run's worker processes or Dask; here in
+    a notebook): the data-set figures and, where per-run work runs in this
+    process, the per-run figures too, all at once; the batch's per-run
+    figures go through its cached per-run mapper (:attr:`Context.map_runs`)
+    after them. A figure's files are the same bytes whichever process drew
+    them. The first file that cannot be written ends the run
+    (:class:`~seanv_analysis.errors.OutputError` naming it), once every
+    task has ended.
+    """
+    from .base import serial_map, serial_tasks
+
     folder = Path(folder)
     ctx.log(f"figures: drawing {figs if isinstance(figs, str) else ', '.join(map(str, figs))} "
             f"into {folder}")
@@ -164,30 +178,20 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
     chosen = selected_figures(figs)
     have = results_for_figures(ctx, {n for f in chosen if not f.per_run for n in f.needs})
     explicit = figs != "all"
-    paths: dict[str, tuple[Path, ...]] = {}
+    drawn: dict[str, tuple[Path, ...]] = {}
     problems: list[str] = []
+    jobs: list[tuple[str, str, Any, str]] = []   # (kind, figure, inputs or run folder, folder)
+    mapped: list[tuple[Any, list[Path], Path]] = []   # per-run figures on the cached mapper
+    fig_keys: dict[str, str | None] = {}
+    in_process = getattr(ctx, "map_runs", serial_map) is serial_map
     for fig in chosen:
         if fig.per_run:
             runs = position_paths(ctx) if fig.run_kind == "position_control" else []
-            if not runs:
-                continue
             out = folder / fig.name if per_run_folders else folder
-            res = ctx.map_runs(fig.name, draw_run_figure, runs, rig=ctx.rig,
-                               params={"out_dir": str(out), "formats": list(formats)},
-                               kwargs={"name": fig.name, "folder": str(out), "formats": formats,
-                                       "rig": ctx.rig},
-                               valid=partial(figure_files_exist, folder=str(out)))
-            got: list[Path] = []
-            for d in runs:
-                r = res[str(d)]
-                if r.ok and "output_error" in r.value:
-                    raise OutputError(r.value["output_error"])
-                if r.ok:
-                    got += [Path(p) for p in r.value["paths"]]
-                else:
-                    problems.append(f"{fig.name}: {with_path(d, r.error)}")
-            if got:
-                paths[fig.name] = tuple(got)
+            if runs and in_process:
+                jobs += [("run", fig.name, str(d), str(out)) for d in runs]
+            elif runs:
+                mapped.append((fig, runs, out))
             continue
         missing = [n for n in fig.needs if n not in have]
         if missing:
@@ -199,18 +203,74 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
         key = figure_key(fig.name, inputs, formats, getattr(ctx, "rig", None))
         reused = keys.reuse(fig.name, key, formats)
         if reused is not None:
-            paths[fig.name] = reused
+            drawn[fig.name] = reused
             continue
-        try:
-            drawn = fig.draw(inputs, folder, formats=formats)
-        except (OutputError, OSError):
-            raise   # a file that cannot be written (disk full): the run ends, the file named
-        except Exception as exc:  # a figure that cannot be drawn must not sink the run
-            problems.append(f"{fig.name}: {one_line(exc)}")
-            continue
-        paths[fig.name] = tuple(Path(p) for p in drawn)
-        keys.remember(fig.name, key, paths[fig.name])
+        fig_keys[fig.name] = key
+        jobs.append(("dataset", fig.name, inputs, str(folder)))
+    map_tasks = getattr(ctx, "map_tasks", serial_tasks)
+    outcomes = map_tasks(draw_figure_task, jobs, kwargs={"formats": tuple(formats),
+                                                         "rig": ctx.rig}, desc="figures")
+    output_errors: list[str] = []
+    per_run: dict[str, list[Path]] = {}
+    for (kind, name, what, _), (ok, value) in zip(jobs, outcomes):
+        if ok and "output_error" in value:
+            output_errors.append(value["output_error"])
+        elif not ok or "problem" in value:
+            why = value if not ok else value["problem"]
+            problems.append(f"{name}: {with_path(what, why) if kind == 'run' else why}")
+        elif kind == "run":
+            per_run.setdefault(name, []).extend(Path(p) for p in value["paths"])
+        else:
+            drawn[name] = tuple(Path(p) for p in value["paths"])
+            keys.remember(name, fig_keys[name], drawn[name])
+    if output_errors:      # a file that cannot be written (disk full): the run ends, the file named
+        raise OutputError(output_errors[0])
+    for fig, runs, out in mapped:
+        res = ctx.map_runs(fig.name, draw_run_figure, runs, rig=ctx.rig,
+                           params={"out_dir": str(out), "formats": list(formats)},
+                           kwargs={"name": fig.name, "folder": str(out), "formats": formats,
+                                   "rig": ctx.rig},
+                           valid=partial(figure_files_exist, folder=str(out)))
+        for d in runs:
+            r = res[str(d)]
+            if r.ok and "output_error" in r.value:
+                raise OutputError(r.value["output_error"])
+            if r.ok:
+                per_run.setdefault(fig.name, []).extend(Path(p) for p in r.value["paths"])
+            else:
+                problems.append(f"{fig.name}: {with_path(d, r.error)}")
+    paths = {f.name: (drawn[f.name] if f.name in drawn else tuple(per_run[f.name]))
+             for f in chosen if f.name in drawn or per_run.get(f.name)}
     return FiguresResult(paths, tuple(problems), keys.save())
+
+
+def draw_figure_task(job: tuple[str, str, Any, str], *, formats: tuple[str, ...],
+                     rig: Any) -> dict[str, Any]:
+    """Task of :func:`draw_figures` (module level: it runs in worker
+    processes): ``job`` is ("dataset", figure name, {result name: result},
+    folder) or ("run", figure name, run folder, folder). Returns
+    ``{"paths": [...]}``, ``{"output_error": line}`` (a file that cannot be
+    written: the run ends) or ``{"problem": line}`` (the figure cannot be
+    drawn: a note); it never raises."""
+    from ..errors import os_error_line
+    from ..plots import FIGURES
+
+    kind, name, what, folder = job
+    try:
+        if kind == "run":
+            from ..io.reader import read_run
+
+            paths = FIGURES[name].draw_run(read_run(what, rig=rig), Path(folder),
+                                           formats=formats, rig=rig)
+        else:
+            paths = FIGURES[name].draw(what, Path(folder), formats=formats)
+    except OutputError as exc:
+        return {"output_error": str(exc)}
+    except OSError as exc:
+        return {"output_error": os_error_line(exc)}
+    except Exception as exc:  # a figure that cannot be drawn must not sink the run
+        return {"problem": one_line(exc)}
+    return {"paths": [str(p) for p in paths]}
 
 
 def figure_key(name: str, inputs: Mapping[str, Any], formats: tuple[str, ...],

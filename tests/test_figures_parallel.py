@@ -1,0 +1,136 @@
+"""Issue 35: figures off the critical path.
+
+Each figure is a task on the run's executor (worker processes, Dask) and
+gives the same bytes as drawn in this process; long time traces are
+decimated to the pixel columns they fill, min and max per column, so every
+peak stays; a figure that cannot be written on a worker still ends the
+command with exit 2 naming the file.
+"""
+from __future__ import annotations
+
+import errno
+import os
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from seanv_analysis.plots._style import TRACE_PIXELS, trace
+
+
+def test_trace_keeps_every_peak_and_is_bounded_by_the_pixels():
+    t = np.arange(200_000) / 1000.0                       # 200 s at 1 kHz
+    y = np.sin(2 * np.pi * 0.05 * t)
+    y[123_457] = 7.5                                      # a one-sample spike
+    y[150_001] = -3.25                                    # and a dip
+    y[90_000:90_020] = np.nan                             # a gap
+    td, yd = trace(t, y, pixels=1000)
+    assert td.size <= 4 * 1000 + 1 and td.size < t.size / 40
+    assert np.all(np.diff(td) > 0)                        # in time order, no repeats
+    assert td[0] == 0.0 and td[-1] == t[-1]
+    assert np.nanmax(yd) == 7.5 and np.nanmin(yd) == -3.25
+    assert td[np.nanargmax(yd)] == pytest.approx(123.457)
+    assert np.isnan(yd).sum() == 1 and td[np.isnan(yd)][0] == pytest.approx(90.0)   # gap kept
+    # per pixel column the drawn range is the full trace's: the envelope is exact
+    col = np.minimum((t / t[-1] * 1000).astype(int), 999)
+    cold = np.minimum((td / t[-1] * 1000).astype(int), 999)
+    for c in (0, 123, 617, 999):
+        full, kept = y[col == c], yd[cold == c]
+        assert np.nanmax(full) == np.nanmax(kept) and np.nanmin(full) == np.nanmin(kept)
+
+
+def test_a_short_trace_is_drawn_whole():
+    t = np.linspace(0.0, 1.0, 4 * TRACE_PIXELS)
+    td, yd = trace(t, t ** 2)
+    np.testing.assert_array_equal(td, t)
+    np.testing.assert_array_equal(yd, t ** 2)
+
+
+@pytest.fixture(scope="module")
+def position_ctx(tmp_path_factory):
+    """Two synthetic position-control runs read and summarised (ingest)."""
+    from conftest import write_synthetic_dataset
+
+    from seanv_analysis.stages import run_stages
+
+    root = write_synthetic_dataset(tmp_path_factory.mktemp("par") / "data", n_flow=0,
+                                   n_position=2, duration_s=1.0)
+    return run_stages(root, ["ingest"])
+
+
+def _draw(ctx, folder: Path, map_tasks):
+    from seanv_analysis.stages.figures import draw_figures
+
+    ctx.map_tasks = map_tasks
+    return draw_figures(ctx, ["fig6", "fig6_runs"], folder, formats=("png", "svg"),
+                        per_run_folders=False)
+
+
+def test_figures_drawn_on_worker_processes_are_the_same_bytes(position_ctx, tmp_path):
+    """Fig. 6 per run and the runs side by side, drawn here and as tasks of
+    a 2-process pool: the same files, byte for byte, listed in the same order."""
+    from seanv_analysis.batch.executor import Executor
+    from seanv_analysis.stages import serial_tasks
+
+    here = _draw(position_ctx, tmp_path / "here", serial_tasks)
+    with Executor("process", workers=2) as ex:
+        pooled = _draw(position_ctx, tmp_path / "pool", ex.tasks)
+    assert not here.problems and not pooled.problems
+    assert list(here.paths) == list(pooled.paths) == ["fig6", "fig6_runs"]
+    assert len(here.paths["fig6"]) == 4       # 2 runs x (png, svg)
+    for name in here.paths:
+        assert [p.name for p in here.paths[name]] == [p.name for p in pooled.paths[name]]
+        for a, b in zip(here.paths[name], pooled.paths[name]):
+            assert a.read_bytes() == b.read_bytes(), a.name
+
+
+def test_a_figure_that_fails_on_a_worker_is_a_note_and_the_others_are_drawn(position_ctx,
+                                                                            tmp_path):
+    """A per-run figure whose run cannot be read is one line naming the run;
+    the other figures are drawn."""
+    import shutil
+
+    from seanv_analysis.batch.executor import Executor
+
+    bad = sorted(position_ctx.run_dirs)[0]
+    ctx = SimpleNamespace(**{k: getattr(position_ctx, k) for k in ("rig", "log", "result",
+                                                                     "result_named",
+                                                                     "map_runs")})
+    moved = tmp_path / "moved"
+    shutil.move(str(bad), moved)
+    try:
+        with Executor("process", workers=2) as ex:
+            res = _draw(ctx, tmp_path / "out", ex.tasks)
+    finally:
+        shutil.move(str(moved), bad)
+    assert len(res.problems) == 1 and res.problems[0].startswith(f"fig6: {bad}")
+    assert len(res.paths["fig6"]) == 2 and len(res.paths["fig6_runs"]) == 2
+
+
+def test_a_full_disk_on_a_figure_worker_ends_the_command_with_exit_2(make_dataset, tmp_path,
+                                                                     monkeypatch):
+    """`tracking` draws its figures on worker processes: a figure that cannot
+    be written there (disk full) is exit 2, one line naming the file, and the
+    output folder is not swapped in (nothing of the command in it)."""
+    from matplotlib.figure import Figure
+
+    from seanv_analysis.cli import cli
+
+    data = make_dataset(tmp_path / "data", n_flow=0, n_position=2, duration_s=1.0)
+
+    def full(self, fname, *args, **kwargs):
+        with open(fname, "wb") as fh:
+            fh.write(b"x")
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(Figure, "savefig", full)     # before the pool forks: its workers too
+    out = tmp_path / "out"
+    res = CliRunner().invoke(cli, ["tracking", str(data), "--out", str(out), "-q",
+                                   "--shift", "0.1"])
+    assert res.exit_code == 2, res.output
+    lines = [ln for ln in res.output.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "Traceback" not in res.output, res.output
+    assert "No space left on device" in lines[0] and ".png" in lines[0], lines[0]
+    assert not [p for p in out.rglob("*") if p.suffix in (".png", ".svg", ".json")]
