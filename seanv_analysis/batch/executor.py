@@ -296,7 +296,8 @@ class Executor:
         if self.kind != "process":
             return
         pool = self._process_pool()
-        self._warming = [pool.submit(func) for _ in range(self.workers)]
+        for _ in range(self.workers):
+            pool.submit(func)         # not awaited: the pool keeps its own queue
 
 
 def _cancel_quietly(client: Any, futures: list) -> None:

@@ -438,7 +438,7 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             ctx.map_tasks = partial(ex.tasks, quiet=quiet)   # the figures, each a task
             warm = None
             if any(s.name == "figures" for s in pipe.stages):
-                from ..plots._style import warm_up
+                from ..plots import warm_up
 
                 warm = partial(ex.warm, warm_up)
             with one_blas_thread():     # the data-set stages, here (the workers have one)

@@ -168,7 +168,7 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
     inside the block; in this process after it. With ``figures`` (the
     command draws some) the figures are tasks on all cores too, and the
     worker processes load matplotlib at once, while the analysis runs here
-    (:func:`seanv_analysis.plots._style.warm_up`)."""
+    (:func:`seanv_analysis.plots.warm_up`)."""
     import multiprocessing as mp
     import os
     from functools import partial
@@ -185,7 +185,7 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
     with make_executor(workers=os.cpu_count()) as ex:
         warm = None
         if figures:
-            from ..plots._style import warm_up
+            from ..plots import warm_up
 
             warm = partial(ex.warm, warm_up)
             ctx.map_tasks = partial(ex.tasks, quiet=quiet)

@@ -13,6 +13,8 @@ offers plain functions for use from a script or a notebook:
 
 Importing this package does not import matplotlib; drawing a figure does.
 """
+from ._style import warm_up
 from .registry import FIGURES, Figure, describe_figures, load_figure_modules, register_figure
 
-__all__ = ["FIGURES", "Figure", "describe_figures", "register_figure", "load_figure_modules"]
+__all__ = ["FIGURES", "Figure", "describe_figures", "register_figure", "load_figure_modules",
+           "warm_up"]
