@@ -7,10 +7,12 @@ class in :mod:`seanv_analysis.models.effects`.
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, replace
 from typing import Any
 
 from ..errors import ConfigError
+from ..estimate import Estimate, Estimates
 from ..jsonable import JsonResult, clean_json
 from ..models import ValveModel
 from ..models import effects as fx
@@ -32,7 +34,9 @@ class EffectFinding:
     check for the static selection); ``f_p_value``: F-test p-value;
     ``inner_improvement``: relative error drop on the inner validation split;
     ``evidence``: the report's clause on the test, ``str.format``-ed with
-    ``p_value`` and ``f_p_value``.
+    ``p_value`` and ``f_p_value``. :attr:`estimates` gives the numeric
+    parameters as the package's one estimate type
+    (:class:`~seanv_analysis.estimate.Estimate`); the JSON is made from them.
     """
 
     name: str
@@ -55,16 +59,68 @@ class EffectFinding:
         except (KeyError, ValueError):
             return f"{self.name} ({self.side}): {self.params}"
 
+    @property
+    def estimates(self) -> Estimates:
+        """The numeric parameters as :class:`~seanv_analysis.estimate.Estimate`,
+        named '<side>.<effect>.<parameter>' ('drain.drift.step'), in the
+        units the effect declares: fitted ones with their interval, grid-searched
+        ones (drift's ``every``, ``offset``) without one. Text parameters
+        (a sensor's name) are not estimates.
+
+        Raises
+        ------
+        ValueError
+            a parameter whose unit the effect does not declare.
+        """
+        units = _param_units(self.name, self.params)
+        searched = _searched(self.name)
+        closed = self.evidence != STATIC_EVIDENCE
+        where = ("position-control runs replayed on the identified twin" if closed else
+                 f"flow steps{'' if self.side == 'both' else ' of the ' + self.side + ' side'}")
+        out = []
+        for k, v in self.params.items():
+            if isinstance(v, str) or v is None:
+                continue
+            if k not in units:
+                raise ValueError(f"effect {self.name}: parameter {k!r} declares no unit "
+                                 "(its PARAMS entry ends in '[unit]')")
+            if k in self.params_ci95:
+                method = ("fitted on the identified twin (profile of the replayed flow error "
+                          "and segment bootstrap)" if closed else
+                          "joint least squares with z0, C of both sides (Wald 95 % interval)")
+            else:
+                method = ("grid search before each fit (no interval)" if k in searched else
+                          "held during the fit (no interval)")
+            out.append(Estimate(f"{self.side}.{self.name}.{k}", v, units[k],
+                                tuple(self.params_ci95.get(k, (math.nan, math.nan))),
+                                method=method, constrained_by=where))
+        return Estimates.of(out)
+
     def evidence_text(self) -> str:
         """The test behind the finding with its p-values."""
         return self.evidence.format(p_value=self.p_value, f_p_value=self.f_p_value)
 
     def to_json_dict(self) -> dict[str, Any]:
+        """name, side, ``params`` {parameter: value} (the effect's own
+        parameter names, what ``from_fit`` and the model file read),
+        ``params_ci95``, ``params_units`` and p_value; the numbers are
+        :attr:`estimates`'."""
+        est = {e.quantity: e for e in self.estimates.values()}
         return {"name": self.name, "side": self.side,
-                "params": {k: clean_json(v) for k, v in self.params.items()},
-                "params_ci95": {k: [clean_json(a), clean_json(b)] for k, (a, b) in self.params_ci95.items()},
-                "params_units": _param_units(self.name, self.params),
+                "params": {k: clean_json(est[k].value if k in est else v)
+                           for k, v in self.params.items()},
+                "params_ci95": {k: [clean_json(a) for a in est[k].ci95] if k in est else
+                                [clean_json(a) for a in self.params_ci95[k]]
+                                for k in self.params_ci95},
+                "params_units": {k: e.unit for k, e in est.items()},
                 "p_value": clean_json(self.p_value)}
+
+
+def _searched(name: str) -> tuple[str, ...]:
+    """The parameters of effect ``name`` its static form sets on a grid."""
+    cls = fx.EFFECTS.get(name)
+    form = getattr(cls, "STATIC", None) if cls is not None else None
+    return form.searched if form is not None else ()
 
 
 def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
@@ -203,6 +259,18 @@ class Discovery(JsonResult):
     #: the closed-form term the search proposes where the named effects (if
     #: any) leave a structured residual (:mod:`.terms`); None: none
     proposed_term: ProposedTerm | None = None
+
+    @property
+    def params(self) -> Estimates:
+        """The effects' parameters by name ('drain.drift.step', ...: each
+        effect's :attr:`EffectFinding.estimates`), as lmfit's
+        ``result.params``; ``params.to_frame()`` is their table. The JSON's
+        ``effects[].params`` give the same numbers under the parameters'
+        own names (the last part of each name)."""
+        out = Estimates()
+        for e in self.effects:
+            out.update(e.estimates)
+        return out
 
     @property
     def improvement(self) -> float:
