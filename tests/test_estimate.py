@@ -107,10 +107,16 @@ def test_flowfit_params_frame_and_json_agree(flow_fit):
 
     p = flow_fit.params
     check_params(p)
-    assert list(p) == ["supply.z0", "supply.C", "drain.z0", "drain.C"]
+    assert list(p) == ["supply.z0", "supply.C", "drain.z0", "drain.C", "leakage.g"]
     assert Parameter is Estimate
     doc, frame = flow_fit.to_json_dict(), flow_fit.to_frame()
-    for name, e in p.items():
+    g = p["leakage.g"]   # the seat leakage: in the details (to_dict), not the --json contract
+    assert flow_fit.to_dict()["seat_leakage"] == {**g.to_json_dict(), "fitted": g.identified,
+                                                  "n_runs": flow_fit.leakage.n_runs,
+                                                  "n_conditions": flow_fit.leakage.n_conditions,
+                                                  "message": flow_fit.leakage.message}
+    assert keys_without_unit(flow_fit.to_dict()["seat_leakage"]) == []
+    for name, e in ((n, e) for n, e in p.items() if n != "leakage.g"):
         side = name.split(".")[0]
         # the JSON and the wide frame name the estimate by its key, with the same numbers
         assert doc[side][e.key] == json_num(e.value) == json_num(frame.loc[side, e.key])
@@ -120,6 +126,17 @@ def test_flowfit_params_frame_and_json_agree(flow_fit):
         assert e.identified and e.has_interval and math.isfinite(e.stderr)
         assert "fit of eq. (5)" in e.method and "flow steps" in e.constrained_by
     check_schema("flowfit", doc)
+
+
+def test_flowfit_without_leakage_has_no_leakage_estimate(flow_fit):
+    import dataclasses
+
+    from seanv_analysis.fit import LeakageFit
+
+    none = dataclasses.replace(flow_fit, settings={**flow_fit.settings, "leakage": "none"},
+                               leakage=LeakageFit(0.0, message="not modelled (leakage='none')"))
+    assert "leakage.g" not in none.params
+    assert none.to_dict()["seat_leakage"]["source"] == "not_estimated"
 
 
 # Identification -------------------------------------------------------------------

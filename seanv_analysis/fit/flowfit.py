@@ -359,7 +359,9 @@ class FlowFit(JsonResult):
     def params(self) -> Estimates:
         """The fitted numbers by name, as lmfit's ``result.params``:
         ``'supply.z0'``, ``'supply.C'``, ``'drain.z0'``, ``'drain.C'`` (the
-        sides fitted, :meth:`SideFit.estimates`), each an
+        sides fitted, :meth:`SideFit.estimates`) and the seat leakage's
+        conductance ``'leakage.g'`` (unless ``leakage='none'``; in
+        ``to_dict()``'s ``seat_leakage``, not in the ``--json`` contract), each an
         :class:`~seanv_analysis.estimate.Estimate` (value, stderr, ci95,
         unit, method, constrained_by, source); ``params.to_frame()`` is
         their table, ``to_frame()`` and the JSON give the same numbers under
@@ -367,6 +369,8 @@ class FlowFit(JsonResult):
         out = Estimates()
         for f in self.sides.values():
             out.update(f.estimates())
+        if self.settings.get("leakage", "fit") != "none":
+            out["leakage.g"] = self.leakage.estimate()
         return out
 
     def eval(self, theta_deg, dp_mpa, side: str, *, p1_mpa=None) -> np.ndarray:
@@ -438,7 +442,9 @@ class FlowFit(JsonResult):
         return {"sides": {s: f.to_dict() for s, f in self.sides.items()},
                 "excluded": self.to_json_dict()["excluded"], "units": dict(UNITS),
                 "success": self.success, "message": self.message, "warnings": self.warnings,
-                "settings": self.settings, "seat_leakage": self.leakage.to_dict(),
+                "settings": self.settings,
+                "seat_leakage": self.leakage.to_dict(
+                    modelled=self.settings.get("leakage", "fit") != "none"),
                 "per_load": json.loads(self.per_load.to_json(orient="records"))}
 
     def skipped_runs(self) -> dict[str, str]:
