@@ -197,13 +197,15 @@ def test_discovery_params_frame_and_json_agree(discovery):
     assert every.unit == "runs" and isinstance(every.value, int) and "grid search" in every.method
     doc = discovery.to_json_dict()
     (eff,) = doc["effects"]
+    # the effect's spec and its estimate records hold the same numbers
+    assert eff["estimates"] == [json.loads(dumps(e.to_json_dict())) for e in p.values()]
     for e in p.values():
         assert eff["params"][e.quantity] == json_num(e.value)
-        assert eff["params_units"][e.quantity] == e.unit
-        if e.has_interval:
-            assert eff["params_ci95"][e.quantity] == [json_num(v) for v in e.ci95]
-    assert set(eff["params_ci95"]) == {"step"}
+    assert keys_without_unit(doc) == []
     check_schema("discover", doc)
+    frame = p.to_frame()
+    assert list(frame["name"]) == [r["name"] for r in eff["estimates"]]
+    assert frame.loc[0, "ci95_lo"] == eff["estimates"][0]["ci95_ratio"][0]
 
 
 def test_dynamic_candidate_json_comes_from_its_estimate():

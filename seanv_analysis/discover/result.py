@@ -28,7 +28,8 @@ STATIC_EVIDENCE = "permutation p = {p_value:.3f}, F-test p = {f_p_value:.2g}"
 class EffectFinding:
     """One effect kept by the selection.
 
-    ``params``: fitted values (units in the names); ``params_ci95``: Wald
+    ``params``: the effect's parameters in its own names (fitted, searched
+    or held; their units are the effect's ``PARAMS``); ``params_ci95``: Wald
     95 % intervals from the joint fit's covariance (NaN when singular);
     ``p_value``: the p-value of the check that kept it (the permutation
     check for the static selection); ``f_p_value``: F-test p-value;
@@ -36,7 +37,8 @@ class EffectFinding:
     ``evidence``: the report's clause on the test, ``str.format``-ed with
     ``p_value`` and ``f_p_value``. :attr:`estimates` gives the numeric
     parameters as the package's one estimate type
-    (:class:`~seanv_analysis.estimate.Estimate`); the JSON is made from them.
+    (:class:`~seanv_analysis.estimate.Estimate`); the JSON's ``estimates``
+    are their records.
     """
 
     name: str
@@ -101,18 +103,17 @@ class EffectFinding:
         return self.evidence.format(p_value=self.p_value, f_p_value=self.f_p_value)
 
     def to_json_dict(self) -> dict[str, Any]:
-        """name, side, ``params`` {parameter: value} (the effect's own
-        parameter names, what ``from_fit`` and the model file read),
-        ``params_ci95``, ``params_units`` and p_value; the numbers are
-        :attr:`estimates`'."""
-        est = {e.quantity: e for e in self.estimates.values()}
+        """name, side, ``params`` (the effect's spec, {parameter: value} in
+        its own parameter names: what ``from_fit``, the model file and the
+        simulator read), ``estimates`` (the numeric parameters'
+        :class:`~seanv_analysis.estimate.Estimate` records: ``value_<unit>``,
+        ``ci95_<unit>``, unit, method...; the same numbers) and p_value."""
+        est = self.estimates
+        by_param = {e.quantity: e for e in est.values()}
         return {"name": self.name, "side": self.side,
-                "params": {k: clean_json(est[k].value if k in est else v)
+                "params": {k: clean_json(by_param[k].value if k in by_param else v)
                            for k, v in self.params.items()},
-                "params_ci95": {k: [clean_json(a) for a in est[k].ci95] if k in est else
-                                [clean_json(a) for a in self.params_ci95[k]]
-                                for k in self.params_ci95},
-                "params_units": {k: e.unit for k, e in est.items()},
+                "estimates": [e.to_json_dict() for e in est.values()],
                 "p_value": clean_json(self.p_value)}
 
 
