@@ -119,7 +119,8 @@ def test_json_contract():
         "drain.drift.step": "-", "drain.drift.every": "runs", "drain.drift.offset": "runs"}
     assert repr(d).startswith("<Discovery effect_found: drift (drain); held-out RMSE ")
     frame = d.to_frame()
-    assert list(frame.name) == ["drift"] and frame.step_lo[0] <= frame.step[0] <= frame.step_hi[0]
+    assert list(frame.effect) == ["drift"] * 3 and list(frame.name) == list(d.params)
+    assert frame.ci95_lo[0] <= frame.value[0] <= frame.ci95_hi[0] and frame.unit[0] == "-"
     assert "<table" in d._repr_html_()
     import matplotlib
 

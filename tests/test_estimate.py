@@ -10,7 +10,7 @@ import json
 import math
 
 import pytest
-from json_schemas import check_schema, keys_without_unit
+from json_schemas import check_schema, columns_without_unit, keys_without_unit
 
 from seanv_analysis.estimate import SOURCES, Estimate, Estimates
 from seanv_analysis.jsonable import dumps, json_num
@@ -203,9 +203,11 @@ def test_discovery_params_frame_and_json_agree(discovery):
         assert eff["params"][e.quantity] == json_num(e.value)
     assert keys_without_unit(doc) == []
     check_schema("discover", doc)
-    frame = p.to_frame()
+    frame = discovery.to_frame()     # the estimates' table, with the effect and its p value
     assert list(frame["name"]) == [r["name"] for r in eff["estimates"]]
     assert frame.loc[0, "ci95_lo"] == eff["estimates"][0]["ci95_ratio"][0]
+    assert list(frame["effect"]) == ["drift"] * 3 and set(frame["p_value"]) == {eff["p_value"]}
+    assert columns_without_unit(frame) == []
 
 
 def test_dynamic_candidate_json_comes_from_its_estimate():

@@ -356,19 +356,17 @@ class Discovery(JsonResult):
         return plot(self, ax, **kwargs)
 
     def to_frame(self):
-        """One row per effect found: name, side, each parameter with its
-        95 % interval (``<param>_lo``, ``<param>_hi``), p value."""
-        import pandas as pd
-
-        rows = []
-        for e in self.effects:
-            row = {"name": e.name, "side": e.side}
-            for k, v in e.params.items():
-                row[k] = v
-                if k in e.params_ci95:
-                    row[f"{k}_lo"], row[f"{k}_hi"] = e.params_ci95[k]
-            rows.append({**row, "p_value": e.p_value})
-        return pd.DataFrame(rows)
+        """One row per parameter of the effects found (a long table, each
+        row's numbers in its ``unit``): effect, side, then :attr:`params`'
+        table (name '<side>.<effect>.<parameter>', value, 95 % interval
+        ci95_lo/ci95_hi, stderr, default, unit, source, method,
+        constrained_by, note), and the effect's p_value."""
+        frame = Estimates.frame_of(e for f in self.effects for e in f.estimates.values())
+        per = [(f.name, f.side, f.p_value) for f in self.effects for _ in f.estimates]
+        frame.insert(0, "effect", [p[0] for p in per])
+        frame.insert(1, "side", [p[1] for p in per])
+        frame["p_value"] = [p[2] for p in per]
+        return frame
 
     def report(self) -> str:
         """A short text a researcher can paste into a lab note."""
