@@ -73,6 +73,9 @@ class Estimate:
         (the data cannot tell it: the default kept), 'not_estimated'
     default : the rig file's (or the model's default) value in ``unit``; NaN: none
     note : anything a user should know (why it was not identified...)
+    bounds : (min, max) the fit allowed, in ``unit`` (lmfit's ``min``/``max``;
+        infinite: none; :meth:`at_bound` says when the value sits on one, where
+        the interval is not to be trusted)
     """
 
     name: str
@@ -85,12 +88,14 @@ class Estimate:
     source: str = "identified"
     default: float = math.nan
     note: str = ""
+    bounds: tuple[float, float] = (-math.inf, math.inf)
 
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
             raise ValueError(f"source: expected one of {', '.join(SOURCES)}, got {self.source!r}")
         key_suffix(self.unit)   # raises ValueError for a unit the table lacks
         object.__setattr__(self, "ci95", (self.ci95[0], self.ci95[1]))
+        object.__setattr__(self, "bounds", (self.bounds[0], self.bounds[1]))
 
     # names -------------------------------------------------------------------
     @property
@@ -137,16 +142,27 @@ class Estimate:
         lo, hi = self.ci95
         return lo <= v <= hi
 
+    def at_bound(self, rel: float = 1e-6) -> bool:
+        """The value sits on a finite bound of the fit (within ``rel`` of the
+        bounds' span, or of the value where one bound is infinite)."""
+        if not _finite(self.value):
+            return False
+        lo, hi = self.bounds
+        scale = (hi - lo) if math.isfinite(lo) and math.isfinite(hi) else max(abs(self.value), 1.0)
+        return any(math.isfinite(b) and abs(self.value - b) <= rel * scale for b in (lo, hi))
+
     # forms -------------------------------------------------------------------
     def to_json_dict(self) -> dict[str, Any]:
         """The record form: name, ``value_<unit>``, ``ci95_<unit>``,
-        ``stderr_<unit>``, ``default_<unit>`` (each number's unit is the end
-        of its key), the unit in words, source, method, constrained_by, note."""
+        ``stderr_<unit>``, ``default_<unit>``, ``bounds_<unit>`` (each
+        number's unit is the end of its key; null: unknown, or for a bound,
+        none), the unit in words, source, method, constrained_by, note."""
         u = self.suffix
         return {"name": self.name, f"value{u}": _num(self.value),
                 f"ci95{u}": [_num(v) for v in self.ci95], f"stderr{u}": _num(self.stderr),
-                f"default{u}": _num(self.default), "unit": self.unit, "source": self.source,
-                "method": self.method, "constrained_by": self.constrained_by, "note": self.note}
+                f"default{u}": _num(self.default), f"bounds{u}": [_num(v) for v in self.bounds],
+                "unit": self.unit, "source": self.source, "method": self.method,
+                "constrained_by": self.constrained_by, "note": self.note}
 
     @classmethod
     def from_json_dict(cls, d: Mapping[str, Any]) -> "Estimate":
@@ -162,10 +178,12 @@ class Estimate:
             unit = str(d["unit"])
             u = key_suffix(unit)
             lo, hi = d.get(f"ci95{u}") or (None, None)
+            b_lo, b_hi = d.get(f"bounds{u}") or (None, None)
             return cls(str(d["name"]), _float(d[f"value{u}"]), unit, (_float(lo), _float(hi)),
                        _float(d.get(f"stderr{u}")), str(d.get("method", "")),
                        str(d.get("constrained_by", "")), str(d.get("source", "identified")),
-                       _float(d.get(f"default{u}")), str(d.get("note", "")))
+                       _float(d.get(f"default{u}")), str(d.get("note", "")),
+                       (-math.inf if b_lo is None else b_lo, math.inf if b_hi is None else b_hi))
         except KeyError as exc:
             raise ValueError(f"estimate record: no {exc.args[0]!r}; expected name, unit and "
                              "value_<unit> (Estimate.to_json_dict)") from None
@@ -183,12 +201,15 @@ class Estimate:
         return {"name": self.name, "value": self.value, "ci95_lo": self.ci95[0],
                 "ci95_hi": self.ci95[1], "stderr": self.stderr, "default": self.default,
                 "unit": self.unit, "source": self.source, "method": self.method,
-                "constrained_by": self.constrained_by, "note": self.note}
+                "constrained_by": self.constrained_by, "note": self.note,
+                "at_bound": self.at_bound()}
 
     def __repr__(self) -> str:
         lo, hi = self.ci95
         parts = [f"stderr {self.stderr:.2g}"] if _finite(self.stderr) else []
         parts.append(f"95 % [{lo:.6g}, {hi:.6g}]" if self.has_interval else "no 95 % interval")
+        if self.at_bound():
+            parts.append("at a bound of the fit")
         if not self.identified:
             parts.append(self.source.replace("_", " "))
         val = f"{self.value:.6g}" if _finite(self.value) else repr(self.value)
@@ -217,7 +238,7 @@ class Estimates(dict):
     def to_frame(self):
         """One row per estimate (a long table: each row's numbers in its
         ``unit``): name, value, ci95_lo, ci95_hi, stderr, default, unit,
-        source, method, constrained_by, note."""
+        source, method, constrained_by, note, at_bound."""
 
         return self.frame_of(self.values())
 

@@ -53,7 +53,8 @@ def test_estimate_record_round_trips_and_names_its_unit():
     d = e.to_json_dict()
     assert d == {"name": "supply.C", "value_mm3_s_deg2_sqrtMPa": 17.44,
                  "ci95_mm3_s_deg2_sqrtMPa": [17.35, 17.53], "stderr_mm3_s_deg2_sqrtMPa": 0.045,
-                 "default_mm3_s_deg2_sqrtMPa": 17.435, "unit": "mm^3/(s deg^2 MPa^0.5)",
+                 "default_mm3_s_deg2_sqrtMPa": 17.435, "bounds_mm3_s_deg2_sqrtMPa": [None, None],
+                 "unit": "mm^3/(s deg^2 MPa^0.5)",
                  "source": "identified", "method": "joint fit of eq. (5)",
                  "constrained_by": "24 flow steps", "note": ""}
     assert Estimate.from_json_dict(json.loads(json.dumps(d))) == e
@@ -86,6 +87,17 @@ def test_estimate_refuses_a_unit_outside_the_table_and_an_unknown_source():
 def test_value_outside_its_interval_is_seen():
     assert not Estimate("a.b", 2.0, "mm", (0.0, 1.0)).inside()
     assert Estimate("a.b", 1.0, "mm", (0.0, math.inf)).inside()   # one-sided: not known
+
+
+def test_a_value_on_a_bound_of_its_fit_is_seen():
+    e = Estimate("drain.drift.step", 0.5, "-", (0.45, 0.55), bounds=(-0.5, 0.5))
+    assert e.at_bound() and "at a bound of the fit" in repr(e)
+    assert e.to_json_dict()["bounds_ratio"] == [-0.5, 0.5]
+    assert Estimate.from_json_dict(e.to_json_dict()) == e
+    free = Estimate("x.g", 0.0, "mm^3/(s MPa)", bounds=(0.0, math.inf))
+    assert free.at_bound() and free.to_json_dict()["bounds_mm3_s_per_mpa"] == [0.0, None]
+    assert not Estimate("x.g", 3.0, "mm^3/(s MPa)", bounds=(0.0, math.inf)).at_bound()
+    assert Estimates.of([e]).to_frame()["at_bound"].tolist() == [True]
 
 
 # FlowFit ------------------------------------------------------------------------
@@ -194,6 +206,8 @@ def test_discovery_params_frame_and_json_agree(discovery):
     assert list(p) == ["drain.drift.step", "drain.drift.every", "drain.drift.offset"]
     step, every = p["drain.drift.step"], p["drain.drift.every"]
     assert step.unit == "-" and step.has_interval and "Wald" in step.method
+    assert step.bounds == (-0.5, 0.5) and not step.at_bound()      # drift's static form
+    assert step.stderr == pytest.approx((step.ci95[1] - step.ci95[0]) / 3.92)
     assert every.unit == "runs" and isinstance(every.value, int) and "grid search" in every.method
     doc = discovery.to_json_dict()
     (eff,) = doc["effects"]
@@ -228,3 +242,33 @@ def test_dynamic_candidate_json_comes_from_its_estimate():
                      1, 100.0, 80.0, None, model, model)
     check_params(disc.params)
     assert "twin" in disc.params["both.delay.delay_s"].method
+
+
+# Tracking -------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def tracking(tmp_path_factory):
+    from conftest import write_synthetic_dataset
+
+    from seanv_analysis.stages import run_stages
+
+    data = write_synthetic_dataset(tmp_path_factory.mktemp("est") / "d", n_flow=2, n_position=2,
+                                   duration_s=2.0)
+    return run_stages(data, ["ingest", "tracking"]).result("tracking")
+
+
+def test_tracking_lag_estimates_frame_and_json_agree(tracking):
+    p = tracking.params
+    check_params(p)
+    assert list(p) == ["lag", *(f"{r.run_id}.lag" for r in tracking.runs)]
+    doc, per_run = tracking.to_json_dict(), tracking.per_run
+    lag = p["lag"]
+    assert (lag.key, lag.ci95_key) == ("lag_s", "lag_ci95_s")
+    assert doc["lag_s"] == json_num(lag.value) == json_num(tracking.lag_s)
+    assert doc["lag_ci95_s"] is None or doc["lag_ci95_s"] == [json_num(v) for v in lag.ci95]
+    for r, row, (_, frow) in zip(doc["runs"], tracking.runs, per_run.iterrows()):
+        e = p[f"{row.run_id}.lag"]
+        assert r["lag_s"] == json_num(e.value) == json_num(frow["lag_s"])
+        assert [json_num(frow["lag_ci95_lo_s"]), json_num(frow["lag_ci95_hi_s"])] == \
+            [json_num(v) for v in e.ci95]
+    check_schema("tracking", doc)

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from ..errors import ConfigError
@@ -49,6 +49,8 @@ class EffectFinding:
     f_p_value: float = float("nan")
     inner_improvement: float = float("nan")
     evidence: str = STATIC_EVIDENCE
+    #: {parameter: (lower, upper)} the fit allowed (the static form's bounds)
+    params_bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def sentence(self) -> str:
         """What the effect means, in words (its class's sentence), or its
@@ -86,16 +88,20 @@ class EffectFinding:
             if k not in units:
                 raise ValueError(f"effect {self.name}: parameter {k!r} declares no unit "
                                  "(its PARAMS entry ends in '[unit]')")
+            ci = tuple(self.params_ci95.get(k, (math.nan, math.nan)))
+            se = math.nan
             if k in self.params_ci95:
                 method = ("fitted on the identified twin (profile of the replayed flow error "
                           "and segment bootstrap)" if closed else
                           "joint least squares with z0, C of both sides (Wald 95 % interval)")
+                if not closed:   # Wald: value +- 1.96 stderr
+                    se = (ci[1] - ci[0]) / (2 * 1.96)
             else:
                 method = ("grid search before each fit (no interval)" if k in searched else
                           "held during the fit (no interval)")
-            out.append(Estimate(f"{self.side}.{self.name}.{k}", v, units[k],
-                                tuple(self.params_ci95.get(k, (math.nan, math.nan))),
-                                method=method, constrained_by=where))
+            out.append(Estimate(f"{self.side}.{self.name}.{k}", v, units[k], ci, se,
+                                method=method, constrained_by=where,
+                                bounds=tuple(self.params_bounds.get(k, (-math.inf, math.inf)))))
         return Estimates.of(out)
 
     def evidence_text(self) -> str:
