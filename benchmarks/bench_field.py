@@ -94,6 +94,15 @@ def _coverage(doc: dict, truth: dict) -> dict[str, dict]:
     return out
 
 
+def _replay_drop(candidate: dict) -> float | None:
+    """1 - after / before of a dynamic candidate's held-out replay flow RMSE."""
+    before = (candidate.get("replay_heldout_before") or {}).get("rmse_flow_mm3_s")
+    after = (candidate.get("replay_heldout_after") or {}).get("rmse_flow_mm3_s")
+    if not before or after is None:
+        return None
+    return round(1.0 - after / before, 3)
+
+
 def main() -> dict:
     data = _unpacked()
     from field_data import FIELD_SETS as SETS
@@ -123,7 +132,7 @@ def main() -> dict:
                 row[key].update(verdict=doc.get("verdict"), named=_named(doc),
                                 heldout=doc.get("heldout"),
                                 candidates=[(c["name"], c["named"], c.get("p_value"),
-                                             c.get("p_value_heldout"))
+                                             c.get("p_value_heldout"), _replay_drop(c))
                                             for c in (doc.get("position_control") or {})
                                             .get("candidates", [])])
             injected = sorted({EFFECT_NAMES[k] for k in truth.get("effects", {})

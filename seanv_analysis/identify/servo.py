@@ -25,7 +25,13 @@ Command timing: when the controller log shares the servo log's instants,
 each command is taken as sent at its logged instant; when the servo log
 samples the command on its own clock, a change is taken at the middle of
 the sample interval before it was logged (unbiased for a clock unrelated to
-the controller's).
+the controller's). A log stamp records the command in force at that
+instant, so a command may have been sent up to one sample before it: with
+the synchronous rule that phase is one for the whole rig (the logs cannot
+tell it from a longer dead time), so the dead time's interval reaches one
+servo-log sample above the delay from the logged commands (the value
+reported, and what the twin replays). Measured on a rig whose logs stamp a
+command after it was sent: delay 0.0355 s from the stamps, 0.045 s true.
 
 Runs are split in time order: fit on the training ones, the headline error
 on the held-out ones.
@@ -65,11 +71,16 @@ class ServoData:
     timing: str
     #: half-width [s] of the command-instant error (half a servo-log sample)
     timing_u_s: float = 0.0
+    #: how long before its log stamp a command may have been sent, one phase
+    #: for the whole rig [s] (one servo-log sample, synchronous rule; 0 else)
+    stamp_lead_s: float = 0.0
 
 
-def command_schedule(run) -> tuple[np.ndarray, np.ndarray, str, float] | None:
+def command_schedule(run) -> tuple[np.ndarray, np.ndarray, str, float, float] | None:
     """The cam command as the servo received it: (instants of its changes
-    [s], values [deg], timing rule, half-width of the instants' error [s]),
+    [s], values [deg], timing rule, half-width of the instants' error [s],
+    how long before its stamp a command may have been sent, one phase for
+    the rig [s]),
     from the servo log's ``cam_cmd_deg`` (see the module's "Command timing");
     None without a servo log of at least 20 commands."""
     sv = run.tables.get("servo")
@@ -82,21 +93,21 @@ def command_schedule(run) -> tuple[np.ndarray, np.ndarray, str, float] | None:
     if t.size < 20:
         return None
     dt = float(np.median(np.diff(t)))
-    shift, timing = dt / 2.0, "asynchronous: change taken mid-interval before its log instant"
+    shift, timing, lead = dt / 2.0, "asynchronous: change taken mid-interval before its log instant", 0.0
     ctrl = run.tables.get("controller")
     if ctrl is not None and len(ctrl) > 10:
         tc = ctrl["t_s"].to_numpy(float)
         j = np.clip(np.searchsorted(tc, t), 1, tc.size - 1)
         near = np.minimum(np.abs(tc[j] - t), np.abs(tc[j - 1] - t))
         if float(np.median(near)) < 0.1 * dt:
-            shift, timing = 0.0, "synchronous with the controller log"
+            shift, timing, lead = 0.0, "synchronous with the controller log", dt
     # a command sample only matters where the command changes
     change = np.concatenate(([True], np.diff(cmd) != 0.0))
     t_cmd = t[change].copy()
     t_cmd[1:] -= shift
     # either way the instant a command was sent is known to half a servo
     # sample only (a controller log may itself be stamped late)
-    return t_cmd, cmd[change], timing, dt / 2.0
+    return t_cmd, cmd[change], timing, dt / 2.0, lead
 
 
 def servo_data(run) -> ServoData | None:
@@ -108,7 +119,7 @@ def servo_data(run) -> ServoData | None:
     sched = command_schedule(run)
     if sched is None:
         return None
-    t_cmd, cmd, timing, half = sched
+    t_cmd, cmd, timing, half, lead = sched
     t = sv["t_s"].to_numpy(float)
     fb = sv["cam_deg"].to_numpy(float)
     ok = np.isfinite(sv["cam_cmd_deg"].to_numpy(float)) & np.isfinite(t)
@@ -116,7 +127,7 @@ def servo_data(run) -> ServoData | None:
     good = np.isfinite(fb)
     if good.sum() < 20 or np.ptp(cmd) < 0.5:
         return None
-    return ServoData(run.run_id, t_cmd, cmd, t[good], fb[good], timing, half)
+    return ServoData(run.run_id, t_cmd, cmd, t[good], fb[good], timing, half, lead)
 
 
 def _residual(data: Sequence[ServoData], dead, tau, rate, scale):
@@ -296,6 +307,12 @@ def fit_servo(data: Sequence[ServoData], *, start: tuple[float, float, float],
         tau_ci = (min(tau_ci[0], t_e), max(tau_ci[1], t_e))
         if rate_identified:
             rate_ci = (min(rate_ci[0], r_e), max(rate_ci[1], r_e))
+    # a command sent before its stamp, one phase for the rig (synchronous
+    # logs): the delay from the stamps is the dead time's lower reading; the
+    # time constant and rate do not move with it (every instant shifts alike)
+    lead = max((d.stamp_lead_s for d in data), default=0.0)
+    if lead > 0.0 and math.isfinite(dead_ci[1]):
+        dead_ci = (dead_ci[0], max(dead_ci[1], float(dead) + lead))
     rmse = float(np.sqrt(2.0 * sol.cost / n)) * scale
     return ServoFit(float(dead), dead_ci, tau, tau_ci, rate, rate_ci, rate_identified, rate_note,
                     rmse, len(data), n, sorted({d.timing for d in data}))
