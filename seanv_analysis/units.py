@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from typing import Iterable
 
-__all__ = ["UNIT_SUFFIXES", "unit_of_key", "unit_suffix", "units_of_columns"]
+__all__ = ["UNIT_SUFFIXES", "DIMENSIONLESS_SUFFIXES", "unit_of_key", "unit_suffix", "key_suffix",
+           "units_of_columns"]
 
 #: key suffix -> unit in plain text. A suffix comes before the shorter ones
 #: it ends with (``_mm3_s`` before ``_s``, ``_deg_s`` before ``_s``), so the
@@ -48,6 +49,32 @@ UNIT_SUFFIXES: dict[str, str] = {
     "_n": "N",
     "_N": "N",                                         # read, never written
 }
+
+
+#: dimensionless units an estimate may have (:mod:`seanv_analysis.estimate`),
+#: with the key suffix its numbers take: a ratio ('' or '-') ends in
+#: ``_ratio``, a count of runs in ``_runs`` (the JSON's counts and ratios;
+#: not units a key's end is read as, so not in :data:`UNIT_SUFFIXES`)
+DIMENSIONLESS_SUFFIXES: dict[str, str] = {"": "_ratio", "-": "_ratio", "runs": "_runs"}
+
+
+def key_suffix(unit: str) -> str:
+    """The key suffix a number in ``unit`` takes: the table's
+    (:func:`unit_suffix`), or a dimensionless one
+    (:data:`DIMENSIONLESS_SUFFIXES`).
+
+    Raises
+    ------
+    ValueError
+        a unit neither table has (add it to :data:`UNIT_SUFFIXES`).
+    """
+    if unit in DIMENSIONLESS_SUFFIXES:
+        return DIMENSIONLESS_SUFFIXES[unit]
+    suffix = unit_suffix(unit)
+    if suffix is None:
+        raise ValueError(f"unit: {unit!r} has no key suffix in seanv_analysis.units."
+                         "UNIT_SUFFIXES; add it there")
+    return suffix
 
 
 def unit_of_key(key: str) -> tuple[str, str] | None:

@@ -39,11 +39,13 @@ def check_schema(command: str, doc) -> None:
     Draft202012Validator(schema, registry=_registry()).validate(doc)
 
 
-#: discover's JSON (seanv_analysis/discover/result.py, changed on another
-#: branch) still gives a proposed term's coefficients as value/ci95 beside a
-#: 'unit' text, and an effect's parameters under params/params_ci95 beside
-#: 'params_units': the only numbers allowed to take their unit from a
-#: neighbouring key (issue 33, point 4; to go when that file follows the rule)
+#: discover's JSON (seanv_analysis/discover/result.py) still gives a
+#: proposed term's coefficients as value/ci95 beside a 'unit' text (their
+#: units, "mm^3/s per unit of dp**2", are not in the unit table): the only
+#: numbers allowed to take their unit from a neighbouring key (issue 33,
+#: point 4; to go when that follows the rule). An effect's ``params`` is its
+#: spec in its own parameter names (what model files and the simulator
+#: read); its numbers with their units are its ``estimates`` records.
 PENDING_BESIDE_UNIT = ("/proposed_term/coefficients[]",)
 
 
@@ -51,7 +53,7 @@ def keys_without_unit(doc, path: str = "", key: str = "", parent: dict | None = 
     """Paths of numbers whose key names no unit and is not a count, p value
     or ratio: every number's unit is the end of its own key (``value_mm``,
     not ``value`` beside ``"unit": "mm"``; but :data:`PENDING_BESIDE_UNIT`
-    and discover's ``params`` beside ``params_units``). ``/pipeline`` (the
+    and a discover effect's spec, ``params`` beside its ``estimates``). ``/pipeline`` (the
     pipeline file echoed), ``/excluded``, ``/computed``, ``/cached`` (counts
     per reason or stage) are not checked; the members of a dict whose own key
     ends in a unit (``timings_s``) take that unit, those of a count
@@ -62,7 +64,7 @@ def keys_without_unit(doc, path: str = "", key: str = "", parent: dict | None = 
             return []  # {name: value} in the unit of its key, or counts
         for k, v in doc.items():
             if k in ("pipeline", "excluded", "computed", "cached") or (
-                    k in ("params", "params_ci95") and "params_units" in doc):
+                    k == "params" and "estimates" in doc):
                 continue
             out += keys_without_unit(v, f"{path}/{k}", k, doc)
     elif isinstance(doc, list):

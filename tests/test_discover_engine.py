@@ -114,11 +114,13 @@ def test_json_contract():
     assert set(j) >= {"verdict", "effects", "heldout", "trend_variable"}
     assert set(j["heldout"]) == {"n_runs", "rmse_before_mm3_s", "rmse_after_mm3_s"}
     e = j["effects"][0]
-    assert set(e) == {"name", "side", "params", "params_ci95", "params_units", "p_value"}
-    assert e["params_units"] == {"step": "-", "every": "runs", "offset": "runs"}
+    assert set(e) == {"name", "side", "params", "estimates", "p_value"}
+    assert {r["name"]: r["unit"] for r in e["estimates"]} == {
+        "drain.drift.step": "-", "drain.drift.every": "runs", "drain.drift.offset": "runs"}
     assert repr(d).startswith("<Discovery effect_found: drift (drain); held-out RMSE ")
     frame = d.to_frame()
-    assert list(frame.name) == ["drift"] and frame.step_lo[0] <= frame.step[0] <= frame.step_hi[0]
+    assert list(frame.effect) == ["drift"] * 3 and list(frame.name) == list(d.params)
+    assert frame.ci95_lo[0] <= frame.value[0] <= frame.ci95_hi[0] and frame.unit[0] == "-"
     assert "<table" in d._repr_html_()
     import matplotlib
 

@@ -90,7 +90,9 @@ def test_plain_discover_identifies_its_twin_and_names_the_delay(tmp_path):
     assert keys_without_unit(doc) == []
     assert [e["name"] for e in doc["effects"]] == ["delay"]
     delay = doc["effects"][0]
-    lo, hi = delay["params_ci95"]["delay_s"]
+    (est,) = delay["estimates"]
+    assert est["name"] == "both.delay.delay_s" and est["value_s"] == delay["params"]["delay_s"]
+    lo, hi = est["ci95_s"]
     assert delay["params"]["delay_s"] == pytest.approx(0.1, abs=0.02) and lo <= 0.1 <= hi
     assert doc["heldout_source"] == "closed_loop_heldout"
     assert doc["heldout"]["rmse_after_mm3_s"] <= 0.7 * doc["heldout"]["rmse_before_mm3_s"]

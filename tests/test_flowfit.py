@@ -318,7 +318,10 @@ def test_params_and_eval_as_lmfit(paper_fit, paper_summary):
     ``fit.params["supply.C"].value / .stderr / .ci95`` and
     ``fit.eval(theta, dp, side)`` for the model's prediction."""
     p = paper_fit.params
-    assert list(p) == ["supply.z0", "supply.C", "drain.z0", "drain.C"]
+    assert list(p) == ["supply.z0", "supply.C", "drain.z0", "drain.C", "leakage.g"]
+    g = p["leakage.g"]       # the seat leakage fitted beside them (issue 32: one estimate type)
+    assert (g.value, g.ci95, g.unit) == (paper_fit.leakage.conductance_mm3_s_per_mpa,
+                                         paper_fit.leakage.ci95, "mm^3/(s MPa)")
     for side in ("supply", "drain"):
         sf = paper_fit.sides[side]
         c, z0 = p[f"{side}.C"], p[f"{side}.z0"]

@@ -173,3 +173,25 @@ def test_simulated_paper_pipeline_identical_on_all_executors(golden_data, golden
     # the identified servo)
     for k in ("flowfit", "excluded", "runs_read"):
         assert json.loads(json.dumps(serial[k])) == golden[k], k
+
+
+def test_estimates_of_the_pipeline_name_table_units_and_lie_in_their_intervals(golden_run):
+    """One estimate type (issue 32) on the whole pipeline's JSON: identify's
+    constants and discover's effect estimates are estimate records (units of
+    the one table), and an identified value lies in its 95 % interval."""
+    from seanv_analysis.estimate import Estimate
+
+    doc, _ = golden_run
+    records = [{**c, "name": c["key"] or c["name"],
+                "source": "identified" if c["identified"] else
+                ("rig_file" if c["key"] else "not_estimated")}
+               for c in doc["identify"]["constants"]]
+    records += [r for e in doc["discovery"]["effects"] for r in e["estimates"]]
+    estimates = [Estimate.from_json_dict(r) for r in records]   # refuses a unit outside the table
+    assert len(estimates) > 20 and any(e.name == "drain.drift.step" for e in estimates)
+    assert [e.name for e in estimates if e.identified and not e.inside()] == []
+    for side in ("supply", "drain"):
+        f = doc["flowfit"][side]
+        for key, ci in (("z0_mm", "z0_ci95_mm"),
+                        ("C_mm3_s_deg2_sqrtMPa", "C_ci95_mm3_s_deg2_sqrtMPa")):
+            assert f[ci][0] <= f[key] <= f[ci][1], (side, key)

@@ -41,7 +41,7 @@ def test_readme_snippet_runs_and_recovers_the_paper_values(folder, monkeypatch, 
     frame = scope["fit"].to_frame()
     assert frame.loc["supply", "z0_mm"] == pytest.approx(-0.155, abs=0.002)
     assert frame.loc["drain", "C_mm3_s_deg2_sqrtMPa"] == pytest.approx(-22.636, rel=0.02)
-    assert "<Parameter supply.C = 17." in out and scope["q"] > 0
+    assert "<Estimate supply.C = 17." in out and scope["q"] > 0
     assert scope["ax"].get_xlabel() == "Cam rotation angle [deg]"
     assert "Discovery:" in out
     assert "<Tracking shift 0.250 s (given)" in out

@@ -39,6 +39,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from ..errors import DataError
+from ..estimate import Estimate
 from ..jsonable import JsonResult, json_num
 
 __all__ = ["LagEstimate", "estimate_lag", "estimate_lag_segments", "DEFAULT_BLOCK_S",
@@ -84,6 +85,17 @@ class LagEstimate(JsonResult):
     correlation: np.ndarray = field(repr=False, default_factory=lambda: np.empty(0))
     success: bool = True
     message: str = ""
+
+    def estimate(self, name: str = "lag", *, constrained_by: str = "") -> Estimate:
+        """The delay as an :class:`~seanv_analysis.estimate.Estimate` [s]
+        named ``name`` (its key ``lag_s``, its interval's ``lag_ci95_s``):
+        'identified', or 'not_estimated' when no peak was found."""
+        ci = self.ci95_s if self.ci95_s is not None else (math.nan, math.nan)
+        ok = self.success and math.isfinite(self.lag_s)
+        return Estimate(name, self.lag_s, "s", tuple(ci), method=self.method,
+                        constrained_by=constrained_by or f"{self.n_samples} samples, "
+                                                         f"{self.n_blocks} blocks",
+                        source="identified" if ok else "not_estimated", note=self.message)
 
     def to_json_dict(self) -> dict[str, Any]:
         """JSON-ready dict (without the correlation curve)."""

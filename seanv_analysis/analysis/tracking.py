@@ -38,6 +38,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ConfigError, DataError
+from ..estimate import Estimate, Estimates
 from ..io.run import Run
 from ..jsonable import JsonResult, json_num
 from ..signals.derive import derive_samples
@@ -240,10 +241,20 @@ class RunTracking:
         """Per-run estimated delay [s] (NaN when the estimate failed)."""
         return self.lag.lag_s if self.lag is not None else math.nan
 
+    @property
+    def lag_estimate(self) -> Estimate:
+        """This run's delay as an :class:`~seanv_analysis.estimate.Estimate`
+        named '<run_id>.lag' (value NaN, 'not_estimated', when it failed)."""
+        if self.lag is None:
+            return Estimate(f"{self.run_id}.lag", math.nan, "s", source="not_estimated",
+                            note="the run's delay estimate failed")
+        return self.lag.estimate(f"{self.run_id}.lag")
+
     def row(self) -> dict[str, Any]:
-        ci = self.lag.ci95_s if self.lag is not None and self.lag.ci95_s else (math.nan, math.nan)
+        """The run's row of ``Tracking.per_run``: its lag estimate's columns
+        (``lag_s``, ``lag_ci95_lo_s``, ``lag_ci95_hi_s``), shift, RMSEs."""
         return {"run_id": self.run_id, "target_source": self.target_source,
-                "lag_s": self.lag_s, "lag_ci95_lo_s": ci[0], "lag_ci95_hi_s": ci[1],
+                **self.lag_estimate.wide_items(),
                 "shift_s": self.shift_s, "rmse_mm3_s": self.rmse_mm3_s,
                 "bias_mm3_s": self.bias_mm3_s, "rmse_supply_mm3_s": self.rmse_supply_mm3_s,
                 "rmse_drain_mm3_s": self.rmse_drain_mm3_s, "n_samples": self.n_samples}
@@ -309,6 +320,24 @@ class Tracking(JsonResult):
         return None if self.lag is None else self.lag.ci95_s
 
     @property
+    def params(self) -> Estimates:
+        """The delay estimates as :class:`~seanv_analysis.estimate.Estimate`
+        [s], as lmfit's ``result.params``: ``'lag'`` (pooled over the runs
+        with a commanded Q_ref; the JSON's ``lag_s``, ``lag_ci95_s``) and
+        ``'<run_id>.lag'`` per run (``runs[].lag_s``, ``per_run``'s
+        ``lag_s``, ``lag_ci95_lo_s``, ``lag_ci95_hi_s``)."""
+        return Estimates((e.name, e) for e in (self._pooled_lag(),
+                                               *(r.lag_estimate for r in self.runs)))
+
+    def _pooled_lag(self) -> Estimate:
+        """The pooled delay estimate (``params['lag']``)."""
+        if self.lag is None:
+            return Estimate("lag", math.nan, "s", source="not_estimated",
+                            note="the pooled delay estimate failed")
+        return self.lag.estimate("lag", constrained_by=f"{len(self.pooled_runs)} runs: "
+                                                       f"{self.pooled}")
+
+    @property
     def per_run(self) -> pd.DataFrame:
         """One row per run (lag estimate, applied shift, RMSE, bias, per side;
         ``pooled``: in the headline numbers)."""
@@ -318,10 +347,10 @@ class Tracking(JsonResult):
     def to_json_dict(self) -> dict[str, Any]:
         """The ``tracking --json`` document: ``shift_s`` the delay compensated,
         ``lag_s`` the pooled estimate, ``runs[].lag_s`` each run's own estimate."""
-        ci = self.lag_ci95_s
+        lag = self._pooled_lag()
         return {"shift_s": json_num(self.shift_s), "shift_source": self.shift_source,
-                "lag_s": json_num(self.lag_s),
-                "lag_ci95_s": None if ci is None else [json_num(ci[0]), json_num(ci[1])],
+                lag.key: json_num(lag.value),
+                lag.ci95_key: None if self.lag_ci95_s is None else [json_num(v) for v in lag.ci95],
                 "rmse_mm3_s": json_num(self.rmse_mm3_s), "bias_mm3_s": json_num(self.bias_mm3_s),
                 "range_mm3_s": [float(self.range_mm3_s[0]), float(self.range_mm3_s[1])],
                 "n_samples": int(self.n_samples),

@@ -395,7 +395,10 @@ def _select(model, data: FlowData, summary_fit, *, alpha, alpha_perm, min_improv
         ci_all = fit.param_ci95()
         ci = {name: ci_all[f"{spec_c.label}.{name}"] for name in spec_c.params}
         findings.append(EffectFinding(spec_c.name, spec_c.side, values, ci, p_value=p_perm,
-                                      f_p_value=p, inner_improvement=improvement))
+                                      f_p_value=p, inner_improvement=improvement,
+                                      params_bounds={k: (float(lo), float(hi)) for k, lo, hi in
+                                                     zip(spec_c.params, spec_c.lower,
+                                                         spec_c.upper)}))
     if selected and geom_sides and not current.geometry:
         current, selected, findings = _prune_geometry(
             base, current, selected, findings, data, d_in, d_val, sigma, s_in, s_val, geom_sides,

@@ -7,10 +7,12 @@ class in :mod:`seanv_analysis.models.effects`.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+import math
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from ..errors import ConfigError
+from ..estimate import Estimate, Estimates
 from ..jsonable import JsonResult, clean_json
 from ..models import ValveModel
 from ..models import effects as fx
@@ -26,13 +28,17 @@ STATIC_EVIDENCE = "permutation p = {p_value:.3f}, F-test p = {f_p_value:.2g}"
 class EffectFinding:
     """One effect kept by the selection.
 
-    ``params``: fitted values (units in the names); ``params_ci95``: Wald
+    ``params``: the effect's parameters in its own names (fitted, searched
+    or held; their units are the effect's ``PARAMS``); ``params_ci95``: Wald
     95 % intervals from the joint fit's covariance (NaN when singular);
     ``p_value``: the p-value of the check that kept it (the permutation
     check for the static selection); ``f_p_value``: F-test p-value;
     ``inner_improvement``: relative error drop on the inner validation split;
     ``evidence``: the report's clause on the test, ``str.format``-ed with
-    ``p_value`` and ``f_p_value``.
+    ``p_value`` and ``f_p_value``. :attr:`estimates` gives the numeric
+    parameters as the package's one estimate type
+    (:class:`~seanv_analysis.estimate.Estimate`); the JSON's ``estimates``
+    are their records.
     """
 
     name: str
@@ -43,6 +49,8 @@ class EffectFinding:
     f_p_value: float = float("nan")
     inner_improvement: float = float("nan")
     evidence: str = STATIC_EVIDENCE
+    #: {parameter: (lower, upper)} the fit allowed (the static form's bounds)
+    params_bounds: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     def sentence(self) -> str:
         """What the effect means, in words (its class's sentence), or its
@@ -55,16 +63,71 @@ class EffectFinding:
         except (KeyError, ValueError):
             return f"{self.name} ({self.side}): {self.params}"
 
+    @property
+    def estimates(self) -> Estimates:
+        """The numeric parameters as :class:`~seanv_analysis.estimate.Estimate`,
+        named '<side>.<effect>.<parameter>' ('drain.drift.step'), in the
+        units the effect declares: fitted ones with their interval, grid-searched
+        ones (drift's ``every``, ``offset``) without one. Text parameters
+        (a sensor's name) are not estimates.
+
+        Raises
+        ------
+        ValueError
+            a parameter whose unit the effect does not declare.
+        """
+        units = _param_units(self.name, self.params)
+        searched = _searched(self.name)
+        closed = self.evidence != STATIC_EVIDENCE
+        where = ("position-control runs replayed on the identified twin" if closed else
+                 f"flow steps{'' if self.side == 'both' else ' of the ' + self.side + ' side'}")
+        out = []
+        for k, v in self.params.items():
+            if isinstance(v, str) or v is None:
+                continue
+            if k not in units:
+                raise ValueError(f"effect {self.name}: parameter {k!r} declares no unit "
+                                 "(its PARAMS entry ends in '[unit]')")
+            ci = tuple(self.params_ci95.get(k, (math.nan, math.nan)))
+            se = math.nan
+            if k in self.params_ci95:
+                method = ("fitted on the identified twin (profile of the replayed flow error "
+                          "and segment bootstrap)" if closed else
+                          "joint least squares with z0, C of both sides (Wald 95 % interval)")
+                if not closed:   # Wald: value +- 1.96 stderr
+                    se = (ci[1] - ci[0]) / (2 * 1.96)
+            else:
+                method = ("grid search before each fit (no interval)" if k in searched else
+                          "held during the fit (no interval)")
+            out.append(Estimate(f"{self.side}.{self.name}.{k}", v, units[k], ci, se,
+                                method=method, constrained_by=where,
+                                bounds=tuple(self.params_bounds.get(k, (-math.inf, math.inf)))))
+        return Estimates.of(out)
+
     def evidence_text(self) -> str:
         """The test behind the finding with its p-values."""
         return self.evidence.format(p_value=self.p_value, f_p_value=self.f_p_value)
 
     def to_json_dict(self) -> dict[str, Any]:
+        """name, side, ``params`` (the effect's spec, {parameter: value} in
+        its own parameter names: what ``from_fit``, the model file and the
+        simulator read), ``estimates`` (the numeric parameters'
+        :class:`~seanv_analysis.estimate.Estimate` records: ``value_<unit>``,
+        ``ci95_<unit>``, unit, method...; the same numbers) and p_value."""
+        est = self.estimates
+        by_param = {e.quantity: e for e in est.values()}
         return {"name": self.name, "side": self.side,
-                "params": {k: clean_json(v) for k, v in self.params.items()},
-                "params_ci95": {k: [clean_json(a), clean_json(b)] for k, (a, b) in self.params_ci95.items()},
-                "params_units": _param_units(self.name, self.params),
+                "params": {k: clean_json(by_param[k].value if k in by_param else v)
+                           for k, v in self.params.items()},
+                "estimates": [e.to_json_dict() for e in est.values()],
                 "p_value": clean_json(self.p_value)}
+
+
+def _searched(name: str) -> tuple[str, ...]:
+    """The parameters of effect ``name`` its static form sets on a grid."""
+    cls = fx.EFFECTS.get(name)
+    form = getattr(cls, "STATIC", None) if cls is not None else None
+    return form.searched if form is not None else ()
 
 
 def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
@@ -205,6 +268,18 @@ class Discovery(JsonResult):
     proposed_term: ProposedTerm | None = None
 
     @property
+    def params(self) -> Estimates:
+        """The effects' parameters by name ('drain.drift.step', ...: each
+        effect's :attr:`EffectFinding.estimates`), as lmfit's
+        ``result.params``; ``params.to_frame()`` is their table. The JSON's
+        ``effects[].params`` give the same numbers under the parameters'
+        own names (the last part of each name)."""
+        out = Estimates()
+        for e in self.effects:
+            out.update(e.estimates)
+        return out
+
+    @property
     def improvement(self) -> float:
         """Relative held-out RMSE drop (0.3 = 30 % lower)."""
         if not self.rmse_before_mm3_s:
@@ -287,19 +362,17 @@ class Discovery(JsonResult):
         return plot(self, ax, **kwargs)
 
     def to_frame(self):
-        """One row per effect found: name, side, each parameter with its
-        95 % interval (``<param>_lo``, ``<param>_hi``), p value."""
-        import pandas as pd
-
-        rows = []
-        for e in self.effects:
-            row = {"name": e.name, "side": e.side}
-            for k, v in e.params.items():
-                row[k] = v
-                if k in e.params_ci95:
-                    row[f"{k}_lo"], row[f"{k}_hi"] = e.params_ci95[k]
-            rows.append({**row, "p_value": e.p_value})
-        return pd.DataFrame(rows)
+        """One row per parameter of the effects found (a long table, each
+        row's numbers in its ``unit``): effect, side, then :attr:`params`'
+        table (name '<side>.<effect>.<parameter>', value, 95 % interval
+        ci95_lo/ci95_hi, stderr, default, unit, source, method,
+        constrained_by, note), and the effect's p_value."""
+        frame = Estimates.frame_of(e for f in self.effects for e in f.estimates.values())
+        per = [(f.name, f.side, f.p_value) for f in self.effects for _ in f.estimates]
+        frame.insert(0, "effect", [p[0] for p in per])
+        frame.insert(1, "side", [p[1] for p in per])
+        frame["p_value"] = [p[2] for p in per]
+        return frame
 
     def report(self) -> str:
         """A short text a researcher can paste into a lab note."""

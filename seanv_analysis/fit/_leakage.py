@@ -39,6 +39,7 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..estimate import Estimate
 from ..models import ValveSide
 from ._joint import _Eq5Residual
 
@@ -112,13 +113,26 @@ class LeakageFit:
         lo, hi = self.ci95
         return 0.5 * (hi - lo) if self.fitted else math.nan
 
-    def to_dict(self) -> dict[str, Any]:
-        from ..jsonable import json_num
+    def estimate(self, *, modelled: bool = True) -> Estimate:
+        """g as an :class:`~seanv_analysis.estimate.Estimate` named
+        'leakage.g' [mm^3/(s MPa)]: 'identified' when fitted, else the rig
+        file's kept ('rig_file'), or 'not_estimated' (0) when the leakage is
+        not ``modelled`` (``leakage='none'``)."""
+        source = "identified" if self.fitted else ("rig_file" if modelled else "not_estimated")
+        return Estimate("leakage.g", self.conductance_mm3_s_per_mpa, "mm^3/(s MPa)",
+                        tuple(self.ci95), self.se, method=self.method,
+                        constrained_by=(f"{self.n_runs} flow steps ({self.n_conditions} "
+                                        "conditions), both sides" if self.fitted else ""),
+                        source=source,
+                        default=math.nan if self.fitted else self.conductance_mm3_s_per_mpa,
+                        note=self.message)
 
-        return {"conductance": json_num(self.conductance_mm3_s_per_mpa),
-                "ci95": [json_num(v) for v in self.ci95], "se": json_num(self.se),
-                "unit": "mm^3/(s MPa)", "fitted": bool(self.fitted), "n_runs": int(self.n_runs),
-                "n_conditions": int(self.n_conditions), "method": self.method,
+    def to_dict(self, *, modelled: bool = True) -> dict[str, Any]:
+        """:meth:`estimate`'s record (``value_mm3_s_per_mpa``,
+        ``ci95_mm3_s_per_mpa``, ``stderr_mm3_s_per_mpa``...) with fitted,
+        n_runs, n_conditions and message."""
+        return {**self.estimate(modelled=modelled).to_json_dict(), "fitted": bool(self.fitted),
+                "n_runs": int(self.n_runs), "n_conditions": int(self.n_conditions),
                 "message": self.message}
 
 

@@ -93,6 +93,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ConfigError, DataError, FitError
+from ..estimate import Estimate, Estimates
 from ..jsonable import JsonResult, json_num
 from ..models import SIDES, ValveModel, signed_power
 from ..models.valve import MIN_DP_MPA, SEAT_LEAK_KEY
@@ -176,6 +177,10 @@ class SideFit:
         [% of the flow], criteria, and the reason when untested
     success, message : whether the fit worked; why not, or notes (the
         lack-of-fit sentence when flagged)
+
+    :meth:`estimates` gives z0 and C as the package's one estimate type
+    (:class:`~seanv_analysis.estimate.Estimate`); the JSON and
+    ``FlowFit.to_frame()`` are made from them.
     """
 
     side: str
@@ -200,11 +205,32 @@ class SideFit:
     lack_of_fit_p: float = math.nan
     lack_of_fit_detail: dict = field(default_factory=dict)
 
+    def estimates(self) -> Estimates:
+        """z0 and C of the side (names '<side>.z0', '<side>.C') as
+        :class:`~seanv_analysis.estimate.Estimate`: the value of the fit's
+        procedure, its standard error (the procedure's covariance; NaN when
+        singular), the 95 % interval (:attr:`z0_ci95`, :attr:`c_ci95`)."""
+        est = self.joint if self.procedure == "joint" else self.two_step
+        method = (f"{self.procedure.replace('_', '-')} fit of eq. (5)"
+                  + (f"; intervals: {self.ci_method}" if self.ci_method else ""))
+        by = f"{self.n_runs} flow steps of the {self.side} side"
+        out = []
+        for q, value, se, ci in (("z0", self.z0_mm, est.get("z0_se_mm", math.nan), self.z0_ci95),
+                                 ("C", self.c_flow, est.get("c_se", math.nan), self.c_ci95)):
+            source = "identified" if math.isfinite(value) else "not_estimated"
+            out.append(Estimate(f"{self.side}.{q}", value, UNITS["z0_mm" if q == "z0" else C_KEY],
+                                tuple(ci), float(se if se is not None else math.nan),
+                                method=method, constrained_by=by, source=source,
+                                note="" if self.success else self.message))
+        return Estimates.of(out)
+
     def to_json_dict(self) -> dict[str, Any]:
-        """The ``--json`` contract for one side (NaN -> null)."""
-        return {"z0_mm": json_num(self.z0_mm), C_KEY: json_num(self.c_flow),
-                "z0_ci95_mm": [json_num(v) for v in self.z0_ci95],
-                "C_ci95" + C_KEY[1:]: [json_num(v) for v in self.c_ci95],
+        """The ``--json`` contract for one side (NaN -> null); z0 and C are
+        :meth:`estimates`' ``key`` and ``ci95_key``."""
+        z0, c = self.estimates().values()
+        return {z0.key: json_num(z0.value), c.key: json_num(c.value),
+                z0.ci95_key: [json_num(v) for v in z0.ci95],
+                c.ci95_key: [json_num(v) for v in c.ci95],
                 "rmse_mm3_s": json_num(self.rmse_mm3_s), "n_runs": int(self.n_runs),
                 "lack_of_fit": None if self.lack_of_fit is None else bool(self.lack_of_fit),
                 "lack_of_fit_ratio": json_num(self.lack_of_fit_ratio),
@@ -267,33 +293,9 @@ def _clean(d: dict) -> dict:
     return {k: (json_num(v) if isinstance(v, float) else v) for k, v in d.items()}
 
 
-@dataclass(frozen=True)
-class Parameter:
-    """One fitted number of a :class:`FlowFit`, as lmfit gives it:
-    ``fit.params["supply.C"].value / .stderr / .ci95``.
-
-    Attributes
-    ----------
-    name : '<side>.z0' or '<side>.C'
-    value : the estimate (of the fit's procedure, joint or two-step)
-    stderr : its standard error (1 sigma, from the procedure's covariance;
-        NaN when singular)
-    ci95 : the 95 % interval of the fit (bootstrap over conditions plus the
-        calibration terms, ``SideFit.z0_ci95`` / ``c_ci95``): use it for
-        statements, ``stderr`` for a quick look
-    unit : 'mm' (z0) or 'mm^3/(s deg^2 MPa^0.5)' (C)
-    """
-
-    name: str
-    value: float
-    stderr: float
-    ci95: tuple[float, float]
-    unit: str
-
-    def __repr__(self) -> str:
-        lo, hi = self.ci95
-        return (f"<Parameter {self.name} = {self.value:.6g} {self.unit} (stderr "
-                f"{self.stderr:.2g}, 95 % [{lo:.6g}, {hi:.6g}])>")
+#: ``fit.params[name]``'s type: the package's one estimate type (kept
+#: under lmfit's name)
+Parameter = Estimate
 
 
 @dataclass
@@ -354,18 +356,21 @@ class FlowFit(JsonResult):
         return str(self.settings.get("flow_method", ""))
 
     @property
-    def params(self) -> dict[str, Parameter]:
+    def params(self) -> Estimates:
         """The fitted numbers by name, as lmfit's ``result.params``:
         ``'supply.z0'``, ``'supply.C'``, ``'drain.z0'``, ``'drain.C'`` (the
-        sides fitted), each a :class:`Parameter` (value, stderr, ci95, unit)."""
-        out: dict[str, Parameter] = {}
-        for side, f in self.sides.items():
-            est = f.joint if f.procedure == "joint" else f.two_step
-            out[f"{side}.z0"] = Parameter(f"{side}.z0", f.z0_mm,
-                                          float(est.get("z0_se_mm", math.nan)),
-                                          tuple(f.z0_ci95), UNITS["z0_mm"])
-            out[f"{side}.C"] = Parameter(f"{side}.C", f.c_flow, float(est.get("c_se", math.nan)),
-                                         tuple(f.c_ci95), UNITS[C_KEY])
+        sides fitted, :meth:`SideFit.estimates`) and the seat leakage's
+        conductance ``'leakage.g'`` (unless ``leakage='none'``; in
+        ``to_dict()``'s ``seat_leakage``, not in the ``--json`` contract), each an
+        :class:`~seanv_analysis.estimate.Estimate` (value, stderr, ci95,
+        unit, method, constrained_by, source); ``params.to_frame()`` is
+        their table, ``to_frame()`` and the JSON give the same numbers under
+        each estimate's ``key``."""
+        out = Estimates()
+        for f in self.sides.values():
+            out.update(f.estimates())
+        if self.settings.get("leakage", "fit") != "none":
+            out["leakage.g"] = self.leakage.estimate()
         return out
 
     def eval(self, theta_deg, dp_mpa, side: str, *, p1_mpa=None) -> np.ndarray:
@@ -406,11 +411,11 @@ class FlowFit(JsonResult):
         their 95 % intervals (``z0_ci95_lo_mm``, ``z0_ci95_hi_mm``,
         ``C_ci95_lo_mm3_s_deg2_sqrtMPa``...), rmse_mm3_s, n_runs, status."""
         rows = []
-        c_lo, c_hi = ("C_ci95_lo" + C_KEY[1:], "C_ci95_hi" + C_KEY[1:])
         for side, f in self.sides.items():
-            rows.append({"side": side, "z0_mm": f.z0_mm, "z0_ci95_lo_mm": f.z0_ci95[0],
-                         "z0_ci95_hi_mm": f.z0_ci95[1], C_KEY: f.c_flow, c_lo: f.c_ci95[0],
-                         c_hi: f.c_ci95[1], "rmse_mm3_s": f.rmse_mm3_s, "n_runs": f.n_runs,
+            row: dict[str, Any] = {"side": side}
+            for e in f.estimates().values():
+                row.update(e.wide_items())
+            rows.append({**row, "rmse_mm3_s": f.rmse_mm3_s, "n_runs": f.n_runs,
                          "status": f.status})
         return pd.DataFrame(rows).set_index("side")
 
@@ -437,7 +442,9 @@ class FlowFit(JsonResult):
         return {"sides": {s: f.to_dict() for s, f in self.sides.items()},
                 "excluded": self.to_json_dict()["excluded"], "units": dict(UNITS),
                 "success": self.success, "message": self.message, "warnings": self.warnings,
-                "settings": self.settings, "seat_leakage": self.leakage.to_dict(),
+                "settings": self.settings,
+                "seat_leakage": self.leakage.to_dict(
+                    modelled=self.settings.get("leakage", "fit") != "none"),
                 "per_load": json.loads(self.per_load.to_json(orient="records"))}
 
     def skipped_runs(self) -> dict[str, str]:

@@ -68,6 +68,8 @@ from typing import Any, Sequence
 import numpy as np
 from scipy import optimize, stats
 
+from ..estimate import Estimate
+from ..units import unit_of_key
 from ._threads import Stopped as _Stopped
 from ._threads import map_on_threads as _map
 from .closedloop import fit_summary, flow_sse, replay_on_twin, replay_targets, validate_on_twin, with_bulk
@@ -120,11 +122,30 @@ class DynamicFinding:
         """Drop of the held-out open-loop replay flow RMSE (what decides)."""
         return _drop(self.replay_before, self.replay_after)
 
+    @property
+    def estimate(self) -> Estimate:
+        """The candidate's value as an :class:`~seanv_analysis.estimate.Estimate`
+        named '<effect>.<parameter>' ('delay.delay_s'), in the unit its
+        parameter's name ends in; the JSON's ``value_<unit>``/``ci95_<unit>``
+        are its numbers."""
+        found = unit_of_key(self.param)
+        if found is None:
+            raise ValueError(f"dynamic candidate {self.name}: parameter {self.param!r} does not "
+                             "end in a unit of seanv_analysis.units")
+        return Estimate(f"{self.name}.{self.param}", self.value, found[1], tuple(self.ci95),
+                        method=("joint search with the line's bulk modulus on the identified "
+                                "twin replaying the logged cam command; interval: profile and "
+                                "segment bootstrap" if self.named else
+                                "joint search with the line's bulk modulus on the identified "
+                                "twin replaying the logged cam command (grid profile interval)"),
+                        constrained_by="training position-control runs")
+
     def to_json_dict(self) -> dict[str, Any]:
-        unit = self.param.rsplit("_", 1)[-1]  # 'delay_s' -> s, 'width_deg' -> deg
-        return {"name": self.name, "param": self.param, f"value_{unit}": self.value,
-                f"ci95_{unit}": list(self.ci95), "p_value": self.p_value, "named": self.named,
-                f"replay_value_{unit}": self.replay_value,
+        e = self.estimate
+        u = e.suffix  # 'delay_s' -> _s, 'width_deg' -> _deg
+        return {"name": self.name, "param": self.param, f"value{u}": e.value,
+                f"ci95{u}": list(e.ci95), "p_value": self.p_value, "named": self.named,
+                f"replay_value{u}": self.replay_value,
                 "bulk_modulus_with_effect_mpa": self.bulk_mpa,
                 "heldout_before": self.heldout_before, "heldout_after": self.heldout_after,
                 "replay_heldout_before": self.replay_before,

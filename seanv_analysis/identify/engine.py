@@ -44,6 +44,25 @@ __all__ = ["identify_rig", "PARTS", "split_runs"]
 #: the parts of the rig ``identify`` looks at, in order
 PARTS = ("geometry", "servo", "friction", "load", "flow_path")
 
+#: how each part obtains its constants (an estimate's ``method``, where the
+#: part does not say more itself)
+PART_METHODS = {
+    "supply": "logged supply pressure: a line p1 = p_0 - k Q through the supply flow steps' "
+              "steady (Q, p1) (intervals from its standard errors), else the median over "
+              "runs (bootstrap interval)",
+    "geometry": "the sealing threshold's dependence on the pressures in the flow steps "
+                "(eq. 3-4)",
+    "controller": "the controller's law read off its logged ticks",
+    "servo": "simulation error of the simulator's servo step against the logged servo "
+             "feedback (training runs)",
+    "friction": "steady force balance of the flow steps",
+    "load": "the load regulator's time constant from the load changes logged in position "
+            "control",
+    "flow_path": "the twin driven by the logged cam command: lag from valve to actuator "
+                 "flow and the line's constants by simulation error",
+    "mass": "not fitted: m a against the friction in the logged accelerations",
+}
+
 
 def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (),
                  flow_runs: Sequence[Any] = (), parts: Sequence[str] = PARTS,
@@ -82,12 +101,13 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     def take(part: str, found) -> Any:
         """Keep a part's (constants, fits, notes); the twin with its identified keys."""
         c, f, n = found
+        _say_how(c, part)
         constants.extend(c)
         fits[part] = f
         notes.extend(n)
         return current.with_overrides(nest_constants(c), where="identify")
 
-    supply = _supply_pressure(summary, position_runs, rig)
+    supply = _say_how(_supply_pressure(summary, position_runs, rig), "supply")
     if supply:
         constants.extend(supply)
         current = current.with_overrides(nest_constants(supply), where="identify")
@@ -113,13 +133,16 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
                 dz0, dc = spread.get(side, {}).get("z0", 0.0), spread.get(side, {}).get("c", 0.0)
                 how = "flowfit with the identified geometry" + (
                     ", interval widened by y_c's" if dz0 or dc else "")
+                fitted = sf.estimates()
                 added += [
                     Constant(f"valve.{side}.z0_mm", f"{side} z0", sf.z0_mm,
                              float(rig["valve"][side]["z0_mm"]), "mm", True,
-                             how, _widen(sf.z0_mm, sf.z0_ci95, dz0)),
+                             how, _widen(sf.z0_mm, sf.z0_ci95, dz0),
+                             method=fitted[f"{side}.z0"].method),
                     Constant(f"valve.{side}.c_flow", f"{side} C", sf.c_flow,
                              float(rig["valve"][side]["c_flow"]), "mm^3/(s deg^2 MPa^0.5)", True,
-                             how, _widen(sf.c_flow, sf.c_ci95, dc))]
+                             how, _widen(sf.c_flow, sf.c_ci95, dc),
+                             method=fitted[f"{side}.C"].method)]
                 continue
             # no z0 to go with a new centre: the rig file's centre stays
             for k in constants:
@@ -167,8 +190,17 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     if position_runs and {"servo", "flow_path", "friction", "load"} & set(parts):
         log("identify: closed-loop check on the training and held-out runs")
         fits.update(closed_loop_fits(train_pos, held_pos, valve, rig, current))
-    constants.append(_mass(position_runs, rig, current))
+    constants += _say_how([_mass(position_runs, rig, current)], "mass")
     return Identification(constants, current, model, fits, notes)
+
+
+def _say_how(constants: list[Constant], part: str) -> list[Constant]:
+    """``constants`` with :data:`PART_METHODS`' ``method`` of ``part`` where
+    they do not say their own (in place; returned)."""
+    for c in constants:
+        if not c.method:
+            c.method = PART_METHODS[part]
+    return constants
 
 
 def _widen(x: float, ci, half: float) -> tuple[float, float]:
@@ -229,7 +261,7 @@ def _leak_constant(leak, rig, spread: float) -> Constant:
            "sides' z0 and C" + (", interval widened by y_c's" if spread else ""))
     lo, hi = _widen(leak.conductance_mm3_s_per_mpa, leak.ci95, spread)
     return Constant(key, name, leak.conductance_mm3_s_per_mpa, default, unit, True, how,
-                    (max(lo, 0.0), hi))
+                    (max(lo, 0.0), hi), method=leak.method)
 
 
 def _mass(runs, rig, current) -> Constant:

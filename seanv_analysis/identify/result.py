@@ -12,8 +12,9 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+from ..estimate import Estimate, Estimates
 from ..jsonable import JsonResult, clean_json, json_num
-from ..units import unit_suffix
+from ..units import key_suffix, unit_suffix
 
 __all__ = ["Constant", "Identification", "json_num", "nest_constants", "suffix_of_unit"]
 
@@ -35,6 +36,11 @@ class Constant:
     note : why not identified, or anything a user should know
     confounded_with : rig keys the data cannot tell this constant apart
         from (the combination identified and which part is fixed: ``note``)
+    method : how it was obtained, where the part says more than
+        ``constrained_by`` ('' otherwise)
+
+    :attr:`estimate` is the constant as the package's one estimate type
+    (:class:`~seanv_analysis.estimate.Estimate`); the JSON is made from it.
     """
 
     key: str | None
@@ -47,6 +53,19 @@ class Constant:
     ci95: tuple[float, float] = (math.nan, math.nan)
     note: str = ""
     confounded_with: tuple[str, ...] = ()
+    method: str = ""
+
+    @property
+    def estimate(self) -> Estimate:
+        """The constant as an :class:`~seanv_analysis.estimate.Estimate`
+        named by its rig key (its name when it has none): source
+        'identified', 'rig_file' (not identified, the rig file's value
+        kept) or 'not_estimated' (a derived number the data cannot give)."""
+        source = "identified" if self.identified else ("rig_file" if self.key else
+                                                       "not_estimated")
+        return Estimate(self.key or self.name, self.value, self.unit, tuple(self.ci95),
+                        method=self.method, constrained_by=self.constrained_by, source=source,
+                        default=self.default, note=self.note)
 
     @property
     def suffix(self) -> str:
@@ -58,11 +77,11 @@ class Constant:
     def to_json_dict(self) -> dict[str, Any]:
         """``value_<unit>``, ``ci95_<unit>``, ``default_<unit>`` (every
         number's unit is the end of its key; ``unit`` says it in words)."""
-        u = self.suffix
-        return {"key": self.key, "name": self.name, f"value{u}": json_num(self.value),
-                f"ci95{u}": [json_num(v) for v in self.ci95], f"default{u}": json_num(self.default),
-                "unit": self.unit, "identified": bool(self.identified),
-                "constrained_by": self.constrained_by, "note": self.note,
+        u, e = self.suffix, self.estimate.to_json_dict()
+        return {"key": self.key, "name": self.name, f"value{u}": e[f"value{u}"],
+                f"ci95{u}": e[f"ci95{u}"], f"default{u}": e[f"default{u}"],
+                "unit": e["unit"], "identified": bool(self.identified),
+                "constrained_by": e["constrained_by"], "note": e["note"],
                 "confounded_with": list(self.confounded_with)}
 
     def line(self) -> str:
@@ -80,14 +99,8 @@ class Constant:
 
 def suffix_of_unit(unit: str) -> str:
     """Key suffix of a constant's unit: the units table's, ``'_ratio'`` for a
-    dimensionless one ('')."""
-    if not unit:
-        return "_ratio"
-    suffix = unit_suffix(unit)
-    if suffix is None:
-        raise ValueError(f"unit: {unit!r} has no key suffix in seanv_analysis.units."
-                         "UNIT_SUFFIXES; add it there")
-    return suffix
+    dimensionless one ('') (:func:`seanv_analysis.units.key_suffix`)."""
+    return key_suffix(unit)
 
 
 def nest_constants(constants) -> dict[str, Any]:
@@ -131,6 +144,15 @@ class Identification(JsonResult):
     def identified(self) -> list[Constant]:
         return [c for c in self.constants if c.identified and c.key]
 
+    @property
+    def params(self) -> Estimates:
+        """Every constant looked at as an
+        :class:`~seanv_analysis.estimate.Estimate`, by rig key (by name for
+        a derived number with no key), as lmfit's ``result.params``;
+        ``params.to_frame()`` is their table. A key given twice keeps the
+        later constant, as the identified rig does (:func:`nest_constants`)."""
+        return Estimates((e.name, e) for e in (c.estimate for c in self.constants))
+
     def overrides(self) -> dict[str, Any]:
         """Nested {section: {key: value}} of the identified constants (rig-file schema)."""
         return nest_constants(self.constants)
@@ -164,14 +186,14 @@ class Identification(JsonResult):
 
     def to_frame(self):
         """One row per constant (a long table: each row's numbers are in its
-        ``unit``): key, value, 95 % interval (ci95_lo, ci95_hi), rig-file
-        default, unit, identified, what constrains it."""
-        import pandas as pd
-
-        return pd.DataFrame([{"key": c.key, "value": c.value, "ci95_lo": c.ci95[0],
-                              "ci95_hi": c.ci95[1], "default": c.default, "unit": c.unit,
-                              "identified": c.identified, "constrained_by": c.constrained_by}
-                             for c in self.constants])
+        ``unit``): key, identified, then :attr:`params`' table (name, value,
+        95 % interval ci95_lo/ci95_hi, stderr, rig-file default, unit,
+        source, method, what constrains it, note)."""
+        frame = Estimates.frame_of(c.estimate for c in self.constants)
+        frame.insert(0, "key", [c.key for c in self.constants])
+        frame.insert(frame.columns.get_loc("unit") + 1, "identified",
+                     [bool(c.identified) for c in self.constants])
+        return frame
 
     def __repr__(self) -> str:
         return (f"<Identification: {len(self.identified())}/{len(self.constants)} constants "

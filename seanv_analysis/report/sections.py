@@ -346,13 +346,13 @@ def discovery_section(r) -> str:
 
 
 def _param_units(effect) -> dict[str, str]:
-    """{parameter: unit} of an effect's parameters, from its JSON form
-    (``params_units``; empty when it has none)."""
+    """{parameter: unit} of an effect's parameters, from its estimates
+    (:attr:`~seanv_analysis.discover.result.EffectFinding.estimates`; empty
+    when it has none)."""
     try:
-        units = effect.to_json_dict().get("params_units") or {}
-    except (AttributeError, TypeError):
+        return {e.quantity: e.unit for e in effect.estimates.values()}
+    except (AttributeError, TypeError, ValueError):
         return {}
-    return {str(k): str(v) for k, v in units.items()}
 
 
 def _effect_params(effect) -> str:
