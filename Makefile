@@ -28,7 +28,10 @@ demo: $(STAMP)
 	$(PY) -m seanv_analysis.demo --started-at $(MAKE_STARTED) --installed-at $(STAMP)
 
 # two pytest-xdist workers (the 2-core machine): about 12 CPU-minutes of tests
-# (most of it closed-loop identification) in about 6 min
+# (most of it closed-loop identification and discovery) in about 6 min. One
+# seed per case here; the multi-seed acceptance sweeps and their rates are
+# make bench's (benchmarks/bench_discover.py, bench_identify.py,
+# bench_coverage.py)
 TEST_WORKERS ?= 2
 
 # --dist loadfile: a test module's fixtures (foreign-rig data sets, identify

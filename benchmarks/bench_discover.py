@@ -22,6 +22,13 @@
    numba's on-disk cache and is not counted; medians of ``COMMAND_REPEATS``
    rounds and the 1-minute load average before and after.
 
+4. Seed sweeps moved out of ``make test`` (issue 35; the tests keep one
+   seed each): the load-stepped protocol of ``tests/test_discover_engine.py``
+   (C growing with the load must not be named as wear; a real drain drift
+   must be named) over 8 seeds, and the clean foreign-rig flow steps of
+   ``tests/test_discover_terms.py`` (no term proposed) over 6 seeds; the rate
+   of seeds that hold the test's assertion.
+
 ``SEANV_BENCH_QUICK=1`` runs one seed per case (a smoke run).
 ``python -m benchmarks.bench_discover commands``: only part 3.
 """
@@ -93,6 +100,71 @@ def _matrix(seeds, clean_seeds):
     jobs += [("none", "", "", s) for s in clean_seeds]
     with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         return list(pool.map(_one, jobs))
+
+
+def _engine_one(args) -> dict:
+    """tests/test_discover_engine.py's load-stepped protocol at one seed: C
+    growing with the load (no drift or threshold shift may be named) and a
+    real drain drift (must be named, held-out RMSE down >= 30 %)."""
+    seed, case = args
+    from seanv_analysis.discover import discover_flow_steps
+
+    from . import tests_module
+
+    T = tests_module("test_discover_engine")
+    if case == "load_dependence":
+        d = discover_flow_steps(T.load_stepped_summary(seed, c_per_mpa=0.4), model=T.MODEL, seed=seed)
+        return {"case": case, "seed": seed,
+                "ok": not {e.name for e in d.effects} & {"drift", "threshold_shift"},
+                "named": [(e.name, e.side) for e in d.effects]}
+    d = discover_flow_steps(T.load_stepped_summary(seed, drift_step=0.02), model=T.MODEL, seed=seed)
+    return {"case": case, "seed": seed,
+            "ok": (("drift", "drain") in {(e.name, e.side) for e in d.effects}
+                   and d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s),
+            "named": [(e.name, e.side) for e in d.effects]}
+
+
+def _terms_clean_one(seed: int) -> dict:
+    """tests/test_discover_terms.py's clean foreign flow steps at one seed:
+    no term proposed, verdict none."""
+    from seanv_analysis.api import load_dataset
+    from seanv_analysis.discover import discover_flow_steps
+    from seanv_analysis.models import ValveModel
+
+    from . import tests_module
+
+    fr = tests_module("foreign_rig")
+    T = tests_module("test_discover_terms")
+    with tempfile.TemporaryDirectory() as tmp:
+        fr.write_flowsteps(Path(tmp), plan=T.PLAN, seed=seed, truth=fr.ForeignTruth())
+        ds = load_dataset(Path(tmp))
+        d = discover_flow_steps(ds.summary, model=ValveModel.from_rig(ds.rig), seed=0)
+    return {"seed": seed, "verdict": d.verdict,
+            "proposed_term": d.proposed_term and d.proposed_term.spec,
+            "ok": d.verdict == "none" and d.proposed_term is None}
+
+
+def _seed_sweeps(quick: bool) -> dict:
+    """The multi-seed sweeps moved out of ``make test`` (issue 35), which keeps
+    one seed of each: the load-stepped protocol of test_discover_engine.py
+    (seeds 0-7; seed 0 in the tests) and the clean foreign flow steps of
+    test_discover_terms.py (seeds 0-5; seed 0 in the tests). Rates of cases
+    that hold the tests' assertion."""
+    seeds = range(2) if quick else range(8)
+    clean = range(2) if quick else range(6)
+    with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        eng = list(pool.map(_engine_one, [(s, c) for c in ("load_dependence", "drift_with_loads")
+                                          for s in seeds]))
+        terms = list(pool.map(_terms_clean_one, clean))
+    out = {}
+    for case in ("load_dependence", "drift_with_loads"):
+        r = [x for x in eng if x["case"] == case]
+        out[f"engine_{case}"] = {"seeds": len(r), "rate": sum(x["ok"] for x in r) / len(r),
+                                 "misses": [(x["seed"], x["named"]) for x in r if not x["ok"]]}
+    out["terms_clean_foreign"] = {"seeds": len(terms),
+                                  "none_rate": sum(x["ok"] for x in terms) / len(terms),
+                                  "misses": [x for x in terms if not x["ok"]]}
+    return out
 
 
 def _hour_of_logs(root: Path) -> Path:
@@ -224,6 +296,7 @@ def main() -> dict:
     out["clean_cases"] = len(c)
     out["clean_misses"] = [(x["seed"], x["verdict"], x["found"], x["proposed_term"]) for x in c
                            if x["verdict"] != "none" or x["proposed_term"]]
+    out["seed_sweeps"] = _seed_sweeps(quick)
 
     from seanv_analysis.stages import run_stages
 

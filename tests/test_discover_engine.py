@@ -179,18 +179,21 @@ def test_load_dependence_is_not_passed_off_as_wear():
     """C that grows with the load, loads stepped up with time: the residual
     trends with run order, but within a load run order explains nothing.
     The run-order candidates are tested by permuting the order within each
-    load; scattering the residuals (as before) named a drift in 2 of 4 seeds."""
-    for seed in range(2):   # 4 before the suite's budget; 2 in 4 named a drift then
-        d = discover_flow_steps(load_stepped_summary(seed, c_per_mpa=0.4), model=MODEL, seed=seed)
-        named = {e.name for e in d.effects}
-        assert not named & {"drift", "threshold_shift"}, (seed, d.report())
+    load; scattering the residuals (as before) named a drift in 2 of 4 seeds.
+    One seed here; the rate over 8 seeds (seed 1, checked here before, among
+    them) is benchmarks/bench_discover.py's ``engine_load_dependence``."""
+    seed = 0
+    d = discover_flow_steps(load_stepped_summary(seed, c_per_mpa=0.4), model=MODEL, seed=seed)
+    named = {e.name for e in d.effects}
+    assert not named & {"drift", "threshold_shift"}, (seed, d.report())
 
 
 def test_drift_still_named_when_loads_step_with_time():
-    for seed in range(2):
-        d = discover_flow_steps(load_stepped_summary(seed, drift_step=0.02), model=MODEL, seed=seed)
-        assert ("drift", "drain") in {(e.name, e.side) for e in d.effects}, d.report()
-        assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
+    """One seed here; the rate over 8 seeds (seed 1, checked here before,
+    among them) is benchmarks/bench_discover.py's ``engine_drift_with_loads``."""
+    d = discover_flow_steps(load_stepped_summary(0, drift_step=0.02), model=MODEL, seed=0)
+    assert ("drift", "drain") in {(e.name, e.side) for e in d.effects}, d.report()
+    assert d.rmse_after_mm3_s <= 0.7 * d.rmse_before_mm3_s
 
 
 @settings(max_examples=60, deadline=None)

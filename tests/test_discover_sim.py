@@ -45,10 +45,12 @@ def test_static_effect_is_named_and_heldout_error_drops(spec, name, side):
 
 
 def test_clean_data_says_none():
-    for seed in (0, 1):
-        res = discover_sim(["paper-flowsteps"], seed=seed)
-        assert res.verdict == "none", res.report()
-        assert res.effects == []
+    """One clean seed here; the false-alarm rate over 20 clean seeds (seed 1,
+    checked here before, among them) is benchmarks/bench_discover.py's
+    ``clean_none_rate`` (make bench)."""
+    res = discover_sim(["paper-flowsteps"], seed=0)
+    assert res.verdict == "none", res.report()
+    assert res.effects == []
 
 
 def test_paper_drain_drift_every_three_runs():

@@ -38,7 +38,7 @@ CASES = {"choke": (1, ForeignTruth(dp_choke=CHOKE)),
          "leak": (0, ForeignTruth(pressure_leak=LEAK)),
          "load_c": (0, ForeignTruth(load_c=LOAD_C)),
          "approach": (1, ForeignTruth(approach_threshold=SHIFT, approach_overshoot_deg=1.5)),
-         "clean0": (0, ForeignTruth()), "clean2": (2, ForeignTruth())}
+         "clean0": (0, ForeignTruth())}   # clean seeds 0-5: benchmarks/bench_discover.py
 
 
 @pytest.fixture(scope="module")
@@ -133,8 +133,10 @@ def test_load_dependent_c_gets_a_term_beyond_the_pressure_law_it_resembles(found
 
 
 def test_clean_data_get_no_proposal(found):
-    for name in ("clean0", "clean2"):
-        assert found[name].proposed_term is None and found[name].verdict == "none"
+    """One clean seed here; the rate over seeds 0-5 (seed 2, checked here
+    before, among them) is benchmarks/bench_discover.py's
+    ``terms_clean_foreign``."""
+    assert found["clean0"].proposed_term is None and found["clean0"].verdict == "none"
 
 
 def test_json_schema_report_and_augmented_model(found):
@@ -168,7 +170,8 @@ def test_the_figure_shows_the_residual_with_the_term(found, tmp_path):
 
 
 def test_the_discover_command_writes_the_proposal(folders, found, tmp_path):
-    doc = run_cli("discover", folders["choke"], "--out", tmp_path / "out", "--json", "-q")
+    doc = run_cli("discover", folders["choke"], "--out", tmp_path / "out", "--json", "-q",
+                  "--no-figures")  # the figure: test_the_figure_shows_the_residual_with_the_term
     check_schema("discover", doc)
     assert doc["verdict"] == "unexplained"
     assert doc["proposed_term"]["spec"] == found["choke"].proposed_term.spec

@@ -98,7 +98,7 @@ def test_tracking_finds_the_pure_delay(foreign):
 def test_discover_says_none_on_clean_flow_steps(foreign):
     root, truth = foreign
     doc = run_cli("discover", root / "data" / "flow", "--out", root / "out" / "discover",
-                  "--json")
+                  "--json", "--no-figures")
     assert doc["verdict"] == "none", doc
     assert doc["effects"] == []
 
@@ -106,7 +106,7 @@ def test_discover_says_none_on_clean_flow_steps(foreign):
 def test_discover_finds_a_drain_drift(tmp_path):
     truth = ForeignTruth(drift=DRIFT)
     write_flowsteps(tmp_path / "flow", plan=PLAN, seed=4, truth=truth)
-    doc = run_cli("discover", tmp_path / "flow", "--out", tmp_path / "out", "--json")
+    doc = run_cli("discover", tmp_path / "flow", "--out", tmp_path / "out", "--json", "--no-figures")
     assert doc["verdict"] == "effect_found", doc
     drift = [e for e in doc["effects"] if e["name"] == "drift"]
     assert drift and drift[0]["side"] == "drain", doc["effects"]
@@ -123,7 +123,7 @@ def test_discover_says_unexplained_for_an_effect_it_has_no_name_for(tmp_path):
     'unexplained' with run_index named, not 'none' and not a wrong effect."""
     truth = ForeignTruth(c_modulation={"amplitude": 0.08, "period_runs": 30})
     write_flowsteps(tmp_path / "flow", plan=PLAN, seed=1, truth=truth)
-    doc = run_cli("discover", tmp_path / "flow", "--out", tmp_path / "out", "--json")
+    doc = run_cli("discover", tmp_path / "flow", "--out", tmp_path / "out", "--json", "--no-figures")
     assert doc["verdict"] == "unexplained", doc
     assert doc["trend_variable"] == "run_index"
 

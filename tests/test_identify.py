@@ -260,7 +260,7 @@ def test_discover_does_not_blame_the_unknown_geometry(foreign_own):
     discover fits the centre as part of its base model and names no effect."""
     root, _, _ = foreign_own
     res = CliRunner().invoke(cli, ["discover", str(root / "flow"), "--out", str(root / "disc"),
-                                   "--json"])
+                                   "--json", "--no-figures"])
     assert res.exit_code == 0, res.output
     doc = json.loads(res.stdout)
     assert doc["verdict"] == "none", doc
