@@ -240,6 +240,7 @@ def _shared_once(tmp_path_factory, name: str):
         done = marker.is_file()
         yield folder, done
         if not done:
+            folder.mkdir(parents=True, exist_ok=True)   # (nothing made: still done)
             marker.write_text("")
 
 
