@@ -141,7 +141,9 @@ def _stribeck_choice(v, f, pick, static_n: float, linear: dict, start_vs: float,
         try:
             fit = fit_stribeck(vt, ft, static_n, (linear["coulomb_n"],
                                                    linear["viscous_n_s_per_mm"], vs0))
-        except (ValueError, FloatingPointError):
+        except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+            continue
+        if not math.isfinite(fit["rss_n2"]):
             continue
         if best is None or fit["rss_n2"] < best["rss_n2"]:
             best = fit
@@ -171,8 +173,15 @@ def _stribeck_choice(v, f, pick, static_n: float, linear: dict, start_vs: float,
                        "viscous_n_s_per_mm": linear["viscous_n_s_per_mm"],
                        "stribeck_velocity_mm_s": vs}
             else:
-                alt = fit_stribeck(vt, ft, end, (best["coulomb_n"], best["viscous_n_s_per_mm"],
-                                                 vs))
+                try:
+                    alt = fit_stribeck(vt, ft, end, (best["coulomb_n"],
+                                                     best["viscous_n_s_per_mm"], vs))
+                except (ValueError, FloatingPointError, np.linalg.LinAlgError):
+                    alt = {}
+                if not all(math.isfinite(alt.get(k, math.nan)) for k in
+                           ("coulomb_n", "viscous_n_s_per_mm", "stribeck_velocity_mm_s")):
+                    best["vs_bounded"] = False      # the edge cannot be fitted: not bounded
+                    continue
             for key, ci in (("coulomb_n", "coulomb_ci95"), ("viscous_n_s_per_mm", "viscous_ci95"),
                             ("stribeck_velocity_mm_s", "stribeck_ci95")):
                 best[ci] = (min(best[ci][0], alt[key]), max(best[ci][1], alt[key]))
