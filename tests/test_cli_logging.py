@@ -33,8 +33,10 @@ def flow(tmp_path, make_dataset):
 
 
 def _flowfit(flow, tmp_path, *extra):
+    # (no figures: what is checked is the log and the JSON; drawing them
+    # four times was 30 s of the suite)
     return CliRunner().invoke(cli, ["flowfit", str(flow), "--out", str(tmp_path / "out"),
-                                    "--n-boot", "0", "--json", *extra])
+                                    "--n-boot", "0", "--json", "--no-figures", *extra])
 
 
 def test_steps_on_stderr_with_verbose_none_by_default_when_piped(flow, tmp_path):
