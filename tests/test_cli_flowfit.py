@@ -99,7 +99,8 @@ def test_bad_run_exit_1_results_still_written(dataset, tmp_path):
 
     data = tmp_path / "data"
     shutil.copytree(dataset, data)
-    clean = json.loads(invoke(data, "--out", tmp_path / "clean", "--json", "--n-boot", 0).stdout)
+    clean = json.loads(invoke(data, "--out", tmp_path / "clean", "--json", "--n-boot", 0,
+                              "--no-figures").stdout)
     bad = data / "supply-l0.3-c0.0"
     (bad / "encoder.csv").unlink()
     out = tmp_path / "out"
@@ -126,12 +127,12 @@ def test_no_data_uses_builtin(monkeypatch, dataset, tmp_path):
 
     calls = []
     monkeypatch.setattr(cmd, "sim_default_dataset", lambda name: calls.append(name) or dataset)
-    res = invoke("--out", tmp_path, "--n-boot", 0)
+    res = invoke("--out", tmp_path, "--n-boot", 0, "--no-figures")
     assert res.exit_code == 0, res.output
     assert calls == ["paper-flowsteps"]
     first = res.stdout.splitlines()[0]
     assert first.startswith("no DATA given: using the built-in simulated data set")
-    res = invoke("--out", tmp_path, "--n-boot", 0, "--json")  # stdout stays pure JSON
+    res = invoke("--out", tmp_path, "--n-boot", 0, "--json", "--no-figures")  # pure JSON
     assert json.loads(res.stdout)["units"]["z0_mm"] == "mm"
 
 
