@@ -95,6 +95,7 @@ def test_a_figure_that_fails_on_a_worker_is_a_note_and_the_others_are_drawn(posi
     from seanv_analysis.batch.executor import Executor
 
     bad = sorted(position_ctx.run_dirs)[0]
+    position_ctx.result_named("position_runs")   # read once, as a run's ingest has them
     ctx = SimpleNamespace(**{k: getattr(position_ctx, k) for k in ("rig", "log", "result",
                                                                      "result_named",
                                                                      "map_runs")})

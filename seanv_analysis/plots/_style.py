@@ -9,6 +9,7 @@ figures drawn in worker threads do not share pyplot's global state.
 """
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -17,6 +18,26 @@ from typing import Any
 import numpy as np
 
 from ..io.atomic import atomic_path
+
+
+def _forget_fonts_after_fork() -> None:
+    """In a forked child: drop the parsed math-text labels, which hold the
+    parent's open FreeType faces (matplotlib drops its font cache itself,
+    not these, and the wider cache of :func:`_widen_mathtext_cache` kept
+    them across every fork). Sibling workers drawing with one inherited
+    face read its file through one shared offset: 'FT_Load_Glyph ...
+    invalid outline' / 'too many hints' on a worker, in 1 to 4 of 5 runs of
+    tests/test_figures_parallel.py."""
+    import sys
+
+    mathtext = sys.modules.get("matplotlib.mathtext")
+    clear = getattr(getattr(mathtext, "MathTextParser", None), "_parse_cached", None)
+    if clear is not None and hasattr(clear, "cache_clear"):
+        clear.cache_clear()      # matplotlib's lru cache, or the wider one here
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_fonts_after_fork)
 
 __all__ = ["paper_style", "warm_up", "trace", "TRACE_PIXELS", "thin", "align_ylabels", "shade_high_load", "shade_loads", "high_load_spans",
            "legend_outside", "new_figure", "check_formats", "save_figure", "DEFAULT_FORMATS",
@@ -93,6 +114,7 @@ def _widen_mathtext_cache() -> None:
         return by_output_type(self._output_type, s, dpi, prop, antialiased, load_glyph_flags)
 
     shared.cache_info = by_output_type.cache_info
+    shared.cache_clear = by_output_type.cache_clear    # (a forked child: see below)
     mathtext.MathTextParser._parse_cached = shared
 
 
