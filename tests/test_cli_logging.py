@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+from contextlib import contextmanager
 
 import pytest
 from click.testing import CliRunner
@@ -75,10 +76,12 @@ def test_library_calls_print_nothing_until_configured(flow, capsys):
         logger.handlers[:], logger.level, logger.propagate = saved
 
 
-def test_steps_shown_by_default_on_a_terminal(monkeypatch):
+@contextmanager
+def _fake_terminal(monkeypatch):
+    """stderr replaced by a StringIO that says it is a terminal (CI unset);
+    the package logger's handlers and level put back afterwards. Entered in
+    the test's body: pytest sets its own stderr capture after the fixtures."""
     import io
-
-    from seanv_analysis import log
 
     class Tty(io.StringIO):
         def isatty(self):
@@ -90,12 +93,19 @@ def test_steps_shown_by_default_on_a_terminal(monkeypatch):
     logger = logging.getLogger("seanv_analysis")
     saved = (list(logger.handlers), logger.level, logger.propagate)
     try:
+        yield tty
+    finally:
+        logger.handlers[:], logger.level, logger.propagate = saved
+
+
+def test_steps_shown_by_default_on_a_terminal(monkeypatch):
+    from seanv_analysis import log
+
+    with _fake_terminal(monkeypatch) as tty:
         assert log.configure() == logging.INFO
         logging.getLogger("seanv_analysis.stages").info("a step")
         assert tty.getvalue() == "a step\n"
         assert log.configure(quiet=True) == logging.WARNING
-    finally:
-        logger.handlers[:], logger.level, logger.propagate = saved
 
 
 def _in_a_terminal(argv, *, until: str | None = None, timeout_s: float = 120.0):
@@ -211,28 +221,15 @@ def test_simulate_and_ingest_draw_bars_on_a_terminal(flow, tmp_path):
 def test_the_compile_is_announced_on_a_terminal_beside_a_bar(monkeypatch, tmp_path):
     """The first simulation compiles the simulator (10-30 s): said on a
     terminal as it starts and ends, clearing a bar that is drawn."""
-    import io
-
     from seanv_analysis import log
     from seanv_analysis.sim import compiled
 
-    class Tty(io.StringIO):
-        def isatty(self):
-            return True
-
-    tty = Tty()
-    monkeypatch.setattr("sys.stderr", tty)
-    monkeypatch.delenv("CI", raising=False)
     monkeypatch.setattr(compiled, "build_aot", lambda path: path.write_bytes(b"x"))
-    logger = logging.getLogger("seanv_analysis")
-    saved = (list(logger.handlers), logger.level, logger.propagate)
-    try:
+    with _fake_terminal(monkeypatch) as tty:
         log.configure()
         with log.progress(total=3, desc="paper-flowsteps") as bar:
             bar.update()
             compiled._build_once(tmp_path / "aot" / "module.so")
         text = tty.getvalue()
-        assert "compiling the simulator ahead of time, once for this version" in text
-        assert "compiled the simulator in" in text and "paper-flowsteps" in text
-    finally:
-        logger.handlers[:], logger.level, logger.propagate = saved
+    assert "compiling the simulator ahead of time, once for this version" in text
+    assert "compiled the simulator in" in text and "paper-flowsteps" in text
