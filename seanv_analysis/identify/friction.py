@@ -73,15 +73,21 @@ def fit_friction(v_mm_s, f_net_n) -> dict[str, Any]:
     sol = least_squares(fun, x0, loss="soft_l1", f_scale=2.0)
     dof = max(v.size - 2, 1)
     s2 = float(np.sum(sol.fun ** 2)) / dof
-    try:
-        cov = np.linalg.inv(sol.jac.T @ sol.jac) * s2
-        half = 1.96 * np.sqrt(np.maximum(np.diag(cov), 0.0))
-    except np.linalg.LinAlgError:
-        half = np.array([math.nan, math.nan])
+    half = _half_widths_95(sol.jac, s2)
     return {"coulomb_n": float(sol.x[0]), "viscous_n_s_per_mm": float(sol.x[1]),
             "coulomb_ci95": (float(sol.x[0] - half[0]), float(sol.x[0] + half[0])),
             "viscous_ci95": (float(sol.x[1] - half[1]), float(sol.x[1] + half[1])),
             "rmse_n": float(np.sqrt(np.mean((A @ sol.x - f) ** 2)))}
+
+
+def _half_widths_95(jac: np.ndarray, s2: float) -> np.ndarray:
+    """Half-widths of the 95 % intervals of a least-squares fit's parameters
+    from its Jacobian ``jac`` (residuals in their own units) and residual
+    variance ``s2``; NaN when J^T J is singular."""
+    try:
+        return 1.96 * np.sqrt(np.maximum(np.diag(np.linalg.inv(jac.T @ jac) * s2), 0.0))
+    except np.linalg.LinAlgError:
+        return np.full(jac.shape[1], math.nan)
 
 
 def fit_stribeck(v_mm_s, f_net_n, static_n: float, start: tuple[float, float, float]
@@ -105,10 +111,7 @@ def fit_stribeck(v_mm_s, f_net_n, static_n: float, start: tuple[float, float, fl
     res = model(sol.x) - f
     s2 = float(np.sum(res ** 2)) / max(v.size - 3, 1)
     jac = sol.jac * scale
-    try:
-        half = 1.96 * np.sqrt(np.maximum(np.diag(np.linalg.inv(jac.T @ jac) * s2), 0.0))
-    except np.linalg.LinAlgError:
-        half = np.full(3, math.nan)
+    half = _half_widths_95(jac, s2)
     vs = math.exp(sol.x[2])
     return {"coulomb_n": float(sol.x[0]), "viscous_n_s_per_mm": float(sol.x[1]),
             "stribeck_velocity_mm_s": vs,
