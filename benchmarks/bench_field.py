@@ -155,6 +155,11 @@ def main() -> dict:
             out["sets"][name] = row
     cov = [c["covers"] for s in out["coverage"].values() for c in s.values()]
     out["coverage_rate"] = sum(cov) / len(cov) if cov else math.nan
+    # each set's undeclared effects named, and nothing else, by both commands
+    out["confusion_ok"] = {
+        name: {key: sorted(map(tuple, c[f"named_{key}"])) == sorted(map(tuple, c["injected"]))
+               for key in ("discover", "discover_identify")}
+        for name, c in out["confusion"].items()}
     out["no_traceback"] = all(not r[k]["traceback"] and not r[k]["internal_error"]
                               for r in out["sets"].values()
                               for k in ("discover", "discover_identify", "identify", "run_paper"))
