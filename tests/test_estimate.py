@@ -179,12 +179,17 @@ def test_identification_params_frame_and_json_agree():
     for c, e, (_, row) in zip(doc["constants"], p.values(), frame.iterrows()):
         u = e.suffix
         rec = json.loads(dumps(e.to_json_dict()))
-        assert (c["key"] or c["name"]) == e.name == row["name"]
+        assert c["name"] == (c["key"] or c["label"]) == e.name == row["name"]
+        assert c["label"] == row["label"]
         for k in ("value", "ci95", "default"):
             assert c[f"{k}{u}"] == rec[f"{k}{u}"]
         assert [json_num(row["value"]), json_num(row["ci95_lo"]), json_num(row["ci95_hi"])] == \
             [rec[f"value{u}"], *rec[f"ci95{u}"]]
         assert c["unit"] == e.unit == row["unit"] and c["identified"] == row["identified"]
+        # how each was obtained: identified, or kept from the rig file
+        for k in ("source", "method", "constrained_by", "note"):
+            assert c[k] == rec[k] == row[k]
+    assert [c["source"] for c in doc["constants"]][:2] == ["identified", "rig_file"]
     assert list(frame.columns[:2]) == ["key", "name"] and "identified" in frame
     check_schema("identify", {**doc, "identified_keys": [], "not_separable": [], "notes": []})
 
