@@ -116,6 +116,7 @@ def flow_fit():
 
 def test_flowfit_params_frame_and_json_agree(flow_fit):
     from seanv_analysis.fit import Parameter
+    from seanv_analysis.fit.flowfit import C_KEY
 
     p = flow_fit.params
     check_params(p)
@@ -138,6 +139,16 @@ def test_flowfit_params_frame_and_json_agree(flow_fit):
         assert e.identified and e.has_interval and math.isfinite(e.stderr)
         assert "fit of eq. (5)" in e.method and "flow steps" in e.constrained_by
     check_schema("flowfit", doc)
+    # flowfit_details.json: both procedures under the estimates' keys
+    details = json.loads(dumps(flow_fit.to_dict()))
+    for side, f in flow_fit.sides.items():
+        for procedure in ("joint", "two_step"):
+            block = details["sides"][side][procedure]
+            for e in f.procedure_estimates(procedure).values():
+                assert block[e.key] == json_num(e.value)
+                assert block[e.stderr_key] == json_num(e.stderr)
+            assert not {"c_flow", "c_se", "z0_se_mm"} & set(block)
+        assert details["sides"][side][f.procedure][C_KEY] == doc[side][C_KEY]
 
 
 def test_flowfit_without_leakage_has_no_leakage_estimate(flow_fit):
