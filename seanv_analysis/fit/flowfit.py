@@ -98,7 +98,7 @@ from ..jsonable import JsonResult, json_num
 from ..models import SIDES, ValveModel, signed_power
 from ..models.valve import MIN_DP_MPA, SEAT_LEAK_KEY
 from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
-from ._leakage import LeakageFit, LeakPart, fit_leakage, leak_dp_mpa, prior_sd_mm3_s_per_mpa
+from ._leakage import LeakageFit, SideRuns, fit_leakage, leak_dp_mpa, prior_sd_mm3_s_per_mpa
 from ._perload import (
     LOF_P_MAX,
     LOF_RATIO_MIN,
@@ -991,10 +991,10 @@ def _fit_leakage(rows_of: dict, base: ValveModel, rig: Any, *, leakage: str,
         level = group_loads(rows["load_mpag"].to_numpy(float), tol_mpag=opts["load_tol_mpag"])
         clusters = np.asarray([f"{lv:.4g}|{c:.3f}" for lv, c in
                                zip(level, rows["cam_deg"].to_numpy(float))], dtype=object)
-        parts.append(LeakPart(base.side(s), theta, rows["p1_mpa"].to_numpy(float),
+        start = base.with_side(s, z0_mm=res.joint["z0_mm"], c_flow=res.joint["c_flow"]).side(s)
+        parts.append(SideRuns(start, theta, rows["p1_mpa"].to_numpy(float),
                               rows["dp_mpa"].to_numpy(float), rows["q_mm3_s"].to_numpy(float),
-                              sigma, dp_leak[s][use], clusters,
-                              (res.joint["z0_mm"], res.joint["c_flow"])))
+                              sigma, dp_leak[s][use], clusters=clusters))
     # the paper's leakage band: a sealed valve's flow stays within +-leakage_flow
     # at the supply pressure, which bounds the conductance
     band = float(rig.analysis["leakage_flow_mm3_s"])
