@@ -120,6 +120,11 @@ class Estimate:
         frame are ``ci95_key`` with '_lo'/'_hi' before the unit."""
         return f"{self.quantity}_ci95{self.suffix}"
 
+    @property
+    def stderr_key(self) -> str:
+        """The standard error's key beside :attr:`key` ('z0_stderr_mm')."""
+        return f"{self.quantity}_stderr{self.suffix}"
+
     # checks ------------------------------------------------------------------
     @property
     def identified(self) -> bool:

@@ -7,6 +7,7 @@ from functools import lru_cache
 from pathlib import Path
 
 from seanv_analysis import jsonable
+from seanv_analysis.units import unit_of_key
 
 SCHEMAS = Path(__file__).resolve().parents[1] / "seanv_analysis" / "_data_schema" / "json"
 URN = "urn:seanv-analysis:schema:"
@@ -39,43 +40,37 @@ def check_schema(command: str, doc) -> None:
     Draft202012Validator(schema, registry=_registry()).validate(doc)
 
 
-#: discover's JSON (seanv_analysis/discover/result.py) still gives a
-#: proposed term's coefficients as value/ci95 beside a 'unit' text (their
-#: units, "mm^3/s per unit of dp**2", are not in the unit table): the only
-#: numbers allowed to take their unit from a neighbouring key (issue 33,
-#: point 4; to go when that follows the rule). An effect's ``params`` is its
-#: spec in its own parameter names (what model files and the simulator
-#: read); its numbers with their units are its ``estimates`` records.
-PENDING_BESIDE_UNIT = ("/proposed_term/coefficients[]",)
+def _has_unit(key: str) -> bool:
+    """The key ends in a unit of the package's table, or in a unit derived
+    from it (a proposed term's coefficient: ``value_mm3_per_s_mpa2``;
+    :func:`seanv_analysis.units.unit_of_key`)."""
+    return key.endswith(UNIT_SUFFIXES) or unit_of_key(key) is not None
 
 
-def keys_without_unit(doc, path: str = "", key: str = "", parent: dict | None = None) -> list[str]:
+def keys_without_unit(doc, path: str = "", key: str = "") -> list[str]:
     """Paths of numbers whose key names no unit and is not a count, p value
     or ratio: every number's unit is the end of its own key (``value_mm``,
-    not ``value`` beside ``"unit": "mm"``; but :data:`PENDING_BESIDE_UNIT`
-    and a discover effect's spec, ``params`` beside its ``estimates``). ``/pipeline`` (the
+    not ``value`` beside ``"unit": "mm"``; but a discover effect's spec,
+    ``params`` beside its ``estimates``). ``/pipeline`` (the
     pipeline file echoed), ``/excluded``, ``/computed``, ``/cached`` (counts
     per reason or stage) are not checked; the members of a dict whose own key
     ends in a unit (``timings_s``) take that unit, those of a count
     (``runs_by_kind``, ``rows``) are counts."""
     out: list[str] = []
     if isinstance(doc, dict):
-        if key.endswith(UNIT_SUFFIXES) or key.startswith(DIMENSIONLESS):
+        if _has_unit(key) or key.startswith(DIMENSIONLESS):
             return []  # {name: value} in the unit of its key, or counts
         for k, v in doc.items():
             if k in ("pipeline", "excluded", "computed", "cached") or (
                     k == "params" and "estimates" in doc):
                 continue
-            out += keys_without_unit(v, f"{path}/{k}", k, doc)
+            out += keys_without_unit(v, f"{path}/{k}", k)
     elif isinstance(doc, list):
         for v in doc:
             # a list's records are checked key by key; its numbers by the list's key
-            out += keys_without_unit(v, f"{path}[]", "" if isinstance(v, dict) else key, parent)
+            out += keys_without_unit(v, f"{path}[]", "" if isinstance(v, dict) else key)
     elif isinstance(doc, (int, float)) and not isinstance(doc, bool):
-        pending = (parent is not None and "unit" in parent
-                   and any(path.rsplit("/", 1)[0].endswith(p) for p in PENDING_BESIDE_UNIT))
-        ok = (key.endswith(UNIT_SUFFIXES) or key.startswith(DIMENSIONLESS)
-              or key.endswith(DIMENSIONLESS_END) or pending)
+        ok = _has_unit(key) or key.startswith(DIMENSIONLESS) or key.endswith(DIMENSIONLESS_END)
         if not ok and path not in out:
             out.append(path)
     return sorted(set(out))

@@ -95,6 +95,9 @@ def test_pressure_leak_is_proposed_as_k_dp_squared(found):
     assert t.features[0] == "dp**2"
     lo, hi = t.coefficients_ci95[0]
     assert lo < LEAK["k_mm3_s"] < hi and abs(t.coefficients[0] - LEAK["k_mm3_s"]) < 3.0
+    # an added flow per MPa^2: the units module's derived unit and key suffix
+    (a1,) = t.estimates.values()
+    assert (a1.unit, a1.suffix) == ("mm^3/(s MPa^2)", "_mm3_per_s_mpa2")
     # the leak feeds the head in the drain runs too (the supply needle
     # sealed, dp = p_supply - p_head): an 'add' term acts there as well, so
     # the held-out error falls to the noise
@@ -114,6 +117,7 @@ def test_approach_dependent_threshold_is_proposed_as_a_shift_by_direction(found)
     per_unit = 2.0 if t.features == ("approach",) else 1.0   # up minus down, per coefficient
     lo, hi = (per_unit * x for x in t.coefficients_ci95[0])
     assert lo < 2.0 * SHIFT["shift_deg"] < hi
+    assert [e.unit for e in t.estimates.values()] == ["deg"]   # a threshold shift per direction
     assert t.heldout_drop >= 0.6
 
 
@@ -148,6 +152,15 @@ def test_json_schema_report_and_augmented_model(found):
     assert pt["spec"].startswith("term:side=supply,mode=")
     assert pt["heldout_rmse_after_mm3_s"] < pt["heldout_rmse_before_mm3_s"]
     assert [c["feature"] for c in pt["coefficients"]] == list(d.proposed_term.features)
+    # the coefficients are estimates: JSON records, rows of to_frame() and
+    # Discovery.params, one name and one number each
+    est = d.proposed_term.estimates
+    assert [c["name"] for c in pt["coefficients"]] == list(est) and set(est) <= set(d.params)
+    rows = d.to_frame().set_index("name").loc[list(est)]
+    for c, e in zip(pt["coefficients"], est.values()):
+        assert c[f"value{e.suffix}"] == e.value == rows.loc[e.name, "value"]
+        assert c["unit"] == e.unit == rows.loc[e.name, "unit"]
+        assert rows.loc[e.name, "effect"] == "term"
     text = d.report()
     assert "No named effect explains the flow-step residual; a proposed term (not a known " \
            "effect): " \
@@ -217,7 +230,8 @@ def test_a_proposal_is_checked_in_closed_loop(tmp_path):
     assert (term["side"], term["mode"]) == ("supply", "add")
     (c,) = term["coefficients"]
     # within 3 %: the plant's own small leak path (linear in dp) is not in eq. (5) either
-    assert c["feature"] == "dp**2" and abs(c["value"] - 60.0) < 1.8
+    assert c["feature"] == "dp**2" and abs(c["value_mm3_per_s_mpa2"] - 60.0) < 1.8
+    assert (c["name"], c["unit"]) == ("supply.term.a1", "mm^3/(s MPa^2)")
     # before: eq. (5) fitted on the same data (z0, C), not the paper's valve;
     # both on the twin discover identified from the position-control logs
     for ctrl in ("cam", "flow_model"):

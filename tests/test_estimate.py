@@ -116,6 +116,7 @@ def flow_fit():
 
 def test_flowfit_params_frame_and_json_agree(flow_fit):
     from seanv_analysis.fit import Parameter
+    from seanv_analysis.fit.flowfit import C_KEY
 
     p = flow_fit.params
     check_params(p)
@@ -138,6 +139,16 @@ def test_flowfit_params_frame_and_json_agree(flow_fit):
         assert e.identified and e.has_interval and math.isfinite(e.stderr)
         assert "fit of eq. (5)" in e.method and "flow steps" in e.constrained_by
     check_schema("flowfit", doc)
+    # flowfit_details.json: both procedures under the estimates' keys
+    details = json.loads(dumps(flow_fit.to_dict()))
+    for side, f in flow_fit.sides.items():
+        for procedure in ("joint", "two_step"):
+            block = details["sides"][side][procedure]
+            for e in f.procedure_estimates(procedure).values():
+                assert block[e.key] == json_num(e.value)
+                assert block[e.stderr_key] == json_num(e.stderr)
+            assert not {"c_flow", "c_se", "z0_se_mm"} & set(block)
+        assert details["sides"][side][f.procedure][C_KEY] == doc[side][C_KEY]
 
 
 def test_flowfit_without_leakage_has_no_leakage_estimate(flow_fit):
@@ -179,12 +190,17 @@ def test_identification_params_frame_and_json_agree():
     for c, e, (_, row) in zip(doc["constants"], p.values(), frame.iterrows()):
         u = e.suffix
         rec = json.loads(dumps(e.to_json_dict()))
-        assert (c["key"] or c["name"]) == e.name == row["name"]
+        assert c["name"] == (c["key"] or c["label"]) == e.name == row["name"]
+        assert c["label"] == row["label"]
         for k in ("value", "ci95", "default"):
             assert c[f"{k}{u}"] == rec[f"{k}{u}"]
         assert [json_num(row["value"]), json_num(row["ci95_lo"]), json_num(row["ci95_hi"])] == \
             [rec[f"value{u}"], *rec[f"ci95{u}"]]
         assert c["unit"] == e.unit == row["unit"] and c["identified"] == row["identified"]
+        # how each was obtained: identified, or kept from the rig file
+        for k in ("source", "method", "constrained_by", "note"):
+            assert c[k] == rec[k] == row[k]
+    assert [c["source"] for c in doc["constants"]][:2] == ["identified", "rig_file"]
     assert list(frame.columns[:2]) == ["key", "name"] and "identified" in frame
     check_schema("identify", {**doc, "identified_keys": [], "not_separable": [], "notes": []})
 

@@ -281,3 +281,17 @@ def test_any_text_compiles_or_is_a_one_line_value_error(text):
     assert E.compile_expr(program.text) == program
     with np.errstate(all="ignore"):
         E.evaluate(program, {v: np.linspace(-2, 2, 5) for v in VARS})
+
+
+@pytest.mark.parametrize("text,unit", [
+    ("dp**2", "MPa^2"), ("sqrt(dp)", "MPa^0.5"), ("tanh(dp/0.4)", ""), ("max(dp - 0.3, 0)", "MPa"),
+    ("dp*dtheta", "deg MPa"), ("abs(q)", "mm^3/s"), ("load", "MPa"), ("run", "run"),
+    ("min(approach, 0)", ""), ("clip(theta, 1, 2)", "deg"), ("2.5", ""),
+])
+def test_the_unit_of_an_expression_comes_from_its_variables(text, unit):
+    assert E.unit_of(text) == unit
+
+
+def test_a_sum_of_two_units_has_none():
+    with pytest.raises(ValueError, match="different units"):
+        E.unit_of("dp + dtheta")

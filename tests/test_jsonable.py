@@ -67,3 +67,33 @@ def test_the_contract_columns_and_the_unit_table_agree():
                                       ("rate_mm_per_run", "mm/run"), ("dead_volume_mm3", "mm^3")])
 def test_compound_units_are_not_read_as_their_last_part(key, unit):
     assert unit_of_key(key)[1] == unit
+
+
+@pytest.mark.parametrize("numerator,denominator,unit,suffix", [
+    ("mm^3/s", "MPa^2", "mm^3/(s MPa^2)", "_mm3_per_s_mpa2"),   # an added flow per dp**2
+    ("", "MPa", "1/MPa", "_per_mpa"),                           # a 'mul' term per dp
+    ("deg", "MPa^0.5", "deg/MPa^0.5", "_deg_per_sqrtmpa"),     # a threshold shift per sqrt(dp)
+    ("mm^3/s", "MPa", "mm^3/(s MPa)", "_mm3_s_per_mpa"),       # the table's own, kept
+    ("mm^3/s", "run", "mm^3/(s run)", "_mm3_per_s_run"),
+    ("", "mm^3/s", "s/mm^3", "_s_per_mm3"),
+    ("deg", "deg", "", "_ratio"),
+])
+def test_a_ratio_of_units_is_derived_and_its_key_read_back(numerator, denominator, unit, suffix):
+    from seanv_analysis.units import key_suffix, ratio_unit
+
+    assert ratio_unit(numerator, denominator) == unit
+    assert key_suffix(unit) == suffix
+    if unit:
+        assert unit_of_key("value" + suffix) == ("value", unit)
+
+
+def test_a_derived_suffix_never_takes_a_table_spelling_of_another_unit():
+    from seanv_analysis.units import key_suffix
+
+    # '_mm3_s_per_mpa' is the table's mm^3/(s MPa): mm^3 s/MPa has no suffix
+    with pytest.raises(ValueError, match="UNIT_SUFFIXES"):
+        key_suffix("mm^3 s/MPa")
+    with pytest.raises(ValueError, match="UNIT_SUFFIXES"):
+        key_suffix("furlong/s")
+    assert unit_of_key("viscous_n_s_per_mm") == ("viscous", "N s/mm")
+    assert unit_of_key("conductance_mm3_s_per_mpa") == ("conductance", "mm^3/(s MPa)")

@@ -140,8 +140,6 @@ def _param_units(name: str, params: dict[str, Any]) -> dict[str, str]:
     return {k: units[k] for k in params if k in units}
 
 
-#: unit of the correction f of each ``term`` mode (the models.effects.Term doc)
-_TERM_UNITS = {"mul": "-", "add": "mm^3/s", "threshold": "deg"}
 #: term variable (:mod:`seanv_analysis.models.expr`) -> residual variable name
 _RESIDUAL_NAMES = {"dp": "dp_mpa", "p1": "p1_mpa", "dtheta": "opening_deg", "theta": "opening_deg",
                    "q": "q_mm3_s", "load": "load_mpag", "run": "run_index",
@@ -181,6 +179,31 @@ class ProposedTerm:
     model: ValveModel | None = None
 
     @property
+    def estimates(self) -> Estimates:
+        """The coefficients a_k as :class:`~seanv_analysis.estimate.Estimate`,
+        named '<side>.term.a<k>', each in the unit of f
+        (:data:`~seanv_analysis.models.effects.TERM_MODE_UNITS`) per the unit
+        of its feature g_k (:func:`~seanv_analysis.models.expr.unit_of`;
+        'mm^3/(s MPa^2)' for an added flow in dp**2, the units module's
+        derived unit), with its Wald 95 % interval and standard error; the
+        note names the feature."""
+        from ..models.expr import unit_of
+        from ..units import ratio_unit
+
+        f_unit = fx.TERM_MODE_UNITS[self.mode]
+        where = ("flow steps of both sides (an added flow passes the sealed valve too)"
+                 if self.mode == "add" else f"flow steps of the {self.side} side")
+        out = []
+        for k, (g, a, ci) in enumerate(zip(self.features, self.coefficients,
+                                           self.coefficients_ci95), start=1):
+            out.append(Estimate(f"{self.side}.term.a{k}", a, ratio_unit(f_unit, unit_of(g)),
+                                tuple(ci), (ci[1] - ci[0]) / (2 * 1.96),
+                                method="joint least squares with z0, C, y_c of both sides and "
+                                       "the named effects kept (Wald 95 % interval)",
+                                constrained_by=where, note=f"coefficient of {g}"))
+        return Estimates.of(out)
+
+    @property
     def spec(self) -> str:
         """The ``term`` effect spec (``--effect`` string) of the proposal."""
         return fx.Term(side=self.side, mode=self.mode, expr=self.expr).spec()
@@ -201,13 +224,12 @@ class ProposedTerm:
             else 0.0
 
     def to_json_dict(self) -> dict[str, Any]:
-        unit = _TERM_UNITS[self.mode]
+        """side, mode, expr, spec, ``coefficients`` (each the feature and its
+        :attr:`estimates` record: ``value_<unit>``, ``ci95_<unit>``, unit,
+        method...), the search's p_value and the held-out RMSEs."""
         return {"side": self.side, "mode": self.mode, "expr": self.expr, "spec": self.spec,
-                "coefficients": [{"feature": g, "value": clean_json(a),
-                                  "ci95": [clean_json(lo), clean_json(hi)],
-                                  "unit": f"{unit} per unit of {g}"}
-                                 for g, a, (lo, hi) in zip(self.features, self.coefficients,
-                                                           self.coefficients_ci95)],
+                "coefficients": [{"feature": g, **e.to_json_dict()}
+                                 for g, e in zip(self.features, self.estimates.values())],
                 "p_value": clean_json(self.p_value),
                 "heldout_rmse_before_mm3_s": clean_json(self.rmse_before_mm3_s),
                 "heldout_rmse_after_mm3_s": clean_json(self.rmse_after_mm3_s),
@@ -270,13 +292,17 @@ class Discovery(JsonResult):
     @property
     def params(self) -> Estimates:
         """The effects' parameters by name ('drain.drift.step', ...: each
-        effect's :attr:`EffectFinding.estimates`), as lmfit's
-        ``result.params``; ``params.to_frame()`` is their table. The JSON's
-        ``effects[].params`` give the same numbers under the parameters'
-        own names (the last part of each name)."""
+        effect's :attr:`EffectFinding.estimates`) and a proposed term's
+        coefficients ('supply.term.a1', :attr:`ProposedTerm.estimates`), as
+        lmfit's ``result.params``; ``params.to_frame()`` is their table. The
+        JSON's ``effects[].estimates`` and ``proposed_term.coefficients`` are
+        their records (``effects[].params``: the same numbers under the
+        parameters' own names, the last part of each name)."""
         out = Estimates()
         for e in self.effects:
             out.update(e.estimates)
+        if self.proposed_term is not None:
+            out.update(self.proposed_term.estimates)
         return out
 
     @property
@@ -362,13 +388,18 @@ class Discovery(JsonResult):
         return plot(self, ax, **kwargs)
 
     def to_frame(self):
-        """One row per parameter of the effects found (a long table, each
-        row's numbers in its ``unit``): effect, side, then :attr:`params`'
-        table (name '<side>.<effect>.<parameter>', value, 95 % interval
-        ci95_lo/ci95_hi, stderr, default, unit, source, method,
-        constrained_by, note), and the effect's p_value."""
-        frame = Estimates.frame_of(e for f in self.effects for e in f.estimates.values())
-        per = [(f.name, f.side, f.p_value) for f in self.effects for _ in f.estimates]
+        """One row per parameter of the effects found and per coefficient
+        of a proposed term (effect 'term'; a long table, each row's numbers
+        in its ``unit``): effect, side, then :attr:`params`' table (name
+        '<side>.<effect>.<parameter>', value, 95 % interval ci95_lo/ci95_hi,
+        stderr, default, unit, source, method, constrained_by, note), and
+        the effect's p_value (the term's: its search's permutation p)."""
+        found = [(f.name, f.side, f.p_value, f.estimates) for f in self.effects]
+        if self.proposed_term is not None:
+            t = self.proposed_term
+            found.append(("term", t.side, t.p_value, t.estimates))
+        frame = Estimates.frame_of(e for *_, est in found for e in est.values())
+        per = [(name, side, p) for name, side, p, est in found for _ in est]
         frame.insert(0, "effect", [p[0] for p in per])
         frame.insert(1, "side", [p[1] for p in per])
         frame["p_value"] = [p[2] for p in per]

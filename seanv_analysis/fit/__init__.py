@@ -9,9 +9,17 @@
 - :class:`LeakageFit`: the needles' seat-leakage conductance fitted beside
   eq. (5), and the helpers ``identify`` and ``discover`` share with it
   (:func:`cluster_covariance`, :func:`soft_l1_weights`,
-  :func:`prior_sd_mm3_s_per_mpa`).
+  :func:`prior_sd_mm3_s_per_mpa`, and :class:`SideRuns`: one side's flow
+  steps for a fit of eq. (5) with the seat leakage, which ``identify``'s
+  needle-geometry fit takes too).
 """
-from ._leakage import LeakageFit, cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
+from ._leakage import (
+    LeakageFit,
+    SideRuns,
+    cluster_covariance,
+    prior_sd_mm3_s_per_mpa,
+    soft_l1_weights,
+)
 from .flowfit import (
     LEAKAGE_MODES,
     PEAK_BIAS,
@@ -25,4 +33,4 @@ from .flowfit import (
 
 __all__ = ["FlowFit", "SideFit", "Parameter", "LeakageFit", "fit_flow", "PROCEDURES",
            "LEAKAGE_MODES", "UNITS", "PEAK_BIAS", "cluster_covariance", "soft_l1_weights",
-           "prior_sd_mm3_s_per_mpa"]
+           "prior_sd_mm3_s_per_mpa", "SideRuns"]

@@ -43,7 +43,7 @@ from ..estimate import Estimate
 from ..models import ValveSide
 from ._joint import _Eq5Residual
 
-__all__ = ["LeakPart", "LeakageFit", "leak_dp_mpa", "fit_leakage", "cluster_covariance",
+__all__ = ["SideRuns", "LeakageFit", "leak_dp_mpa", "fit_leakage", "cluster_covariance",
            "soft_l1_weights", "prior_sd_mm3_s_per_mpa"]
 
 
@@ -74,11 +74,16 @@ def leak_dp_mpa(side: np.ndarray, p1_mpa, dp_mpa, dp_sealed_mpa, *, p_supply_mpa
 
 
 @dataclass
-class LeakPart:
-    """One side's runs for :func:`fit_leakage`: the side's model (geometry,
-    exponent), per run cam [deg], p1 and dp [MPa], flow [mm^3/s], noise scale
-    [mm^3/s], leak pressure term dp_s - dp_d [MPa] (:func:`leak_dp_mpa`),
-    condition label (repeats share it), and the (z0 [mm], C) to start from."""
+class SideRuns:
+    """One side's flow steps for a fit of eq. (5) with the seat leakage
+    (:func:`fit_leakage`; ``identify``'s needle-geometry fit): the side's
+    model (geometry, exponent; its z0 and C are where the fit starts,
+    :attr:`start`) and per run the cam [deg], p1 and dp [MPa], flow
+    [mm^3/s], noise scale [mm^3/s], the leakage's pressure term dp_supply -
+    dp_drain [MPa] (:func:`leak_dp_mpa`), load level [MPaG] (NaN: not
+    given) and condition label (repeats share it; default: each run its
+    own); ``heldout``: (theta, p1, dp, q, dp_leak) of runs kept out of the
+    fit, for the RMSEs (None: none)."""
 
     side: ValveSide
     theta_deg: np.ndarray
@@ -87,8 +92,23 @@ class LeakPart:
     q_mm3_s: np.ndarray
     sigma_mm3_s: np.ndarray
     dp_leak_mpa: np.ndarray
-    clusters: np.ndarray
-    start: tuple[float, float]
+    load_level: np.ndarray | None = None
+    clusters: np.ndarray | None = None
+    heldout: tuple | None = None
+
+    def __post_init__(self):
+        if self.load_level is None:
+            self.load_level = np.full(np.shape(self.q_mm3_s), np.nan)
+        for name in ("theta_deg", "p1_mpa", "dp_mpa", "q_mm3_s", "sigma_mm3_s", "dp_leak_mpa",
+                     "load_level"):
+            setattr(self, name, np.asarray(getattr(self, name), float))
+        if self.clusters is None:
+            self.clusters = np.arange(self.q_mm3_s.size)
+
+    @property
+    def start(self) -> tuple[float, float]:
+        """(z0 [mm], C) the fit starts from: the side model's."""
+        return float(self.side.z0_mm), float(self.side.c_flow)
 
 
 @dataclass
@@ -170,14 +190,14 @@ def soft_l1_weights(scaled_resid: np.ndarray, f_scale: float) -> np.ndarray:
     return 1.0 / np.sqrt(1.0 + (scaled_resid / f_scale) ** 2)
 
 
-def fit_leakage(parts: Sequence[LeakPart], *, upper_mm3_s_per_mpa: float,
+def fit_leakage(parts: Sequence[SideRuns], *, upper_mm3_s_per_mpa: float,
                 default_mm3_s_per_mpa: float, prior_sd_mm3_s_per_mpa: float,
                 min_runs: int = 12) -> LeakageFit:
     """Fit the seat-leakage conductance g with (z0, C) of each side in ``parts``.
 
     Parameters
     ----------
-    parts : the sides' runs (:class:`LeakPart`)
+    parts : the sides' runs (:class:`SideRuns`; each side's z0 and C the start)
     upper_mm3_s_per_mpa : bound of g [mm^3/(s MPa)] (g >= 0)
     default_mm3_s_per_mpa : the rig file's g: the prior's mean, and g kept
         when it cannot be fitted

@@ -98,7 +98,7 @@ from ..jsonable import JsonResult, json_num
 from ..models import SIDES, ValveModel, signed_power
 from ..models.valve import MIN_DP_MPA, SEAT_LEAK_KEY
 from ._joint import _cluster_members, bootstrap_joint, fit_joint, resample_indices
-from ._leakage import LeakageFit, LeakPart, fit_leakage, leak_dp_mpa, prior_sd_mm3_s_per_mpa
+from ._leakage import LeakageFit, SideRuns, fit_leakage, leak_dp_mpa, prior_sd_mm3_s_per_mpa
 from ._perload import (
     LOF_P_MAX,
     LOF_RATIO_MIN,
@@ -164,7 +164,8 @@ class SideFit:
     rmse_mm3_s : RMSE of measured - model over the runs used [mm^3/s]
     n_runs : runs used (flow steps of this side that passed the filters)
     procedure : 'joint' or 'two_step'
-    joint, two_step : both procedures' estimates (dicts with z0_mm, c_flow, standard errors)
+    joint, two_step : both procedures' estimates (dicts with z0_mm, c_flow, standard errors;
+        in :meth:`to_dict` under their estimates' keys, :meth:`procedure_estimates`)
     ci_method : how the intervals were made
     noise : noise model {floor_mm3_s, rel}: sigma = floor + rel |Q|
     lack_of_fit : True when eq. (5) does not describe the runs (lack-of-fit F
@@ -210,19 +211,44 @@ class SideFit:
         :class:`~seanv_analysis.estimate.Estimate`: the value of the fit's
         procedure, its standard error (the procedure's covariance; NaN when
         singular), the 95 % interval (:attr:`z0_ci95`, :attr:`c_ci95`)."""
-        est = self.joint if self.procedure == "joint" else self.two_step
-        method = (f"{self.procedure.replace('_', '-')} fit of eq. (5)"
-                  + (f"; intervals: {self.ci_method}" if self.ci_method else ""))
+        return self.procedure_estimates(self.procedure)
+
+    def procedure_estimates(self, procedure: str) -> Estimates:
+        """z0 and C of one procedure ('joint' or 'two_step': :attr:`joint`,
+        :attr:`two_step`) as :meth:`estimates` gives them; the 95 % intervals
+        are the chosen procedure's only (the other's: its standard error)."""
+        est = self.joint if procedure == "joint" else self.two_step
+        chosen = procedure == self.procedure
+        method = (f"{procedure.replace('_', '-')} fit of eq. (5)"
+                  + (f"; intervals: {self.ci_method}" if self.ci_method and chosen else ""))
         by = f"{self.n_runs} flow steps of the {self.side} side"
+        nan2 = (math.nan, math.nan)
         out = []
-        for q, value, se, ci in (("z0", self.z0_mm, est.get("z0_se_mm", math.nan), self.z0_ci95),
-                                 ("C", self.c_flow, est.get("c_se", math.nan), self.c_ci95)):
+        for q, key, se_key, ci in (("z0", "z0_mm", "z0_se_mm", self.z0_ci95),
+                                   ("C", "c_flow", "c_se", self.c_ci95)):
+            value, se = est.get(key, math.nan), est.get(se_key, math.nan)
+            value = math.nan if value is None else float(value)
             source = "identified" if math.isfinite(value) else "not_estimated"
             out.append(Estimate(f"{self.side}.{q}", value, UNITS["z0_mm" if q == "z0" else C_KEY],
-                                tuple(ci), float(se if se is not None else math.nan),
+                                tuple(ci) if chosen else nan2,
+                                float(se if se is not None else math.nan),
                                 method=method, constrained_by=by, source=source,
-                                note="" if self.success else self.message))
+                                note="" if self.success or not chosen else self.message))
         return Estimates.of(out)
+
+    def _procedure_json(self, procedure: str) -> dict[str, Any]:
+        """One procedure's numbers under its estimates' keys (``z0_mm``,
+        ``z0_stderr_mm``, ``C_mm3_s_deg2_sqrtMPa``,
+        ``C_stderr_mm3_s_deg2_sqrtMPa``) and the fit's own (success,
+        message, f_scale, nfev or n_loads)."""
+        est = self.joint if procedure == "joint" else self.two_step
+        if not est:
+            return {}
+        out: dict[str, Any] = {}
+        for e in self.procedure_estimates(procedure).values():
+            out.update({e.key: json_num(e.value), e.stderr_key: json_num(e.stderr)})
+        rest = {k: v for k, v in est.items() if k not in ("z0_mm", "c_flow", "z0_se_mm", "c_se")}
+        return {**out, **_clean(rest)}
 
     def to_json_dict(self) -> dict[str, Any]:
         """The ``--json`` contract for one side (NaN -> null); z0 and C are
@@ -243,7 +269,8 @@ class SideFit:
         d["C_ci95_stat" + C_KEY[1:]] = [json_num(v) for v in self.c_ci95_stat]
         d.update(side=self.side, procedure=self.procedure, success=self.success,
                  message=self.message, ci_method=self.ci_method, n_boot_ok=self.n_boot_ok,
-                 noise=self.noise, joint=_clean(self.joint), two_step=_clean(self.two_step),
+                 noise=self.noise, joint=self._procedure_json("joint"),
+                 two_step=self._procedure_json("two_step"),
                  lack_of_fit_detail=_clean(self.lack_of_fit_detail))
         return d
 
@@ -964,10 +991,10 @@ def _fit_leakage(rows_of: dict, base: ValveModel, rig: Any, *, leakage: str,
         level = group_loads(rows["load_mpag"].to_numpy(float), tol_mpag=opts["load_tol_mpag"])
         clusters = np.asarray([f"{lv:.4g}|{c:.3f}" for lv, c in
                                zip(level, rows["cam_deg"].to_numpy(float))], dtype=object)
-        parts.append(LeakPart(base.side(s), theta, rows["p1_mpa"].to_numpy(float),
+        start = base.with_side(s, z0_mm=res.joint["z0_mm"], c_flow=res.joint["c_flow"]).side(s)
+        parts.append(SideRuns(start, theta, rows["p1_mpa"].to_numpy(float),
                               rows["dp_mpa"].to_numpy(float), rows["q_mm3_s"].to_numpy(float),
-                              sigma, dp_leak[s][use], clusters,
-                              (res.joint["z0_mm"], res.joint["c_flow"])))
+                              sigma, dp_leak[s][use], clusters=clusters))
     # the paper's leakage band: a sealed valve's flow stays within +-leakage_flow
     # at the supply pressure, which bounds the conductance
     band = float(rig.analysis["leakage_flow_mm3_s"])

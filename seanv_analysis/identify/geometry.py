@@ -30,18 +30,18 @@ rig file's value stays.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..fit import cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
+from ..fit import SideRuns, cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
 from ..fit.flowfit import C_KEY
 from ..models import ValveSide, fluid_force_n
 from .result import Constant
 
-__all__ = ["GeometryFit", "SideRuns", "fit_geometry", "fit_geometry_sides", "geometry_constants",
+__all__ = ["GeometryFit", "fit_geometry", "fit_geometry_sides", "geometry_constants",
            "threshold_span"]
 
 
@@ -66,34 +66,6 @@ class GeometryFit:
     force_span_n: float
     leak_mm3_s_per_mpa: float = 0.0
     leak_ci95: tuple[float, float] = (math.nan, math.nan)
-
-
-@dataclass
-class SideRuns:
-    """One side's flow steps for :func:`fit_geometry_sides`: its model
-    (geometry, exponent, z0 and C to start from) and per run the cam [deg],
-    p1 and dp [MPa], flow [mm^3/s], noise scale [mm^3/s], the seat leakage's
-    pressure term dp_supply - dp_drain [MPa], load level [MPaG] and condition
-    label (repeats share it); ``heldout``: (theta, p1, dp, q, dp_leak) of
-    runs kept out of the fit, for the RMSEs."""
-
-    side: ValveSide
-    theta_deg: np.ndarray
-    p1_mpa: np.ndarray
-    dp_mpa: np.ndarray
-    q_mm3_s: np.ndarray
-    sigma_mm3_s: np.ndarray
-    dp_leak_mpa: np.ndarray
-    load_level: np.ndarray
-    clusters: np.ndarray = field(default=None)
-    heldout: tuple | None = None
-
-    def __post_init__(self):
-        for name in ("theta_deg", "p1_mpa", "dp_mpa", "q_mm3_s", "sigma_mm3_s", "dp_leak_mpa",
-                     "load_level"):
-            setattr(self, name, np.asarray(getattr(self, name), float))
-        if self.clusters is None:
-            self.clusters = np.arange(self.q_mm3_s.size)
 
 
 def _with(side: ValveSide, z0, c, y_c) -> ValveSide:

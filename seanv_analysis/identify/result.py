@@ -75,13 +75,16 @@ class Constant:
         return suffix_of_unit(self.unit)
 
     def to_json_dict(self) -> dict[str, Any]:
-        """``value_<unit>``, ``ci95_<unit>``, ``default_<unit>`` (every
-        number's unit is the end of its key; ``unit`` says it in words)."""
-        u, e = self.suffix, self.estimate.to_json_dict()
-        return {"key": self.key, "name": self.name, f"value{u}": e[f"value{u}"],
-                f"ci95{u}": e[f"ci95{u}"], f"default{u}": e[f"default{u}"],
-                "unit": e["unit"], "identified": bool(self.identified),
-                "constrained_by": e["constrained_by"], "note": e["note"],
+        """The rig key, :attr:`estimate`'s record (its ``name``, the rig key
+        or for a derived number its words; ``value_<unit>``, ``ci95_<unit>``,
+        ``stderr_<unit>``, ``default_<unit>``, ``bounds_<unit>``: every
+        number's unit is the end of its key; ``unit`` in words, ``source``:
+        'identified' or 'rig_file', ``method``, ``constrained_by``,
+        ``note``), then ``label`` (the name in words), ``identified``,
+        ``confounded_with``: the names of :meth:`Identification.to_frame`'s
+        columns."""
+        return {"key": self.key, **self.estimate.to_json_dict(), "label": self.name,
+                "identified": bool(self.identified),
                 "confounded_with": list(self.confounded_with)}
 
     def line(self) -> str:
@@ -158,7 +161,7 @@ class Identification(JsonResult):
         return nest_constants(self.constants)
 
     def to_json_dict(self) -> dict[str, Any]:
-        return {"schema": "seanv-identify/3",
+        return {"schema": "seanv-identify/4",
                 "constants": [c.to_json_dict() for c in self.constants],
                 "identified_keys": [c.key for c in self.identified()],
                 "not_separable": [{"key": c.key, "from": list(c.confounded_with),
@@ -186,13 +189,14 @@ class Identification(JsonResult):
 
     def to_frame(self):
         """One row per constant (a long table: each row's numbers are in its
-        ``unit``): key, identified, then :attr:`params`' table (name, value,
-        95 % interval ci95_lo/ci95_hi, stderr, rig-file default, unit,
-        source, method, what constrains it, note)."""
+        ``unit``): key, then :attr:`params`' table (name, value, 95 %
+        interval ci95_lo/ci95_hi, stderr, rig-file default, unit, source,
+        method, what constrains it, note), label (the name in words),
+        identified: the JSON's ``constants`` under the same names."""
         frame = Estimates.frame_of(c.estimate for c in self.constants)
         frame.insert(0, "key", [c.key for c in self.constants])
-        frame.insert(frame.columns.get_loc("unit") + 1, "identified",
-                     [bool(c.identified) for c in self.constants])
+        frame["label"] = [c.name for c in self.constants]
+        frame["identified"] = [bool(c.identified) for c in self.constants]
         return frame
 
     def __repr__(self) -> str:

@@ -64,7 +64,7 @@ from .expr import Program, compile_expr, evaluate
 
 __all__ = [
     "Effect", "Drift", "ThresholdShift", "Backlash", "PressureLaw", "Saturation", "Delay",
-    "SensorGain", "Term", "EFFECTS", "SENSORS", "TERM_MODES", "StaticForm", "FlowTerms",
+    "SensorGain", "Term", "EFFECTS", "SENSORS", "TERM_MODES", "TERM_MODE_UNITS", "StaticForm", "FlowTerms",
     "TermCorrection", "ValveTerms", "PlantTerms", "plant_param_defaults",
     "static_effects", "vocabulary_effects", "dynamic_effects", "parse_effect", "parse_effects",
     "drift_multiplier", "threshold_shift_mm", "backlash_cam_deg", "backlash_play_deg",
@@ -75,6 +75,8 @@ __all__ = [
 _SIDES = ("supply", "drain")
 #: how a ``term`` acts on its side: Q (1 + f), Q + f [mm^3/s], theta_d + f [deg]
 TERM_MODES = ("mul", "add", "threshold")
+#: the unit of a ``term``'s correction f in each mode (a ratio, a flow, an angle)
+TERM_MODE_UNITS = {"mul": "", "add": "mm^3/s", "threshold": "deg"}
 #: sensors a ``sensor_gain`` can act on; 'pressure' is the A/B-port (head) sensor
 SENSORS = ("encoder", "pressure", "p_head", "p_supply", "p_load")
 #: the simulator's sensor channels and their gain without a ``sensor_gain`` [-]

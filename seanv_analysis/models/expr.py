@@ -33,7 +33,7 @@ Grammar
   ``q``         mm^3/s     the side's flow of eq. (5) before the term (signed as
                            in the paper: the drain side's flow is negative)
   ``load``      MPaG       load pressure
-  ``run``       -          0-based index of the run in time order
+  ``run``       run        0-based index of the run in time order
   ``approach``  -          +1 / -1: the cam last moved up / down (0: unknown)
   ============  =========  ======================================================
 
@@ -79,10 +79,12 @@ from typing import Mapping
 
 import numpy as np
 
+from ..units import unit_powers, unit_text
+
 __all__ = ["VARIABLES", "VARIABLE_UNITS", "FUNCTIONS", "MAX_LENGTH", "MAX_DEPTH",
            "MAX_INSTRUCTIONS", "MAX_EXPONENT", "Program", "compile_expr", "evaluate",
            "evaluate_scalar", "program_memory", "run_program_core", "GRAMMAR", "DERIVED",
-           "Derived", "define_variable", "variable_names", "searched_variables"]
+           "Derived", "define_variable", "variable_names", "searched_variables", "unit_of"]
 
 #: the variables an expression may use, in the order of their index
 VARIABLES = ("dp", "p1", "dtheta", "theta", "q", "load", "run", "approach")
@@ -95,7 +97,7 @@ VARIABLE_UNITS = {
     "theta": "deg, cam angle at the needle",
     "q": "mm^3/s, the side's flow of eq. (5) before the term (drain flow negative)",
     "load": "MPaG, load pressure",
-    "run": "-, 0-based index of the run in time order",
+    "run": "run, 0-based index of the run in time order",
     "approach": "-, +1/-1: the cam last moved up/down (0 unknown)",
 }
 
@@ -278,6 +280,56 @@ def _make_program(code: np.ndarray, constants: np.ndarray) -> Program:
         depth += 1 - arity if arity else 1
         size = max(size, depth)
     return Program(code, constants, size, _decompile(code, constants))
+
+
+def unit_of(program: Program | str) -> str:
+    """The unit of an expression's value (a product of powers of
+    :data:`seanv_analysis.units.BASE_UNITS`, in its text: ``'dp**2'`` ->
+    'MPa^2', ``'dp*dtheta'`` -> 'deg MPa', ``'tanh(dp/0.4)'`` -> ''), from
+    its variables' units (:data:`VARIABLE_UNITS`, 'MPaG' as 'MPa'): a number
+    added to, compared with or clipped against a quantity takes its unit, a
+    factor is dimensionless, and tanh, exp, log and sign give a pure number
+    (their argument read as scaled).
+
+    Raises
+    ------
+    ValueError
+        a sum or a comparison of two different units (``'dp + dtheta'``).
+    """
+    prog = compile_expr(program)
+    stack: list[dict[str, float] | None] = []   # None: a bare number, unit free
+    for op, arg in zip(prog.code[0::2].tolist(), prog.code[1::2].tolist()):
+        if op == OP_CONST:
+            stack.append(None)
+        elif op == OP_VAR:
+            stack.append(unit_powers(VARIABLE_UNITS[VARIABLES[arg]].split(",", 1)[0]) or {})
+        elif op in (OP_TANH, OP_EXP, OP_LOG, OP_SIGN):
+            stack[-1] = {}
+        elif op == OP_SQRT:
+            stack[-1] = _scaled(stack[-1], 0.5)
+        elif op == OP_POW:
+            stack[-1] = _scaled(stack[-1], float(prog.constants[arg]))
+        elif op in (OP_MUL, OP_DIV):
+            b, a = stack.pop(), stack.pop()
+            stack.append(None if a is None and b is None else _product(
+                a or {}, _scaled(b or {}, 1.0 if op == OP_MUL else -1.0)))
+        elif _ARITY[op] >= 2:       # + - min max clip: one unit for all
+            args = [stack.pop() for _ in range(_ARITY[op])]
+            known = [a for a in args if a is not None]
+            if any(a != known[0] for a in known):
+                raise ValueError(f"expr: {prog.text!r} adds or compares different units "
+                                 f"({', '.join(sorted({unit_text(a) or '-' for a in known}))})")
+            stack.append(known[0] if known else None)
+    return unit_text(stack[-1] or {})
+
+
+def _scaled(powers: dict[str, float] | None, k: float) -> dict[str, float] | None:
+    return None if powers is None else {u: p * k for u, p in powers.items()}
+
+
+def _product(a: dict[str, float], b: dict[str, float]) -> dict[str, float]:
+    out = {u: a.get(u, 0.0) + b.get(u, 0.0) for u in {**a, **b}}
+    return {u: p for u, p in out.items() if p}
 
 
 # ---------------------------------------------------------------------------
