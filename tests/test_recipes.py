@@ -242,3 +242,31 @@ def test_a_term_variable_runs_in_the_simulator(monkeypatch):
     pos = [r.tables["encoder"]["position_mm"].to_numpy() for r in runs]
     np.testing.assert_array_equal(pos[0], pos[1])
     assert not np.array_equal(pos[0], pos[2])       # the term acts
+
+
+def test_stage_roles_are_declared_once():
+    """What the batch runner treats apart (the stage that reads the runs, the
+    one drawing figures, the report) is each a stage's ``ROLE``, not a name
+    the runner knows; a role no runner knows, or a role two stages claim, is
+    refused when the catalogue is checked."""
+    import types
+
+    from seanv_analysis.stages.catalogue import ROLES, STAGES, check_catalogue, has_role
+
+    assert sorted(getattr(m, "ROLE") for m in STAGES.values() if hasattr(m, "ROLE")) == \
+        sorted(ROLES)
+    assert has_role("ingest", "reads_runs") and not has_role("flowfit", "reads_runs")
+
+    def twin_of(name, **changes):
+        mod = types.ModuleType(f"toy_{name}")
+        mod.__dict__.update({k: getattr(STAGES[name], k) for k in dir(STAGES[name])
+                             if k.isupper() or k in ("check_option", "run", "write")})
+        mod.__dict__.update(changes)
+        return mod
+
+    bad = dict(STAGES, toy=twin_of("figures", NAME="toy", ORDER=91, ROLE="sings"))
+    with pytest.raises(TypeError, match="ROLE 'sings' is none of"):
+        check_catalogue(bad)
+    twice = dict(STAGES, toy=twin_of("figures", NAME="toy", ORDER=91))
+    with pytest.raises(TypeError, match="ROLE 'draws_figures' is also stage"):
+        check_catalogue(twice)

@@ -28,6 +28,7 @@ from ..io.outdir import check_out_dir, out_lock
 from ..jsonable import JsonResult
 from ..stages import STAGES, Context, FailedRun, RunOutcome, execute, one_blas_thread, results_of
 from ..stages.base import stage_info
+from ..stages.catalogue import has_role
 from ..stages.pipeline import Pipeline, load_pipeline
 from .cache import CACHE_DIRNAME, RunCache, run_key
 from .executor import Executor, TaskResult, make_executor, one_line_error
@@ -54,7 +55,8 @@ def owned_outputs(pipe: Pipeline) -> list[str]:
     earlier pipeline may be retired), the per-run cache and the top-level
     files. No input may be or lie inside one of them
     (:func:`~seanv_analysis.io.outdir.check_out_dir`)."""
-    report = [s.options.get("filename", "report.html") for s in pipe.stages if s.name == "report"]
+    report = [s.options.get("filename", "report.html") for s in pipe.stages
+              if has_role(s.name, "report")]
     folders = sorted({m.FOLDER for m in STAGES.values() if m.FOLDER != "."})
     return [*folders, CACHE_DIRNAME, *TOP_LEVEL_FILES, *report]
 
@@ -437,7 +439,7 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             ctx.map_runs = mapper
             ctx.map_tasks = partial(ex.tasks, quiet=quiet)   # the figures, each a task
             warm = None
-            if any(s.name == "figures" for s in pipe.stages):
+            if any(has_role(s.name, "draws_figures") for s in pipe.stages):
                 from ..plots import warm_up
 
                 warm = partial(ex.warm, warm_up)
@@ -474,7 +476,7 @@ def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, *,
     started: dict[str, float] = {}
 
     def start(name: str) -> None:   # the stage's lines: stages.execute
-        if name == "report":
+        if has_role(name, "report"):
             _write_manifest(result, ctx)
         started[name] = time.perf_counter()
 
@@ -483,14 +485,14 @@ def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, *,
 
     def on_error(name: str, exc: BaseException) -> bool:
         if isinstance(exc, (ConfigError, OutputError, OSError)) or (
-                isinstance(exc, DataError) and name == "ingest"):
+                isinstance(exc, DataError) and has_role(name, "reads_runs")):
             return False   # the pipeline or the output side: ends the run, one line
         _stage_failed(result, name, exc)   # a bug in one stage must not lose the others'
         finish(name)
         return True
 
     def done(name: str, value: Any) -> None:
-        if name == "ingest" and after_ingest is not None:
+        if has_role(name, "reads_runs") and after_ingest is not None:
             after_ingest()
         if value is None:
             result.stage_notes[name] = "no position-control runs in the data: skipped"
@@ -500,7 +502,7 @@ def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, *,
             for p in _write_stage(STAGES[name], value, result.out_dir):
                 if p not in result.outputs:
                     result.outputs.append(p)
-            if name == "report":
+            if has_role(name, "report"):
                 result.report_path = result.outputs[-1]
         finish(name)
 

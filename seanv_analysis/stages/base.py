@@ -19,6 +19,12 @@ catalogue (:mod:`.catalogue`) finds it:
 ``write(result, folder) -> list[Path]``   its files, each written atomically
 ``expected(ds) -> bool``   optional: whether the data set would give its result
                  (a figure missing it is then worth a note)
+``ROLE``         optional, what the batch runner treats apart (:data:`.catalogue.ROLES`):
+                 "reads_runs" (a data error in it ends the pipeline: there is no
+                 data set; the workers are idle after it), "draws_figures" (the
+                 workers warm matplotlib up for it), "report" (runs after the
+                 manifest is written; its last output is the report, its
+                 ``filename`` option a file the run owns)
 
 Per-run work goes through :attr:`Context.map_runs`: in a notebook or a single
 command it reads and processes the runs here (:func:`serial_map`); the batch

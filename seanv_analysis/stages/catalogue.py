@@ -15,8 +15,12 @@ import pkgutil
 from types import ModuleType
 from typing import Any
 
-__all__ = ["STAGES", "refresh", "stage_names", "result_names", "results_of", "producers_of",
+__all__ = ["STAGES", "refresh", "has_role", "stage_names", "result_names", "results_of", "producers_of",
            "report_sections", "figures_reading", "describe_stages", "check_catalogue"]
+
+#: the roles a stage may declare (``ROLE``; see :mod:`.base`), each one
+#: stage's at most: what the batch runner treats apart
+ROLES = ("reads_runs", "draws_figures", "report")
 
 #: the declarations every stage module must have
 REQUIRED = ("NAME", "ORDER", "DESCRIPTION", "NEEDS", "WRITES", "FOLDER", "RESULTS", "OPTIONS",
@@ -49,6 +53,7 @@ def check_catalogue(stages: dict[str, ModuleType]) -> None:
     """
     orders: dict[Any, str] = {}
     types: dict[str, str] = {}
+    roles: dict[str, str] = {}
     for name, mod in stages.items():
         missing = [k for k in REQUIRED if not hasattr(mod, k)]
         if missing:
@@ -62,6 +67,14 @@ def check_catalogue(stages: dict[str, ModuleType]) -> None:
             if need not in stages or stages[need].ORDER >= mod.ORDER:
                 raise TypeError(f"stage '{name}': needs '{need}', which is no stage running "
                                 "before it")
+        role = getattr(mod, "ROLE", None)
+        if role is not None:
+            if role not in ROLES:
+                raise TypeError(f"stage module {mod.__name__}: ROLE {role!r} is none of "
+                                f"{', '.join(ROLES)}")
+            if roles.setdefault(role, name) != name:
+                raise TypeError(f"stage '{name}': ROLE {role!r} is also stage "
+                                f"'{roles[role]}''s")
         for res in mod.RESULTS:
             if types.setdefault(res.name, res.type) != res.type:
                 raise TypeError(f"stage '{name}': result '{res.name}' is a {res.type}, "
@@ -80,6 +93,11 @@ def refresh() -> dict[str, ModuleType]:
     STAGES.clear()
     STAGES.update(found)
     return STAGES
+
+
+def has_role(name: str, role: str) -> bool:
+    """Whether stage ``name`` declares ``ROLE`` = ``role`` (:data:`ROLES`)."""
+    return name in STAGES and getattr(STAGES[name], "ROLE", None) == role
 
 
 def stage_names() -> tuple[str, ...]:

@@ -34,6 +34,7 @@ ORDER = 10
 NEEDS: tuple[str, ...] = ()
 WRITES = ("summary.parquet",)
 FOLDER = "."
+ROLE = "reads_runs"
 DESCRIPTION = "read, validate and summarise every run (per-run flow, dp); the paper's filters"
 #: the data set's position-control runs, read once (figures draw them)
 RESULTS = (Result("position_runs", "list[Run]", get=lambda value, ctx: position_runs(ctx) or None,

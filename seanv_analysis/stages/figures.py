@@ -35,6 +35,7 @@ NAME = "figures"
 ORDER = 90
 NEEDS = ("ingest",)
 FOLDER = "figures"
+ROLE = "draws_figures"
 RESULTS = ()
 #: the pipeline record's {figure name: files}
 RECORD = {"figures": "paths"}

@@ -21,6 +21,7 @@ NAME = "report"
 ORDER = 100
 NEEDS = ("ingest",)
 FOLDER = "."
+ROLE = "report"
 RESULTS = ()
 WRITES = ("report.html", "manifest.json")
 DESCRIPTION = "one self-contained report.html: numbers, figures, failed runs, provenance"
