@@ -3,8 +3,10 @@
 The simulator injects an effect into the plant; discovery sees only the
 recorded tables (runs in memory, exactly as written to disk) and must name
 it. The full matrix (every effect x 2 strengths x 3 seeds, 20 clean seeds)
-runs in ``benchmarks/bench_discover.py``; this file holds one case per
-effect, clean data, two effects together and the paper's drain drift.
+runs in ``benchmarks/bench_discover.py``, as do the per-effect cases of
+this file that tests/test_discover_engine.py holds too (``BENCH_STATIC_CASES``);
+this file holds the sensor gain, clean data, two effects together (drift
+and pressure law), the paper's drain drift and the delay.
 """
 from __future__ import annotations
 
