@@ -25,9 +25,16 @@
 4. Seed sweeps moved out of ``make test`` (issue 35; the tests keep one
    seed each): the load-stepped protocol of ``tests/test_discover_engine.py``
    (C growing with the load must not be named as wear; a real drain drift
-   must be named) over 8 seeds, and the clean foreign-rig flow steps of
+   must be named) over 8 seeds, its clean summaries (verdict none) over 20
+   seeds, and the clean foreign-rig flow steps of
    ``tests/test_discover_terms.py`` (no term proposed) over 6 seeds; the rate
-   of seeds that hold the test's assertion.
+   of seeds that hold the test's assertion, held to ``SWEEP_FLOORS``.
+5. The static cases of ``tests/test_discover_sim.py`` that moved here
+   (issue 35; ``BENCH_STATIC_CASES``: each effect is also one case of
+   ``tests/test_discover_engine.py``): the test's assertion, each must hold.
+
+``main`` writes the results, then raises (``make bench`` fails) when a
+check of parts 4-5 fails (``failed_checks``).
 
 ``SEANV_BENCH_QUICK=1`` runs one seed per case (a smoke run).
 ``python -m benchmarks.bench_discover commands``: only part 3.
@@ -124,6 +131,18 @@ def _engine_one(args) -> dict:
             "named": [(e.name, e.side) for e in d.effects]}
 
 
+def _engine_clean_one(seed: int) -> dict:
+    """tests/test_discover_engine.py's clean summary at one seed: verdict none."""
+    from seanv_analysis.discover import discover_flow_steps
+
+    from . import tests_module
+
+    T = tests_module("test_discover_engine")
+    d = discover_flow_steps(T.synth_summary(seed), model=T.MODEL)
+    return {"seed": seed, "verdict": d.verdict, "ok": d.verdict == "none",
+            "named": [(e.name, e.side) for e in d.effects]}
+
+
 def _terms_clean_one(seed: int) -> dict:
     """tests/test_discover_terms.py's clean foreign flow steps at one seed:
     no term proposed, verdict none."""
@@ -148,23 +167,67 @@ def _seed_sweeps(quick: bool) -> dict:
     """The multi-seed sweeps moved out of ``make test`` (issue 35), which keeps
     one seed of each: the load-stepped protocol of test_discover_engine.py
     (seeds 0-7; seed 0 in the tests) and the clean foreign flow steps of
-    test_discover_terms.py (seeds 0-5; seed 0 in the tests). Rates of cases
-    that hold the tests' assertion."""
+    test_discover_terms.py (seeds 0-5; seed 0 in the tests), the clean
+    summary of test_discover_engine.py (seeds 100-119; seed 100 in the
+    tests). Rates of cases that hold the tests' assertion; :data:`SWEEP_FLOORS`
+    are what :func:`check` holds them to."""
     seeds = range(2) if quick else range(8)
     clean = range(2) if quick else range(6)
+    engine_clean = range(100, 102) if quick else range(100, 120)
     with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         eng = list(pool.map(_engine_one, [(s, c) for c in ("load_dependence", "drift_with_loads")
                                           for s in seeds]))
         terms = list(pool.map(_terms_clean_one, clean))
+        eclean = list(pool.map(_engine_clean_one, engine_clean))
     out = {}
     for case in ("load_dependence", "drift_with_loads"):
         r = [x for x in eng if x["case"] == case]
         out[f"engine_{case}"] = {"seeds": len(r), "rate": sum(x["ok"] for x in r) / len(r),
                                  "misses": [(x["seed"], x["named"]) for x in r if not x["ok"]]}
+    out["engine_clean"] = {"seeds": len(eclean), "rate": sum(x["ok"] for x in eclean) / len(eclean),
+                           "misses": [(x["seed"], x["named"]) for x in eclean if not x["ok"]]}
     out["terms_clean_foreign"] = {"seeds": len(terms),
-                                  "none_rate": sum(x["ok"] for x in terms) / len(terms),
+                                  "rate": sum(x["ok"] for x in terms) / len(terms),
                                   "misses": [x for x in terms if not x["ok"]]}
     return out
+
+
+#: the least rate of each seed sweep (part 4) that ``make bench`` accepts:
+#: the sweeps moved out of ``make test``, so this is where they are checked
+SWEEP_FLOORS = {"engine_load_dependence": 1.0, "engine_drift_with_loads": 1.0,
+                "engine_clean": 1.0, "terms_clean_foreign": 1.0}
+
+
+def check(out: dict) -> list[str]:
+    """The sweeps whose rate is below its floor (:data:`SWEEP_FLOORS`) and
+    the tests' simulator cases that do not hold (every one must)."""
+    sweeps = out["seed_sweeps"]
+    failed = [f"{name}: rate {sweeps[name]['rate']:.2f} < {floor} (misses {sweeps[name]['misses']})"
+              for name, floor in SWEEP_FLOORS.items() if sweeps[name]["rate"] < floor]
+    failed += [f"tests_sim_cases: {spec} does not hold" for spec in out["tests_sim_cases"]["misses"]]
+    return failed
+
+
+def _tests_sim_case(case: tuple) -> dict:
+    """One of tests/test_discover_sim.py's static cases moved here
+    (``BENCH_STATIC_CASES``, issue 35): the test's own assertion."""
+    from . import tests_module
+
+    ok, _ = tests_module("test_discover_sim").static_case_holds(*case)
+    return {"spec": case[0], "ok": ok}
+
+
+def _tests_sim_cases() -> dict:
+    """tests/test_discover_sim.py's static cases that moved out of ``make
+    test`` (paper-flowsteps, seed 1, named and held-out RMSE down >= 30 %),
+    each checked by :func:`check`."""
+    from . import tests_module
+
+    cases = tests_module("test_discover_sim").BENCH_STATIC_CASES
+    with ProcessPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        rows = list(pool.map(_tests_sim_case, cases))
+    return {"cases": len(rows), "rate": sum(r["ok"] for r in rows) / len(rows),
+            "misses": [r["spec"] for r in rows if not r["ok"]]}
 
 
 def _hour_of_logs(root: Path) -> Path:
@@ -297,6 +360,7 @@ def main() -> dict:
     out["clean_misses"] = [(x["seed"], x["verdict"], x["found"], x["proposed_term"]) for x in c
                            if x["verdict"] != "none" or x["proposed_term"]]
     out["seed_sweeps"] = _seed_sweeps(quick)
+    out["tests_sim_cases"] = _tests_sim_cases()
 
     from seanv_analysis.stages import run_stages
 
@@ -314,7 +378,10 @@ def main() -> dict:
         out["whole_command"] = whole_commands(Path(tmp), data)
     results = Path(__file__).resolve().parent / "results"
     results.mkdir(exist_ok=True)
+    out["failed_checks"] = check(out)
     (results / "bench_discover.json").write_text(json.dumps(out, indent=2, default=str) + "\n")
+    if out["failed_checks"]:   # make bench fails (benchmarks/__main__.py), the results written
+        raise AssertionError("; ".join(out["failed_checks"]))
     return out
 
 

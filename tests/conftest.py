@@ -311,7 +311,8 @@ def golden_run(golden_data, tmp_path_factory):
 # ---------------------------------------------------------------------------
 SLOW_MODULES = {"test_batch.py", "test_batch_signals.py", "test_discover_sim.py", "test_wheel.py",
                 "test_discover_twin.py", "test_foreign_rig.py", "test_golden.py",
-                "test_identify.py", "test_discover_terms.py", "test_sim_truth.py"}
+                "test_identify.py", "test_discover_terms.py", "test_sim_truth.py",
+                "test_discover_terms_closed_loop.py", "test_identify_dynamic.py"}
 SLOW_TESTS = (
     "test_cli_run.py::test_run_json_and_cache", "test_cli_run.py::test_run_end_to_end_subprocess",
     "test_cli_run.py::test_run_shipped_pipeline_by_name", "test_cli_run.py::test_plots_command",

@@ -74,12 +74,13 @@ main(sys.argv[1:])
 """
 
 
-def _start_and_wait_for_workers(data: Path, out: Path, *, racy_exit: bool = False):
+def _start_and_wait_for_workers(data: Path, out: Path, *, racy_exit: bool = False,
+                                extra: tuple[str, ...] = ()):
     """Start `run` with 2 workers; return (process, worker pids) once both
     workers run and a few results are cached (mid-run). ``racy_exit``: the
-    command runs under :data:`_RACY_EXIT`."""
+    command runs under :data:`_RACY_EXIT`; ``extra``: more options."""
     exe = [sys.executable, "-c", _RACY_EXIT] if racy_exit else [str(EXE)]
-    cmd = exe + ["run", "flowfit", str(data), "--out", str(out), "--workers", "2", "-q"]
+    cmd = exe + ["run", "flowfit", str(data), "--out", str(out), "--workers", "2", "-q", *extra]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     entries = out / ".cache" / "runs"
     deadline = time.monotonic() + 90
@@ -118,15 +119,18 @@ def test_no_worker_outlives_the_command(big, tmp_path, sig, code):
 
 
 def test_resumed_run_gives_the_uninterrupted_numbers(big, tmp_path):
+    """The numbers (summary, flow fit) of a resumed run and an uninterrupted
+    one; no figures (nothing here compares them: test_outputs does)."""
     out = tmp_path / "out"
-    proc, _ = _start_and_wait_for_workers(big, out)
+    proc, _ = _start_and_wait_for_workers(big, out, extra=("--no-figures",))
     proc.send_signal(signal.SIGKILL)
     proc.wait(timeout=20)
     leftover = tmp_path / "leftover"
     shutil.copytree(out, leftover)          # what the killed run left
     for folder in (out, tmp_path / "clean"):
         res = subprocess.run([str(EXE), "run", "flowfit", str(big), "--out", str(folder),
-                              "--workers", "2", "-q"], capture_output=True, text=True, timeout=300)
+                              "--workers", "2", "-q", "--no-figures"], capture_output=True, text=True,
+                             timeout=300)
         assert res.returncode == 0, res.stderr
     a = pd.read_parquet(out / "summary.parquet").drop(columns=["path"], errors="ignore")
     b = pd.read_parquet(tmp_path / "clean" / "summary.parquet").drop(columns=["path"],

@@ -89,10 +89,10 @@ def test_backlash_width_and_exponent_recovered():
 
 
 def test_clean_data_says_none():
-    """Three clean seeds here, every one 'none'; the false-alarm rate over 20
-    is benchmarks/bench_discover.py's (make bench)."""
-    verdicts = [discover_flow_steps(synth_summary(100 + s), model=MODEL).verdict for s in range(3)]
-    assert verdicts == ["none"] * 3
+    """One clean seed here; the rate over seeds 100-119 (101 and 102,
+    checked here before, among them) is benchmarks/bench_discover.py's
+    ``engine_clean`` (make bench, which fails below its floor)."""
+    assert discover_flow_steps(synth_summary(100), model=MODEL).verdict == "none"
 
 
 def test_heldout_runs_are_never_fitted():

@@ -3,8 +3,10 @@
 The simulator injects an effect into the plant; discovery sees only the
 recorded tables (runs in memory, exactly as written to disk) and must name
 it. The full matrix (every effect x 2 strengths x 3 seeds, 20 clean seeds)
-runs in ``benchmarks/bench_discover.py``; this file holds one case per
-effect, clean data, two effects together and the paper's drain drift.
+runs in ``benchmarks/bench_discover.py``, as do the per-effect cases of
+this file that tests/test_discover_engine.py holds too (``BENCH_STATIC_CASES``);
+this file holds the sensor gain, clean data, two effects together (drift
+and pressure law), the paper's drain drift and the delay.
 """
 from __future__ import annotations
 
@@ -26,22 +28,38 @@ def discover_sim(scenarios, effects=(), seed=0):
     return discover_runs(runs, summary, rig=RIG, seed=seed)
 
 
+#: (effect spec, name, side) on paper-flowsteps, seed 1: named, held-out RMSE
+#: down >= 30 % (:func:`static_case_holds`). Here the effect that
+#: tests/test_discover_engine.py's summaries do not hold; the others
+#: (:data:`BENCH_STATIC_CASES`: each is one case there, and drift and the
+#: pressure law are named on this simulator below too) moved to
+#: benchmarks/bench_discover.py's ``tests_sim_cases`` (make bench, which
+#: fails when one does not hold; issue 35: 20-30 s each)
 STATIC_CASES = [
+    ("sensor_gain:sensor=pressure,gain=1.05", "sensor_gain", "both"),
+]
+BENCH_STATIC_CASES = [
     ("drift:side=drain,step=0.02,every=3", "drift", "drain"),
     ("threshold_shift:side=supply,rate_mm_per_run=2e-5", "threshold_shift", "supply"),
     ("backlash:width_deg=2", "backlash", "both"),
     ("pressure_law:side=drain,exponent=0.7", "pressure_law", "drain"),
     ("saturation:side=supply,q_max_mm3_s=4000", "saturation", "supply"),
-    ("sensor_gain:sensor=pressure,gain=1.05", "sensor_gain", "both"),
 ]
+
+
+def static_case_holds(spec, name, side) -> tuple[bool, str]:
+    """(the case holds, the report) for one static case on paper-flowsteps, seed 1."""
+    res = discover_sim(["paper-flowsteps"], [spec], seed=1)
+    ok = (res.verdict == "effect_found" and bool(res.effects)
+          and (res.effects[0].name, res.effects[0].side) == (name, side)
+          and res.rmse_after_mm3_s <= 0.7 * res.rmse_before_mm3_s)
+    return ok, res.report()
 
 
 @pytest.mark.parametrize("spec,name,side", STATIC_CASES, ids=[c[1] for c in STATIC_CASES])
 def test_static_effect_is_named_and_heldout_error_drops(spec, name, side):
-    res = discover_sim(["paper-flowsteps"], [spec], seed=1)
-    assert res.verdict == "effect_found"
-    assert (res.effects[0].name, res.effects[0].side) == (name, side)
-    assert res.rmse_after_mm3_s <= 0.7 * res.rmse_before_mm3_s
+    ok, report = static_case_holds(spec, name, side)
+    assert ok, report
 
 
 def test_clean_data_says_none():

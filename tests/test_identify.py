@@ -271,67 +271,6 @@ def test_discover_does_not_blame_the_unknown_geometry(foreign_own):
     assert h["rmse_after_mm3_s"] < 0.5 * h["rmse_before_mm3_s"]   # the geometry's share
 
 
-@pytest.mark.parametrize("effect, truth_kw, param, true_value", [
-    ("delay", {"needle_delay_s": 0.08}, "delay_s", 0.08),
-    ("backlash", {"cam_backlash_deg": 2.0}, "width_deg", 2.0),
-])
-def test_dynamic_effect_named_in_position_control(foreign_own, tmp_path, effect, truth_kw,
-                                                  param, true_value):
-    """A transport delay (0.08 s) or a cam backlash (2 deg) between the servo
-    and the needle, invisible in the cam feedback, in the foreign rig's
-    position-control runs: with its flow steps, identify + discover name it,
-    near the truth, and the held-out runs' replayed flow error (their logged
-    cam command into the twin) drops by >= 20 %, and the headline, their
-    closed-loop error re-run segment by segment from the logged state,
-    drops by >= 30 % (the issue's acceptance). The value is the one the
-    closed-loop twin needs within the replay's interval (the delay's
-    widened by the command instants' half servo-log sample). Measured over
-    position seeds 1-3: delay 0.091, 0.092, 0.074 s (replay 0.073, 0.075,
-    0.060; truth inside the interval 3 of 3), drop 45-48 %; backlash 2.02,
-    2.03, 2.13 deg, drop 31-44 %; clean runs: nothing, 3 of 3. With the
-    seat leakage and the controller's law in the twin (2026-11-27): backlash
-    1.97, 2.13, 2.04 deg, drop 29.8, 35.3, 39.8 %: seed 1's headline is
-    checked at >= 28 %; the issue's 30 % holds on the seeds' mean."""
-    from seanv_analysis.stages import run_stages
-
-    root, _, _ = foreign_own
-    write_position(tmp_path / "position", seed=1, truth=own_rig(**truth_kw), n_runs=2,
-                   duration_s=40.0)
-    ctx = run_stages([root / "flow", tmp_path / "position"],
-                     ["ingest", "flowfit", "identify", "discover"],
-                     options={"identify": {"n_boot": 0}})
-    d = ctx.result("discover").discovery
-    assert [(e.name, e.side) for e in d.effects] == [(effect, "both")], \
-        d.position_control["message"]
-    found = d.effects[0].params[param]
-    assert found == pytest.approx(true_value, rel=0.25)
-    assert d.heldout_source == "closed_loop_heldout"
-    assert d.rmse_after_mm3_s <= (0.70 if effect == "delay" else 0.72) * d.rmse_before_mm3_s
-    kept = next(c for c in d.position_control["candidates"] if c["named"])
-    rep = kept["replay_heldout_before"], kept["replay_heldout_after"]
-    assert rep[1]["rmse_flow_mm3_s"] <= 0.8 * rep[0]["rmse_flow_mm3_s"]
-    lo, hi = kept["ci95_" + param.rsplit("_", 1)[-1]]   # the unit in the key
-    assert lo <= found <= hi and hi - lo < 0.5 * true_value
-    assert lo <= true_value <= hi
-    assert lo <= kept["replay_value_" + param.rsplit("_", 1)[-1]] <= hi
-    # the closed-loop held-out numbers are reported beside the headline
-    assert kept["heldout_before"]["fit_position_pct"] > 80
-
-
-def test_clean_position_runs_name_no_dynamic_effect(foreign_own):
-    """The clean foreign runs (no delay, no backlash) on the identified twin:
-    no dynamic effect is named."""
-    from seanv_analysis.stages import run_stages
-
-    root, _, _ = foreign_own
-    ctx = run_stages([root / "flow", root / "position"],
-                     ["ingest", "flowfit", "identify", "discover"],
-                     options={"identify": {"n_boot": 0}})
-    d = ctx.result("discover").discovery
-    assert not d.position_control["found"], d.position_control["message"]
-    assert d.verdict == "none", d.effects
-
-
 def test_flow_steps_only_says_what_it_cannot_tell(foreign_own, tmp_path):
     """Without position-control runs the servo, breakaway and line keep the
     rig file's values, each saying why; the geometry is still identified."""

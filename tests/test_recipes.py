@@ -253,7 +253,7 @@ def test_stage_roles_are_declared_once():
 
     from seanv_analysis.stages.catalogue import ROLES, STAGES, check_catalogue, has_role
 
-    assert sorted(getattr(m, "ROLE") for m in STAGES.values() if hasattr(m, "ROLE")) == \
+    assert sorted(m.ROLE for m in STAGES.values() if hasattr(m, "ROLE")) == \
         sorted(ROLES)
     assert has_role("ingest", "reads_runs") and not has_role("flowfit", "reads_runs")
 
