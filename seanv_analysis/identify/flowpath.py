@@ -214,12 +214,14 @@ def fit_line(runs, valve, rig, *, held: Sequence[Any] = (),
     p = float(stats.chi2.sf(max((ok[f0]["sse"] - ok[best]["sse"]) / s2, 0.0), 1)) if s2 > 0 \
         else 1.0
     held_sse: dict[float, float] = {}
-    if p < alpha and best != f0 and held:
-        held_t = replay_targets(held, rig)
+    held_t = replay_targets(held, rig) if p < alpha and best != f0 and held else []
+    if held_t:
         held_sse = dict(zip((f0, best), map_on_threads(
             lambda f: flow_sse(replay_on_twin(held_t, valve, with_bulk(
                 with_inertance(rig, f), ok[f]["bulk_mpa"], where="identify")),
                 effective=False)[0], (f0, best), stop)))
+        if not all(math.isfinite(v) and v > 0 for v in held_sse.values()):
+            held_sse = {}       # nothing replayed: no comparison
     refused = bool(held_sse) and not held_sse[best] < held_sse[f0]
     chosen = best if p < alpha and not refused else f0
     lim = ok[chosen]["sse"] + stats.chi2.ppf(0.95, 1) * s2
