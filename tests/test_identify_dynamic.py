@@ -12,6 +12,11 @@ import pytest
 from foreign_rig import own_rig, write_flowsteps, write_position
 from test_identify import PLAN
 
+#: position-control runs of 30 s (three reference steps; test_identify.py's
+#: and benchmarks/bench_identify.py's are 40 s): seed 1's checks hold with
+#: margins like those at 40 s (numbers in the test below), in 15 s less CPU
+DURATION_S = 30.0
+
 
 @pytest.fixture(scope="module")
 def foreign_data(tmp_path_factory):
@@ -20,7 +25,7 @@ def foreign_data(tmp_path_factory):
     root = tmp_path_factory.mktemp("own")
     truth = own_rig()
     write_flowsteps(root / "flow", plan=PLAN, seed=11, truth=truth)
-    write_position(root / "position", seed=11, truth=truth, n_runs=2, duration_s=40.0)
+    write_position(root / "position", seed=11, truth=truth, n_runs=2, duration_s=DURATION_S)
     return root
 
 
@@ -44,12 +49,17 @@ def test_dynamic_effect_named_in_position_control(foreign_data, tmp_path, effect
     2.03, 2.13 deg, drop 31-44 %; clean runs: nothing, 3 of 3. With the
     seat leakage and the controller's law in the twin (2026-11-27): backlash
     1.97, 2.13, 2.04 deg, drop 29.8, 35.3, 39.8 %: seed 1's headline is
-    checked at >= 28 %; the issue's 30 % holds on the seeds' mean."""
+    checked at >= 28 %; the issue's 30 % holds on the seeds' mean. Those
+    were 40 s runs (the seeds' sweep: benchmarks/bench_identify.py); these
+    are 30 s (2026-11-27, seed 1, 40 s -> 30 s): delay 0.0888 -> 0.0886 s,
+    interval [0.057, 0.090] -> [0.059, 0.094], headline after/before 0.51
+    -> 0.55, replay 0.47 -> 0.54; backlash 1.97 -> 2.13 deg, interval [1.74,
+    2.04] -> [1.74, 2.16], headline 0.70 -> 0.52, replay 0.67 -> 0.51."""
     from seanv_analysis.stages import run_stages
 
     root = foreign_data
     write_position(tmp_path / "position", seed=1, truth=own_rig(**truth_kw), n_runs=2,
-                   duration_s=40.0)
+                   duration_s=DURATION_S)
     ctx = run_stages([root / "flow", tmp_path / "position"],
                      ["ingest", "flowfit", "identify", "discover"],
                      options={"identify": {"n_boot": 0}})
