@@ -15,7 +15,7 @@ from pandas.testing import assert_frame_equal
 
 from seanv_analysis.batch import STAGE_NAMES, load_pipeline, parse_pipeline, run_pipeline, shipped_pipelines
 from seanv_analysis.batch.cache import RunCache, run_key
-from seanv_analysis.batch.executor import make_executor, progress_enabled
+from seanv_analysis.batch.executor import make_executor
 from seanv_analysis.errors import ConfigError, DataError
 
 INGEST_ONLY = {"pipeline": {"name": "ingest-only"}, "stages": [{"name": "ingest"}]}
@@ -148,11 +148,26 @@ def _maybe_fail(x):
 
 
 def test_progress_off_when_quiet_or_ci(monkeypatch):
-    monkeypatch.delenv("CI", raising=False)
-    assert progress_enabled(quiet=True) is True
-    assert progress_enabled() is None  # tqdm decides: off when stderr is not a TTY
+    """The batch's bars are the package's (:func:`seanv_analysis.log.progress`,
+    the one place that decides): none when quiet, under CI or off a terminal."""
+    import io
+
+    from seanv_analysis import log
+    from seanv_analysis.batch.executor import _bar
+
+    class Tty(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(log, "progress_enabled", lambda: True)
+    bar = _bar(3, "runs", quiet=False)
+    assert not isinstance(bar, log._NoBar)
+    bar.close()
+    assert isinstance(_bar(3, "runs", quiet=True), log._NoBar)
+    monkeypatch.undo()
+    monkeypatch.setattr("sys.stderr", Tty())
     monkeypatch.setenv("CI", "true")
-    assert progress_enabled() is True
+    assert not log.progress_enabled()
 
 
 def test_workers_must_be_positive():

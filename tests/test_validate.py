@@ -187,3 +187,20 @@ def test_controller_model_choice(measured):
     assert v.to_json_dict()["controller_model"] == "plant"
     with pytest.raises(ConfigError, match="controller_model"):
         validate_runs(measured[:1], simulate=_fake_simulator(measured), controller_model="x")
+
+
+def test_pooled_rmse_is_the_rmse_of_all_samples():
+    """Runs' RMSEs are pooled over their samples (the package's one pooling:
+    validate's per-controller numbers, identify's and discover's closed-loop
+    numbers), not averaged: two runs of 100 and 300 samples pool to the RMSE
+    of their 400 residuals; a run without an RMSE is left out."""
+    import numpy as np
+
+    from seanv_analysis.analysis.validate import pooled_rmse
+
+    rng = np.random.default_rng(0)
+    a, b = rng.normal(0, 1.0, 100), rng.normal(0, 5.0, 300)
+    rms = lambda r: float(np.sqrt(np.mean(r ** 2)))  # noqa: E731
+    got = pooled_rmse([rms(a), rms(b), float("nan")], [a.size, b.size, 50])
+    assert got == pytest.approx(rms(np.concatenate([a, b])), rel=1e-12)
+    assert got != pytest.approx((rms(a) + rms(b)) / 2, rel=1e-3)

@@ -54,7 +54,7 @@ from ..signals.derive import derive_columns, derive_samples
 from .limitcycle import LIMIT_CYCLE_RTOL, compare_limit_cycles, limit_cycle
 from .tracking import load_level_holds
 
-__all__ = ["DEFAULT_THRESHOLD_PCT", "fit_percent", "reference_steps", "load_steps",
+__all__ = ["DEFAULT_THRESHOLD_PCT", "fit_percent", "pooled_rmse", "reference_steps", "load_steps",
            "step_metrics", "build_controller", "RunValidation", "Validation", "validate_runs"]
 
 #: Position fit % below which a run is flagged.
@@ -86,6 +86,17 @@ def fit_percent(y, y_sim) -> float:
 def _rmse(y, s) -> float:
     ok = np.isfinite(y) & np.isfinite(s)
     return float(np.sqrt(np.mean((y[ok] - s[ok]) ** 2))) if ok.any() else math.nan
+
+
+def pooled_rmse(rmse, n_samples) -> float:
+    """The RMSE of several runs pooled [their unit]: sqrt(sum n_i rmse_i^2 /
+    sum n_i), each run's RMSE weighted by its samples (the RMSE of all their
+    samples together; the package's one pooling of RMSEs: not a mean of
+    them). Runs with a NaN RMSE are left out; NaN when none is left."""
+    r = np.asarray(rmse, dtype=float)
+    n = np.broadcast_to(np.asarray(n_samples, dtype=float), r.shape)
+    ok = np.isfinite(r) & np.isfinite(n) & (n > 0)
+    return float(np.sqrt(np.sum(n[ok] * r[ok] ** 2) / np.sum(n[ok]))) if ok.any() else math.nan
 
 
 def _steps(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -326,12 +337,18 @@ class Validation(JsonResult):
         return len(self.table) > 0
 
     def by_controller(self) -> pd.DataFrame:
-        """Per controller ('flow_model' | 'cam'): n_runs, steps (total) and
-        the mean of every other numeric metric over its runs."""
+        """Per controller ('flow_model' | 'cam'): n_runs, steps (total), the
+        RMSEs pooled over its runs' samples (:func:`pooled_rmse`) and the
+        mean of every other numeric metric over its runs."""
         if self.table.empty:
             return pd.DataFrame()
         g = self.table.drop(columns=["run_id", "flagged"]).groupby("controller")
         out = g.mean(numeric_only=True)
+        if "n_samples" in self.table:
+            for col in (c for c in out.columns if c.startswith("rmse_")):
+                out[col] = g.apply(lambda d, col=col: pooled_rmse(d[col], d["n_samples"]),
+                                   include_groups=False)
+            out["n_samples"] = g["n_samples"].sum().astype(int)
         out["steps"] = g["steps"].sum().astype(int)  # a count stays a count
         if "n_segments" in self.table:
             out["n_segments"] = g["n_segments"].sum().astype(int)
@@ -579,6 +596,7 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
            "fit_flow_segments_pct": fit_percent(ov.q_mm3_s, ov.q_seg_mm3_s),
            "rmse_flow_segments_mm3_s": _rmse(ov.q_mm3_s.to_numpy(), ov.q_seg_mm3_s.to_numpy()),
            "n_segments": seg.n_segments,
+           "n_samples": int(len(ov)),
            "steps": int((sm.step_mm.abs() > band).sum()) if not sm.empty else 0,
            "converged_measured_frac": agg(sm, "converged", np.mean),
            "converged_simulated_frac": agg(ss, "converged", np.mean),

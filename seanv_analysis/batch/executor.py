@@ -35,7 +35,7 @@ from typing import Any, Callable, Sequence
 
 from ..errors import ConfigError, SeanvError
 
-__all__ = ["TaskResult", "Executor", "make_executor", "progress_enabled", "one_line_error"]
+__all__ = ["TaskResult", "Executor", "make_executor", "one_line_error"]
 
 
 @dataclass
@@ -117,21 +117,13 @@ def _call_chunk(func: Callable, items: Sequence[Any], kwargs: dict[str, Any]
     return [_call(func, item, kwargs, False) for item in items]
 
 
-def progress_enabled(quiet: bool = False) -> bool | None:
-    """``disable`` argument for tqdm: True (off) when quiet or ``CI`` is set,
-    else None (tqdm turns itself off when stderr is not a TTY)."""
-    if quiet or os.environ.get("CI"):
-        return True
-    return None
-
-
 def _bar(total: int, desc: str, quiet: bool):
     """The bar of a batch: drawn where the package's bars are
     (:func:`seanv_analysis.log.progress`: a terminal, logging configured) and
     not ``quiet``."""
     from ..log import progress
 
-    return progress(total=total, desc=desc, disable=bool(progress_enabled(quiet)))
+    return progress(total=total, desc=desc, disable=quiet)
 
 
 class Executor:

@@ -26,6 +26,7 @@ from typing import Any, Sequence
 import numpy as np
 import pandas as pd
 
+from ..analysis.validate import pooled_rmse
 from .noise import integrated_autocorrelation
 
 __all__ = ["validate_on_twin", "replay_on_twin", "replay_targets", "replay_target", "Replay",
@@ -34,7 +35,8 @@ __all__ = ["validate_on_twin", "replay_on_twin", "replay_targets", "replay_targe
 
 def fit_summary(results, suffix: str = "") -> dict[str, Any]:
     """Pooled numbers of re-runs or replays (each with a ``row`` of
-    ``validate_run``'s metrics): ``rmse_flow_mm3_s`` (RMS over the runs),
+    ``validate_run``'s metrics): ``rmse_flow_mm3_s`` (over the runs' samples:
+    :func:`~seanv_analysis.analysis.validate.pooled_rmse`),
     mean ``fit_flow_pct`` and, where every row has it, ``fit_position_pct``,
     and ``runs`` {run_id: {those fits}}. ``suffix`` picks a variant of the
     metrics ('_segments': the per-segment re-runs); {} when there are no
@@ -46,8 +48,8 @@ def fit_summary(results, suffix: str = "") -> dict[str, Any]:
     if all(np.isfinite(r.get(f"fit_position{suffix}_pct", np.nan)) for r in rows):
         keys["fit_position_pct"] = f"fit_position{suffix}_pct"
     out: dict[str, Any] = {
-        "rmse_flow_mm3_s": float(np.sqrt(np.mean([r[keys["rmse_flow_mm3_s"]] ** 2
-                                                  for r in rows]))),
+        "rmse_flow_mm3_s": pooled_rmse([r[keys["rmse_flow_mm3_s"]] for r in rows],
+                                       [r.get("n_samples", 1) for r in rows]),
         **{k: float(np.mean([r[v] for r in rows])) for k, v in keys.items()
            if k.startswith("fit_")}}
     out["runs"] = {r["run_id"]: {k: r[v] for k, v in keys.items() if k.startswith("fit_")}
@@ -184,7 +186,8 @@ def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
                        "position_mm": tg.x, "position_sim_mm": on_t("position_mm")})
     r = np.asarray(tg.q, dtype=float) - q_sim
     row = {"run_id": tg.run_id, "fit_flow_pct": fit_percent(tg.q, q_sim),
-           "rmse_flow_mm3_s": float(np.sqrt(np.nanmean(r * r)))}
+           "rmse_flow_mm3_s": float(np.sqrt(np.nanmean(r * r))),
+           "n_samples": int(np.isfinite(r).sum())}
     return Replay(tg.run_id, ov, row, tg.segment)
 
 
