@@ -39,7 +39,8 @@ def _forget_fonts_after_fork() -> None:
 if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_fonts_after_fork)
 
-__all__ = ["paper_style", "warm_up", "trace", "TRACE_PIXELS", "thin", "align_ylabels", "shade_high_load", "shade_loads", "high_load_spans",
+__all__ = ["paper_style", "warm_up", "trace", "TRACE_PIXELS", "align_ylabels", "shade_high_load",
+           "shade_loads", "high_load_spans",
            "legend_outside", "new_figure", "check_formats", "save_figure", "DEFAULT_FORMATS",
            "TARGET_COLOUR", "ACTUAL_COLOUR", "SIM_COLOUR", "SHADE_COLOUR"]
 
@@ -193,11 +194,6 @@ def trace(t_s, y, *, pixels: int = TRACE_PIXELS) -> tuple[np.ndarray, np.ndarray
     gaps = np.flatnonzero(~finite[1:] & finite[:-1]) + 1
     idx = np.unique(np.concatenate([*keep, gaps]))
     return t[idx], v[idx]
-
-
-def thin(n: int, *, max_points: int = 6000) -> slice:
-    """Stride slice keeping at most ~``max_points`` of ``n`` samples (light figures)."""
-    return slice(None, None, max(1, int(np.ceil(n / max_points))))
 
 
 def high_load_spans(t_s, level_mpag, *, level: float | None = None) -> list[tuple[float, float]]:
