@@ -49,7 +49,7 @@ def fit_summary(results, suffix: str = "") -> dict[str, Any]:
         keys["fit_position_pct"] = f"fit_position{suffix}_pct"
     out: dict[str, Any] = {
         "rmse_flow_mm3_s": pooled_rmse([r[keys["rmse_flow_mm3_s"]] for r in rows],
-                                       [r.get("n_samples", 1) for r in rows]),
+                                       [r["n_samples"] for r in rows]),
         **{k: float(np.mean([r[v] for r in rows])) for k, v in keys.items()
            if k.startswith("fit_")}}
     out["runs"] = {r["run_id"]: {k: r[v] for k, v in keys.items() if k.startswith("fit_")}
@@ -187,7 +187,7 @@ def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
     r = np.asarray(tg.q, dtype=float) - q_sim
     row = {"run_id": tg.run_id, "fit_flow_pct": fit_percent(tg.q, q_sim),
            "rmse_flow_mm3_s": float(np.sqrt(np.nanmean(r * r))),
-           "n_samples": int(np.isfinite(r).sum())}
+           "n_samples": int(r.size)}
     return Replay(tg.run_id, ov, row, tg.segment)
 
 
