@@ -327,15 +327,8 @@ def save_figure(fig, out_dir: str | Path, stem: str, *, formats: str | Sequence[
     formats = check_formats(formats)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    bbox = _tight_bbox(fig) if tight else None
-    engine = fig.get_layout_engine()
-    if engine is not None and not tight:
-        # a layout engine (constrained layout) solves again at every draw,
-        # starting from where the last draw left the axes: an SVG saved after
-        # a PNG had axes off by 1e-13 (other clip-path ids). Solved once, then
-        # held for every format: the same bytes whichever formats are asked.
-        fig.draw_without_rendering()
-        fig.set_layout_engine("none")
+    engine, drawn = _solve_layout_once(fig)
+    bbox = _tight_bbox(fig, drawn=drawn) if tight else None
     paths = []
     try:
         for ext in formats:
@@ -347,17 +340,47 @@ def save_figure(fig, out_dir: str | Path, stem: str, *, formats: str | Sequence[
                             metadata=_METADATA.get(ext))
             paths.append(path)
     finally:
-        if engine is not None and not tight:
+        if engine is not None:
             fig.set_layout_engine(engine)
     return paths
 
 
-def _tight_bbox(fig):
+def _solve_layout_once(fig):
+    """Lay ``fig`` out once and hold that layout while it is saved; returns
+    the layout engine to put back afterwards (None: the figure had none)
+    and whether the figure was drawn for it.
+
+    While a figure has a layout engine, every ``savefig`` draws it once more
+    before the real draw, to solve the layout again. ``Figure.tight_layout``
+    leaves a placeholder engine behind (nothing to solve, yet it counted as
+    an engine): each Fig. 6 file was drawn twice, and a third time for a
+    box. A constrained layout is solved here once (a second solve starts
+    from where the first left the axes: an SVG saved after a PNG had axes
+    off by 1e-13); then the figure has no engine until its files are written.
+    """
+    import matplotlib
+    from matplotlib.layout_engine import PlaceHolderLayoutEngine
+
+    engine = fig.get_layout_engine()
+    if engine is None:
+        return None, False
+    drawn = not isinstance(engine, PlaceHolderLayoutEngine)
+    if drawn:
+        fig.draw_without_rendering()
+    with matplotlib.rc_context({"figure.autolayout": False,
+                                "figure.constrained_layout.use": False}):
+        fig.set_layout_engine(None)     # None, whatever a user's matplotlibrc says
+    return engine, drawn
+
+
+def _tight_bbox(fig, *, drawn: bool = False):
     """The drawn content's box [inch] padded by ``savefig.pad_inches``: what
     ``bbox_inches="tight"`` crops to, measured once for every format
-    (``"tight"`` draws the whole figure once more per file to measure it)."""
+    (``"tight"`` draws the whole figure once more per file to measure it);
+    ``drawn``: the figure was just drawn as it will be saved (not again)."""
     import matplotlib
 
-    fig.draw_without_rendering()
+    if not drawn:
+        fig.draw_without_rendering()
     box = fig.get_tightbbox(fig.canvas.get_renderer())
     return box.padded(matplotlib.rcParams["savefig.pad_inches"])
