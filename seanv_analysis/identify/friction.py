@@ -172,9 +172,7 @@ def _stribeck_choice(v, f, pick, static_n: float, linear: dict, start_vs: float,
                 # F_s may be as low as F_c: the Stribeck term may vanish (v_s
                 # unbounded), and the law tends to F_c + b v
                 best["vs_bounded"] = False
-                alt = {"coulomb_n": linear["coulomb_n"],
-                       "viscous_n_s_per_mm": linear["viscous_n_s_per_mm"],
-                       "stribeck_velocity_mm_s": vs}
+                alt = {**linear, "stribeck_velocity_mm_s": vs}
             else:
                 try:
                     alt = fit_stribeck(vt, ft, end, (best["coulomb_n"],
@@ -187,7 +185,14 @@ def _stribeck_choice(v, f, pick, static_n: float, linear: dict, start_vs: float,
                     continue
             for key, ci in (("coulomb_n", "coulomb_ci95"), ("viscous_n_s_per_mm", "viscous_ci95"),
                             ("stribeck_velocity_mm_s", "stribeck_ci95")):
-                best[ci] = (min(best[ci][0], alt[key]), max(best[ci][1], alt[key]))
+                # the refit's own interval where it has one: the union over
+                # F_s's interval, not only the refits' values (F_c + b v's
+                # interval covered our simulator's F_c where its value and the
+                # Stribeck fits' intervals, 0.01 N wide, missed by 0.002 N)
+                lo_a, hi_a = alt.get(ci, (alt[key], alt[key]))
+                lo_a, hi_a = (lo_a, hi_a) if math.isfinite(lo_a) and math.isfinite(hi_a) \
+                    else (alt[key], alt[key])
+                best[ci] = (min(best[ci][0], lo_a), max(best[ci][1], hi_a))
         return best, what
     return None, what + f" (kept when p < 0.01, the held-out RMSE drops and {lo_v:.2g} <= v_s <= {hi_v:.2g} mm/s)"
 
