@@ -657,18 +657,9 @@ def replay_commands(run, controller, *, offset_s: float = 0.0) -> tuple[np.ndarr
     if log is None:
         return np.zeros(0), np.zeros(0)
     d = log.at(offset_s)
-    state = controller.initial_state()
-    out = np.full(log.t.size, np.nan)
     x = log.x_ref - d["e"]
-    for i in range(log.t.size):
-        if not (math.isfinite(x[i]) and math.isfinite(log.x_ref[i])):
-            continue
-        ps = d["ps"][i] if math.isfinite(d["ps"][i]) else 0.0
-        ph = d["ph"][i] if math.isfinite(d["ph"][i]) else 0.0
-        o, state = controller.step(state, float(log.x_ref[i]), float(x[i]), ps, ph,
-                                   float(d["pt"][i]))
-        out[i] = o.cam_cmd_deg
-    return d["cmd"], out
+    pt = np.broadcast_to(np.asarray(d["pt"], dtype=float), log.t.shape)
+    return d["cmd"], controller.replay(log.x_ref, x, d["ps"], d["ph"], pt)
 
 
 def _pooled(laws: list[ControllerLaw], kind: str | None = None) -> ControllerLaw:

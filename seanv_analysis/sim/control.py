@@ -148,6 +148,18 @@ class _PController:
                                          float(p_tank_mpag))
         return ControllerOutput(float(theta), float(q), bool(held > 0.5)), ControllerState.from_packed(st)
 
+    def replay(self, x_ref_mm, x_mm, p_supply_mpag, p_head_mpag, p_tank_mpag) -> np.ndarray:
+        """The cam command [deg] :meth:`step` gives at each logged tick (arrays
+        of one length, from :meth:`initial_state`), in one compiled loop; NaN
+        where the reference or the position is not finite (the tick is
+        skipped), a non-finite supply or head pressure taken as 0 MPaG."""
+        from .control_law import controller_replay  # numba, on first use
+
+        kind, cp, tables = self.jit_spec()
+        arrays = [np.ascontiguousarray(a, dtype=float) for a in
+                  (x_ref_mm, x_mm, p_supply_mpag, p_head_mpag, p_tank_mpag)]
+        return controller_replay(kind, cp, *tables, self.initial_state().packed(), *arrays)
+
     def _cp(self, kp: float, hold: float) -> np.ndarray:
         cp = np.empty(CP_SIZE)
         cp[_CP_KP] = kp

@@ -25,7 +25,7 @@ from .packing import (
     KIND_FLOW_MODEL,
 )
 
-__all__ = ["controller_step"]
+__all__ = ["controller_step", "controller_replay"]
 
 
 @njit(cache=True, nogil=True)
@@ -69,3 +69,24 @@ def controller_step(kind, cp, sup, sup_z, sup_th, dr, dr_z, dr_th, state,
             theta = cp[_CP_HOLD] + cp[_CP_KP] * e
     theta = min(max(theta, cp[_CP_CAM_MIN]), cp[_CP_CAM_MAX])
     return theta, q_ref, state[_ST_HELD]
+
+
+@njit(cache=True, nogil=True)
+def controller_replay(kind, cp, sup, sup_z, sup_th, dr, dr_z, dr_th, state,
+                      x_ref_mm, x_mm, p_supply_mpag, p_head_mpag, p_tank_mpag):
+    """:func:`controller_step` over logged ticks (arrays of one length):
+    the cam command [deg] of each tick, NaN where the reference or the
+    position is not finite (that tick is skipped: the state carries over);
+    a non-finite supply or head pressure counts as 0 MPaG. ``state`` is
+    updated in place."""
+    n = x_ref_mm.size
+    out = np.full(n, np.nan)
+    for i in range(n):
+        if not (np.isfinite(x_mm[i]) and np.isfinite(x_ref_mm[i])):
+            continue
+        ps = p_supply_mpag[i] if np.isfinite(p_supply_mpag[i]) else 0.0
+        ph = p_head_mpag[i] if np.isfinite(p_head_mpag[i]) else 0.0
+        theta, _, _ = controller_step(kind, cp, sup, sup_z, sup_th, dr, dr_z, dr_th, state,
+                                      x_ref_mm[i], x_mm[i], ps, ph, p_tank_mpag[i])
+        out[i] = theta
+    return out
