@@ -155,11 +155,6 @@ def _block_sums(x: np.ndarray, y: np.ndarray, n_lag: int, block_n: int) -> np.nd
     target samples i in b with both x_i and y_{i+k} valid: n, Sx, Sy, Sxx,
     Syy, Sxy.
     """
-    # here, not at the module's top: importing scipy.signal takes ~1 s (it
-    # pulls in scipy.stats), and the processes that import the analysis
-    # package only to re-run the controller (validate) never estimate a lag
-    from scipy.signal import correlate
-
     mx = np.isfinite(x)
     my = np.isfinite(y)
     x0 = np.where(mx, x, 0.0)
@@ -178,15 +173,24 @@ def _block_sums(x: np.ndarray, y: np.ndarray, n_lag: int, block_n: int) -> np.nd
         # y samples i0 - n_lag .. i1 - 1 + n_lag (ypad is offset by n_lag)
         b_y = ypad[i0:i1 + 2 * n_lag]
         b_m = mypad[i0:i1 + 2 * n_lag]
-        sums = np.empty((6, 2 * n_lag + 1))
-        sums[0] = correlate(b_m, a_m, mode="valid")
-        sums[1] = correlate(b_m, a_x, mode="valid")
-        sums[2] = correlate(b_y, a_m, mode="valid")
-        sums[3] = correlate(b_m, a_x * a_x, mode="valid")
-        sums[4] = correlate(b_y * b_y, a_m, mode="valid")
-        sums[5] = correlate(b_y, a_x, mode="valid")
+        sums = _valid_correlations((b_m, b_y, b_y * b_y), (a_m, a_x, a_x * a_x),
+                                   ((0, 0), (0, 1), (1, 0), (0, 2), (2, 0), (1, 1)))
+        sums[0] = np.rint(sums[0])    # counts of valid pairs: whole numbers
         out.append(sums)
     return np.array(out) if out else np.empty((0, 6, 2 * n_lag + 1))
+
+
+def _valid_correlations(longs, shorts, pairs) -> np.ndarray:
+    """``scipy.signal.correlate(longs[i], shorts[j], mode="valid")`` for each
+    (i, j) of ``pairs``, as rows: c[k] = sum_m long[m + k] short[m], k = 0 ..
+    len(long) - len(short). By FFT with numpy, each signal transformed once
+    (scipy.signal is not imported: ~1 s, it pulls in scipy.stats, for what
+    ``tracking`` needs of it)."""
+    n_long, n_short = longs[0].size, shorts[0].size
+    nfft = 1 << int(n_long + n_short - 1).bit_length()
+    fl = [np.fft.rfft(v, nfft) for v in longs]
+    fs = [np.conj(np.fft.rfft(v, nfft)) for v in shorts]
+    return np.array([np.fft.irfft(fl[i] * fs[j], nfft)[:n_long - n_short + 1] for i, j in pairs])
 
 
 def _pearson(per_block: np.ndarray, min_pairs: int = 3) -> np.ndarray:
