@@ -7,6 +7,7 @@ import sys
 
 import pytest
 from click.testing import CliRunner
+from fresh_process import cli_call, modules_after
 from json_schemas import check_schema, keys_without_unit
 from numpy.testing import assert_allclose
 from test_tracking import write_delayed_run
@@ -68,6 +69,14 @@ def test_tracking_subprocess_end_to_end(dataset, tmp_path):
                            str(tmp_path / "sp")], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["shift_s"] == 0.25
+
+
+def test_tracking_estimates_the_lag_without_scipy_signal(dataset, tmp_path):
+    """The lag estimate's correlations are numpy FFTs: importing scipy.signal
+    (with scipy.stats: ~1 s, a third of the command) for them is not paid."""
+    code = cli_call("tracking", dataset, "--out", tmp_path / "o", "--no-figures", "-q")
+    assert modules_after(code, ["scipy.signal", "scipy.stats", "matplotlib"]) == []
+    assert json.loads((tmp_path / "o" / "tracking.json").read_text())["shift_source"] == "estimated"
 
 
 # --- on simulated data sets ------------------------------------------------------
