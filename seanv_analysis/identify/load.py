@@ -68,9 +68,12 @@ def _response(t, a, b, t0, tau):
 
 
 def fit_regulator(changes: Sequence, *, tau_start: float = 0.15,
-                  tau_fixed: float | None = None) -> dict[str, Any]:
+                  tau_fixed: float | None = None, between: bool = True) -> dict[str, Any]:
     """tau [s] (one for all changes) with its 95 % interval, and the RMSE [MPa];
-    ``tau_fixed``: only the per-change onsets and levels are fitted."""
+    ``tau_fixed``: only the per-change onsets and levels are fitted. The
+    interval is the wider of the residuals' (Jacobian) and, with
+    ``between`` and 3 or more changes, the changes' own spread
+    (:func:`_between_changes_half_width`)."""
     n = len(changes)
 
     def unpack(x):
@@ -95,10 +98,36 @@ def fit_regulator(changes: Sequence, *, tau_start: float = 0.15,
         try:
             cov = np.linalg.inv(sol.jac.T @ sol.jac) * s2
             h = 1.96 * math.sqrt(max(cov[0, 0], 0.0))
+            if between:
+                h = max(h, _between_changes_half_width(changes, tau))
             out["ci95"] = (tau * math.exp(-h), tau * math.exp(h))
         except np.linalg.LinAlgError:
             pass
     return out
+
+
+def _between_changes_half_width(changes: Sequence, tau: float) -> float:
+    """Half-width of tau's 95 % interval in log tau from the spread of the
+    changes' own fits (each change alone, tau free): their standard error
+    with Student's t at n - 1 degrees of freedom; 0 with fewer than 3.
+
+    The changes differ by more than their residuals say (the piston moves
+    during some, the level differs): on our simulator the per-change tau
+    spread 1.5 % and the pooled estimate 0.8 % over seeds, where the
+    residuals' interval said 0.6 %; it held the truth in 17 of 20 seeds."""
+    from scipy import stats
+
+    if len(changes) < 3:
+        return 0.0
+    logs = []
+    for c in changes:
+        one = fit_regulator([c], tau_start=tau, between=False)
+        if math.isfinite(one["tau_s"]) and one["tau_s"] > 0:
+            logs.append(math.log(one["tau_s"]))
+    if len(logs) < 3:
+        return 0.0
+    se = float(np.std(logs, ddof=1)) / math.sqrt(len(logs))
+    return float(stats.t.ppf(0.975, len(logs) - 1)) * se
 
 
 def load_constants(train_runs, held_runs, rig) -> tuple[list[Constant], dict[str, Any], list[str]]:
