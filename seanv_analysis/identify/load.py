@@ -111,10 +111,10 @@ def _between_changes_half_width(changes: Sequence, tau: float) -> float:
     changes' own fits (each change alone, tau free): their standard error
     with Student's t at n - 1 degrees of freedom; 0 with fewer than 3.
 
-    The changes differ by more than their residuals say (the piston moves
-    during some, the level differs): on our simulator the per-change tau
-    spread 1.5 % and the pooled estimate 0.8 % over seeds, where the
-    residuals' interval said 0.6 %; it held the truth in 17 of 20 seeds."""
+    The changes differ by more than their residuals say (why, on our
+    simulator, is not traced): there the per-change tau spread 1.5 % and
+    the pooled estimate 0.8 % over seeds, where the residuals' interval
+    said 0.6 %; it held the truth in 17 of 20 seeds."""
     from scipy import stats
 
     if len(changes) < 3:
