@@ -296,6 +296,34 @@ def test_discover_does_not_blame_the_unknown_geometry(foreign_own):
     assert h["rmse_after_mm3_s"] < 0.5 * h["rmse_before_mm3_s"]   # the geometry's share
 
 
+def test_discover_reports_both_readings_of_the_needle_centre(foreign_own):
+    """identify fits the needle centre before and without any effect;
+    discover fits it again with the effects it names. After an identify
+    stage, discover's geometry carries both readings with their intervals
+    (issue 31: report both where the data cannot tell them apart), and its
+    text names both; two intervals apart are said to be apart."""
+    from seanv_analysis.discover.result import _geometry_sentence
+    from seanv_analysis.stages import run_stages
+
+    root, _, _ = foreign_own
+    ctx = run_stages(root / "flow", ["ingest", "identify", "discover"],
+                     options={"identify": {"n_boot": 0, "parts": ["geometry"]}})
+    ident = {c.key: c for c in ctx.result("identify").constants if c.key}
+    geometry = ctx.result("discover").discovery.geometry
+    assert set(geometry) == {"supply", "drain"}
+    for side, g in geometry.items():
+        c = ident[f"valve.{side}.needle_y_c_mm"]
+        assert g["identified_mm"] == c.value and g["identified_ci95_mm"] == list(c.ci95)
+        lo, hi = g["ci95_mm"]
+        assert lo < g["needle_y_c_mm"] < hi
+    text = ctx.result("discover").discovery.report()
+    assert "identify " in text and "do not overlap" not in text
+    apart = _geometry_sentence({"supply": {"needle_y_c_mm": -31.3, "ci95_mm": [-33.0, -29.6],
+                                           "rig_file_mm": -20.0, "identified_mm": -22.5,
+                                           "identified_ci95_mm": [-25.2, -19.8]}}, True)
+    assert "On the supply side the two readings' intervals do not overlap" in apart
+
+
 def test_flow_steps_only_says_what_it_cannot_tell(foreign_own, tmp_path):
     """Without position-control runs the servo, breakaway and line keep the
     rig file's values, each saying why; the geometry is still identified."""

@@ -26,6 +26,7 @@ Procedure:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import Any
 
@@ -305,7 +306,10 @@ def discover_flow_steps(summary: pd.DataFrame, *, model: ValveModel, holdout: st
         # residual 'unexplained' (never a known effect)
         if proposed is not None and verdict == "none":
             verdict, trend_var = "unexplained", proposed.trend_variable
+    ci = final.param_ci95() if final.geometry else {}
     geometry = {s: {"needle_y_c_mm": float(final.model.side(s).geometry.needle_y_c_mm),
+                    "ci95_mm": [float(v) if math.isfinite(v) else None
+                                for v in ci.get(f"{s}.y_c_mm", (math.nan, math.nan))],
                     "rig_file_mm": float(model.side(s).geometry.needle_y_c_mm)}
                 for s in final.geometry} or None
     return Discovery(verdict=verdict, effects=findings, n_heldout_runs=n_held, geometry=geometry,

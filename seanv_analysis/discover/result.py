@@ -252,6 +252,39 @@ class ProposedTerm:
                 + ". Check it against the physics before naming it.")
 
 
+def _interval(ci) -> str:
+    lo, hi = (ci or (None, None))[:2]
+    return f" [{lo:.1f}, {hi:.1f}]" if lo is not None and hi is not None else ""
+
+
+def _geometry_sentence(geometry: dict, with_effects: bool) -> str:
+    """The report's sentence on the needle centres discover fitted (with the
+    named effects), and identify's beside them where that stage ran: two
+    readings, their intervals, and whether they agree."""
+    parts, apart = [], []
+    for s, g in geometry.items():
+        part = (f"{s} y_c {g['needle_y_c_mm']:.1f} mm{_interval(g.get('ci95_mm'))} "
+                f"(rig file {g['rig_file_mm']:.1f}")
+        if "identified_mm" in g:
+            part += f"; identify {g['identified_mm']:.1f}{_interval(g.get('identified_ci95_mm'))}"
+            lo, hi = (g.get("identified_ci95_mm") or (None, None))[:2]
+            a_lo, a_hi = (g.get("ci95_mm") or (None, None))[:2]
+            if None not in (lo, hi, a_lo, a_hi) and (a_hi < lo or hi < a_lo):
+                apart.append(s)
+        parts.append(part + ")")
+    text = ("The needle geometry (eq. 4's centre, not published) differs from the rig file's "
+            "and is part of the base model" + (", fitted with the named effects" if with_effects
+                                               else "") + ": " + "; ".join(parts) + ".")
+    if apart:
+        text += (f" On the {' and '.join(apart)} side the two readings' intervals do not "
+                 "overlap: identify fits the centre before and without any effect (the twin "
+                 "keeps that one); here it is chosen together with the effects. The data "
+                 "give both; neither is assumed.")
+    elif not any("identified_mm" in g for g in geometry.values()):
+        text += " `seanv-analyze identify` gives it with intervals."
+    return text
+
+
 @dataclass(frozen=True)
 class Discovery(JsonResult):
     """What discovery found and how much it helps on held-out runs.
@@ -423,11 +456,7 @@ class Discovery(JsonResult):
         if self.proposed_term is not None:
             lines.append(self.proposed_term.sentence(beside_named=bool(self.effects)))
         if self.geometry:
-            sides = ", ".join(f"{s} y_c {g['needle_y_c_mm']:.1f} mm (rig file {g['rig_file_mm']:.1f})"
-                              for s, g in self.geometry.items())
-            lines.append("The needle geometry (eq. 4's centre, not published) differs from the "
-                         f"rig file's and is part of the base model: {sides}. "
-                         "`seanv-analyze identify` gives it with intervals.")
+            lines.append(_geometry_sentence(self.geometry, bool(self.effects)))
         what = {"closed_loop": "closed-loop flow RMSE (validate: controller re-run on the plant)",
                 "closed_loop_heldout": "closed-loop flow RMSE on held-out position-control runs "
                                        "(controller re-run on the identified twin, each "

@@ -14,7 +14,8 @@ with the augmented model on that twin (the ``validate`` stage's work).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Mapping
 
@@ -211,7 +212,25 @@ def run(ctx: Context, options: Mapping[str, Any]) -> DiscoverResult:
                             holdout=opts["holdout"], seed=opts["seed"],
                             dynamic_search=_twin_search(ctx, ds.summary, runs, kept),
                             twin_model=ctx.valve if given is not None else None)
+    if given is not None and disc.geometry:
+        disc = replace(disc, geometry=geometry_readings(disc.geometry, given.constants))
     return closed_loop(ctx, disc, kept.get("twin"))
+
+
+def geometry_readings(geometry: Mapping[str, Any], constants) -> dict[str, Any]:
+    """discover's needle centres (fitted with the named effects) with the
+    ``identify`` stage's beside them (``identified_mm``,
+    ``identified_ci95_mm``: fitted before and without any effect; the twin's):
+    two readings of one constant, both reported (the selection of the
+    centre and the effects is discover's; identify decides first, alone)."""
+    out = {s: dict(g) for s, g in geometry.items()}
+    for c in constants:
+        side = c.key.split(".")[1] if c.key and c.key.endswith(".needle_y_c_mm") else None
+        if side in out and c.identified:
+            out[side]["identified_mm"] = float(c.value)
+            out[side]["identified_ci95_mm"] = [float(v) if math.isfinite(v) else None
+                                               for v in c.ci95]
+    return out
 
 
 def write(result: DiscoverResult, folder: Path) -> list[Path]:
