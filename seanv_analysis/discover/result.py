@@ -259,8 +259,9 @@ def _interval(ci) -> str:
 
 def _geometry_sentence(geometry: dict, with_effects: bool) -> str:
     """The report's sentence on the needle centres discover fitted (with the
-    named effects), and identify's beside them where that stage ran: two
-    readings, their intervals, and whether they agree."""
+    named flow-step effects: ``with_effects``), and identify's beside them
+    where that stage ran: two readings, their intervals, and whether they
+    agree."""
     parts, apart = [], []
     for s, g in geometry.items():
         part = (f"{s} y_c {g['needle_y_c_mm']:.1f} mm{_interval(g.get('ci95_mm'))} "
@@ -281,7 +282,8 @@ def _geometry_sentence(geometry: dict, with_effects: bool) -> str:
                  "keeps that one); here it is chosen together with the effects. The data "
                  "give both; neither is assumed.")
     elif not any("identified_mm" in g for g in geometry.values()):
-        text += " `seanv-analyze identify` gives it with intervals."
+        text += (" `seanv-analyze identify` fits it alone, before any effect (the twin's "
+                 "reading).")
     return text
 
 
@@ -456,7 +458,8 @@ class Discovery(JsonResult):
         if self.proposed_term is not None:
             lines.append(self.proposed_term.sentence(beside_named=bool(self.effects)))
         if self.geometry:
-            lines.append(_geometry_sentence(self.geometry, bool(self.effects)))
+            lines.append(_geometry_sentence(self.geometry, any(
+                e.evidence == STATIC_EVIDENCE for e in self.effects)))
         what = {"closed_loop": "closed-loop flow RMSE (validate: controller re-run on the plant)",
                 "closed_loop_heldout": "closed-loop flow RMSE on held-out position-control runs "
                                        "(controller re-run on the identified twin, each "
