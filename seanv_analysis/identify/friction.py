@@ -189,9 +189,9 @@ def _stribeck_choice(v, f, pick, static_n: float, linear: dict, start_vs: float,
                 # F_s's interval, not only the refits' values (F_c + b v's
                 # interval covered our simulator's F_c where its value and the
                 # Stribeck fits' intervals, 0.01 N wide, missed by 0.002 N)
-                lo_a, hi_a = alt.get(ci, (alt[key], alt[key]))
-                lo_a, hi_a = (lo_a, hi_a) if math.isfinite(lo_a) and math.isfinite(hi_a) \
-                    else (alt[key], alt[key])
+                lo_a, hi_a = alt.get(ci, (math.nan, math.nan))
+                if not (math.isfinite(lo_a) and math.isfinite(hi_a)):
+                    lo_a = hi_a = alt[key]
                 best[ci] = (min(best[ci][0], lo_a), max(best[ci][1], hi_a))
         return best, what
     return None, what + f" (kept when p < 0.01, the held-out RMSE drops and {lo_v:.2g} <= v_s <= {hi_v:.2g} mm/s)"
