@@ -135,3 +135,59 @@ def test_a_full_disk_on_a_figure_worker_ends_the_command_with_exit_2(make_datase
     assert len(lines) == 1 and "Traceback" not in res.output, res.output
     assert "No space left on device" in lines[0] and ".png" in lines[0], lines[0]
     assert not [p for p in out.rglob("*") if p.suffix in (".png", ".svg", ".json")]
+
+
+def test_a_lone_figure_is_split_by_format_on_idle_workers(position_ctx, tmp_path):
+    """One data-set figure and two workers: its PNG and its SVG are two tasks
+    (``_split_formats``), each laid out on its own worker: the same bytes
+    as drawn in one task here, listed in the formats' order, and its key
+    remembered (a second draw into the folder reuses the files)."""
+    from seanv_analysis.batch.executor import Executor
+    from seanv_analysis.stages import serial_tasks
+    from seanv_analysis.stages.figures import _split_formats, draw_figures
+
+    jobs = [("dataset", "fig6_runs", {}, "f")]
+    assert _split_formats(jobs, ("png", "svg"), 2) == [(*jobs[0], ("png",)), (*jobs[0], ("svg",))]
+    assert _split_formats(jobs * 2, ("png", "svg"), 2) == [(*j, ("png", "svg")) for j in jobs * 2]
+    assert _split_formats(jobs, ("svg",), 2) == [(*jobs[0], ("svg",))]
+    run_job = [("run", "fig6", "run-folder", "f")]
+    assert _split_formats(run_job, ("png", "svg"), 2) == [(*run_job[0], ("png", "svg"))]
+
+    def draw(folder, map_tasks, slots):
+        position_ctx.map_tasks, position_ctx.task_slots = map_tasks, slots
+        try:
+            return draw_figures(position_ctx, ["fig6_runs"], folder, formats=("png", "svg"),
+                                per_run_folders=False)
+        finally:
+            position_ctx.map_tasks, position_ctx.task_slots = serial_tasks, 1
+
+    here = draw(tmp_path / "here", serial_tasks, 1)
+    with Executor("process", workers=2) as ex:
+        split = draw(tmp_path / "split", ex.tasks, 2)
+        again = draw(tmp_path / "split", ex.tasks, 2)
+    assert not here.problems and not split.problems
+    assert [p.name for p in split.paths["fig6_runs"]] == ["fig6.png", "fig6.svg"]
+    for a, b in zip(here.paths["fig6_runs"], split.paths["fig6_runs"], strict=True):
+        assert a.read_bytes() == b.read_bytes(), a.name
+    assert again.paths == split.paths
+    assert {p: p.stat().st_mtime_ns for p in again.paths["fig6_runs"]} == \
+        {p: p.stat().st_mtime_ns for p in split.paths["fig6_runs"]}
+
+
+def test_result_modules_define_their_results():
+    """Each stage result's ``module`` (what the figure workers import while
+    the analysis runs) defines the result's type; a pipeline's modules are
+    its stages', in order, each once."""
+    import importlib
+
+    from seanv_analysis.stages import STAGES
+    from seanv_analysis.stages.figures import result_modules
+
+    named = [(s, r) for s, m in STAGES.items() for r in getattr(m, "RESULTS", ()) if r.module]
+    assert {r.name for _, r in named} >= {"flowfit", "tracking", "validation", "discovery",
+                                          "identify"}
+    for _, r in named:
+        assert hasattr(importlib.import_module(r.module), r.type), (r.name, r.module)
+    assert result_modules(["ingest", "flowfit", "validate", "discover", "figures"]) == (
+        "seanv_analysis.fit.flowfit", "seanv_analysis.analysis.validate",
+        "seanv_analysis.discover.result")

@@ -438,11 +438,13 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             mapper = CachedMapper(ex, cache, force=force, quiet=quiet)
             ctx.map_runs = mapper
             ctx.map_tasks = partial(ex.tasks, quiet=quiet)   # the figures, each a task
+            ctx.task_slots = ex.workers
             warm = None
             if any(has_role(s.name, "draws_figures") for s in pipe.stages):
-                from ..plots import warm_up
+                from ..stages.figures import result_modules, warm_figure_worker
 
-                warm = partial(ex.warm, warm_up)
+                warm = partial(ex.warm, partial(warm_figure_worker, result_modules(
+                    [s.name for s in pipe.stages])))
             with one_blas_thread():     # the data-set stages, here (the workers have one)
                 _run_stages(pipe, ctx, result, after_ingest=warm)
             result.computed, result.cached = mapper.computed, mapper.cached

@@ -162,13 +162,15 @@ AUTO_PARALLEL_MIN_RUNS = 64
 
 
 @contextmanager
-def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures: bool = False):
+def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures: bool = False,
+                  warm_modules: Sequence[str] = ()):
     """The :class:`~seanv_analysis.stages.Context` of a single command: per-run
     work in this process, or on all cores for large data sets (no cache)
     inside the block; in this process after it. With ``figures`` (the
     command draws some) the figures are tasks on all cores too, and the
-    worker processes load matplotlib at once, while the analysis runs here
-    (:func:`seanv_analysis.plots.warm_up`)."""
+    worker processes load matplotlib at once, while the analysis runs here,
+    and import ``warm_modules`` (the modules of the results the figures will
+    be sent: :func:`seanv_analysis.stages.figures.warm_figure_worker`)."""
     import multiprocessing as mp
     import os
     from functools import partial
@@ -185,10 +187,10 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
     with make_executor(workers=os.cpu_count()) as ex:
         warm = None
         if figures:
-            from ..plots import warm_up
+            from ..stages.figures import warm_figure_worker
 
-            warm = partial(ex.warm, warm_up)
-            ctx.map_tasks = partial(ex.tasks, quiet=quiet)
+            warm = partial(ex.warm, partial(warm_figure_worker, tuple(warm_modules)))
+            ctx.map_tasks, ctx.task_slots = partial(ex.tasks, quiet=quiet), ex.workers
         if big:
             ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm)
         elif warm is not None:
@@ -196,7 +198,7 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
         try:
             yield ctx
         finally:  # the pool is gone after the block
-            ctx.map_runs, ctx.map_tasks = serial_map, serial_tasks
+            ctx.map_runs, ctx.map_tasks, ctx.task_slots = serial_map, serial_tasks, 1
 
 
 class _WarmAfter:
@@ -335,9 +337,11 @@ def _run_in(pipe, data, first, folder: Path, *, rig, model, quiet, folders, main
         if value is not None and name != "ingest":
             written.extend(Path(p) for p in stages[name].write(value, folder / folders.get(name, ".")))
 
+    from ..stages.figures import result_modules
+
     figures = any(s.name == "figures" for s in pipe.stages)
-    with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet,
-                       figures=figures) as ctx, \
+    with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet, figures=figures,
+                       warm_modules=result_modules([s.name for s in pipe.stages])) as ctx, \
             warnings.catch_warnings(record=True):
         warnings.simplefilter("always")   # a result keeps what matters (skipped runs, notes)
         try:

@@ -61,12 +61,18 @@ class Result:
     get : ``get(value, ctx) -> result`` from the stage's return value (None:
         the value itself; a result that is None is absent)
     json : recorded in ``result.json`` under ``name`` (``to_json_dict()``)
+    module : the module that defines ``type`` (None: none to name): the
+        figure workers import it while the analysis runs
+        (:func:`~seanv_analysis.stages.figures.warm_figure_worker`), so a
+        result sent to them is read without its imports (``seanv_analysis.fit``
+        and scipy.optimize: 0.5 s of a lone Fig. 4's 1.7 s)
     """
 
     name: str
     type: str
     get: Callable[[Any, Any], Any] | None = None
     json: bool = True
+    module: str | None = None
 
     def of(self, value: Any, ctx: Any = None) -> Any:
         """This result from a stage's return value (None when absent)."""
@@ -262,6 +268,10 @@ class Context:
     #: independent tasks of a data-set stage (the figures): here by default,
     #: on the run's executor (worker processes, Dask) in a command or ``run``
     map_tasks: TaskMapper = serial_tasks
+    #: how many of ``map_tasks``' tasks run at once (the executor's workers;
+    #: 1 here): the figures stage splits a figure's formats into tasks of
+    #: their own when fewer figures than this are to be drawn
+    task_slots: int = 1
 
     @classmethod
     def for_data(cls, data: str | Path | Sequence[str | Path], *, rig: RigConfig | str | Path | None = None,

@@ -35,11 +35,15 @@ NEEDS = ("ingest",)
 FOLDER = "discover"
 #: the closed-loop check's validations (with the base model, which is validate's
 #: when that stage ran, and with the augmented one) and the discovery
+_VALIDATION = "seanv_analysis.analysis.validate"
 RESULTS = (Result("validation", "Validation", get=lambda value, ctx: getattr(value.before,
-                                                                             "validation", None)),
+                                                                             "validation", None),
+                  module=_VALIDATION),
            Result("validation_augmented", "Validation",
-                  get=lambda value, ctx: getattr(value.after, "validation", None)),
-           Result("discovery", "Discovery", get=lambda value, ctx: value.discovery))
+                  get=lambda value, ctx: getattr(value.after, "validation", None),
+                  module=_VALIDATION),
+           Result("discovery", "Discovery", get=lambda value, ctx: value.discovery,
+                  module="seanv_analysis.discover.result"))
 SECTION = ReportSection("discovery", "Discovery: what the model misses",
                         sections.discovery_section, sections.discovery_cards)
 WRITES = ("discover/discover.json", "discover/model_augmented.json", "discover/discover.txt",

@@ -23,7 +23,7 @@ NAME = "flowfit"
 ORDER = 20
 NEEDS = ("ingest",)
 FOLDER = "flowfit"
-RESULTS = (Result("flowfit", "FlowFit"),)
+RESULTS = (Result("flowfit", "FlowFit", module="seanv_analysis.fit.flowfit"),)
 SECTION = ReportSection("flowfit", "Identified flow model (eq. 5)", sections.flowfit_section)
 WRITES = ("flowfit/flowfit.json", "flowfit/flowfit_details.json", "flowfit/model.toml",
           "flowfit/model.json", "flowfit/per_run.parquet", "flowfit/per_load.parquet")

@@ -25,7 +25,7 @@ NAME = "identify"
 ORDER = 30
 NEEDS = ("ingest",)
 FOLDER = "identify"
-RESULTS = (Result("identify", "Identification"),)
+RESULTS = (Result("identify", "Identification", module="seanv_analysis.identify.result"),)
 SECTION = ReportSection("identify", "The rig identified from its logs", sections.identify_section)
 WRITES = ("identify/rig-identified.toml", "identify/identify.json", "identify/identify.txt")
 DESCRIPTION = ("identify the rig's unpublished constants (needle geometry, servo, friction, "

@@ -22,7 +22,7 @@ NAME = "tracking"
 ORDER = 40
 NEEDS = ("ingest",)
 FOLDER = "tracking"
-RESULTS = (Result("tracking", "Tracking"),)
+RESULTS = (Result("tracking", "Tracking", module="seanv_analysis.analysis.tracking"),)
 SECTION = ReportSection("tracking", "Flow tracking during position control (Sec. III-C)",
                         sections.tracking_section, sections.tracking_cards)
 WRITES = ("tracking/tracking.json", "tracking/tracking_details.json", "tracking/tracking.txt",

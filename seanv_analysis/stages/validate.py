@@ -27,7 +27,8 @@ NAME = "validate"
 ORDER = 50
 NEEDS = ("ingest",)
 FOLDER = "validate"
-RESULTS = (Result("validation", "Validation", get=lambda value, ctx: value.validation),)
+RESULTS = (Result("validation", "Validation", get=lambda value, ctx: value.validation,
+                   module="seanv_analysis.analysis.validate"),)
 SECTION = ReportSection("validation", "Closed-loop validation", sections.validation_section)
 WRITES = ("validate/validate.json", "validate/validate.txt", "validate/validate_table.parquet",
           "validate/validate_steps.parquet", "validate/validate_<run>.parquet")
