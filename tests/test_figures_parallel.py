@@ -176,18 +176,25 @@ def test_a_lone_figure_is_split_by_format_on_idle_workers(position_ctx, tmp_path
 
 def test_result_modules_define_their_results():
     """Each stage result's ``module`` (what the figure workers import while
-    the analysis runs) defines the result's type; a pipeline's modules are
-    its stages', in order, each once."""
+    the analysis runs) defines the result's type; a pipeline's are those of
+    the results its figures read, in stage order, each once (not identify's,
+    which no figure reads; none without a figures stage)."""
     import importlib
 
     from seanv_analysis.stages import STAGES
-    from seanv_analysis.stages.figures import result_modules
+    from seanv_analysis.stages.figures import figure_input_modules
+    from seanv_analysis.stages.pipeline import load_pipeline
 
     named = [(s, r) for s, m in STAGES.items() for r in getattr(m, "RESULTS", ()) if r.module]
     assert {r.name for _, r in named} >= {"flowfit", "tracking", "validation", "discovery",
                                           "identify"}
     for _, r in named:
         assert hasattr(importlib.import_module(r.module), r.type), (r.name, r.module)
-    assert result_modules(["ingest", "flowfit", "validate", "discover", "figures"]) == (
-        "seanv_analysis.fit.flowfit", "seanv_analysis.analysis.validate",
-        "seanv_analysis.discover.result")
+    assert figure_input_modules(load_pipeline("paper")) == (
+        "seanv_analysis.fit.flowfit", "seanv_analysis.analysis.tracking",
+        "seanv_analysis.analysis.validate", "seanv_analysis.discover.result")
+    assert figure_input_modules(load_pipeline({"stages": [
+        {"name": "ingest"}, {"name": "flowfit"}, {"name": "identify"},
+        {"name": "figures", "figs": [4]}]})) == ("seanv_analysis.fit.flowfit",)
+    assert figure_input_modules(load_pipeline({"stages": [{"name": "ingest"},
+                                                          {"name": "flowfit"}]})) == ()

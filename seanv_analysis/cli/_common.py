@@ -337,11 +337,11 @@ def _run_in(pipe, data, first, folder: Path, *, rig, model, quiet, folders, main
         if value is not None and name != "ingest":
             written.extend(Path(p) for p in stages[name].write(value, folder / folders.get(name, ".")))
 
-    from ..stages.figures import result_modules
+    from ..stages.figures import figure_input_modules
 
     figures = any(s.name == "figures" for s in pipe.stages)
     with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet, figures=figures,
-                       warm_modules=result_modules([s.name for s in pipe.stages])) as ctx, \
+                       warm_modules=figure_input_modules(pipe)) as ctx, \
             warnings.catch_warnings(record=True):
         warnings.simplefilter("always")   # a result keeps what matters (skipped runs, notes)
         try:

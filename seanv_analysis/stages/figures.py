@@ -29,7 +29,7 @@ from .validate import position_paths
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "FiguresResult", "check_option", "run", "write",
            "draw_figures", "draw_figure_task", "results_for_figures", "selected_figures",
-           "draw_run_figure", "warm_figure_worker", "result_modules"]
+           "draw_run_figure", "warm_figure_worker", "figure_input_modules"]
 
 NAME = "figures"
 ORDER = 90
@@ -102,21 +102,28 @@ def results_for_figures(ctx: Context, names=None) -> dict[str, Any]:
     return {k: v for k, v in out.items() if v is not None}
 
 
-def result_modules(stage_names: Sequence[str]) -> tuple[str, ...]:
-    """The modules defining the results of the stages ``stage_names``
-    (:attr:`Result.module <seanv_analysis.stages.base.Result.module>`), in
-    stage order, each once."""
+def figure_input_modules(pipe: Any) -> tuple[str, ...]:
+    """The modules defining the results the figures of pipeline ``pipe``
+    read (:attr:`Result.module <seanv_analysis.stages.base.Result.module>`
+    of its stages' results that a selected figure needs), in stage order,
+    each once; () without a figures stage. Only those: a worker importing
+    ``identify``'s (1.6 s), which no figure reads, would spend it for
+    nothing."""
     from .catalogue import STAGES
 
-    mods = [r.module for n in stage_names if n in STAGES
-            for r in getattr(STAGES[n], "RESULTS", ()) if r.module]
+    stage = pipe.stage(NAME)
+    if stage is None:
+        return ()
+    needed = {n for f in selected_figures({**OPTIONS, **stage.options}["figs"]) for n in f.needs}
+    mods = [r.module for s in pipe.stages if s.name in STAGES
+            for r in getattr(STAGES[s.name], "RESULTS", ()) if r.module and r.name in needed]
     return tuple(dict.fromkeys(mods))
 
 
 def warm_figure_worker(modules: Sequence[str] = ()) -> None:
     """What a figure worker runs while the analysis goes on: import
-    ``modules`` (:func:`result_modules`: the results the figures will be
-    sent are then read without their imports) and pay the first figure's
+    ``modules`` (:func:`figure_input_modules`: the results the figures will
+    be sent are then read without their imports) and pay the first figure's
     costs (:func:`seanv_analysis.plots.warm_up`)."""
     import importlib
 
