@@ -198,3 +198,23 @@ def test_result_modules_define_their_results():
         {"name": "figures", "figs": [4]}]})) == ("seanv_analysis.fit.flowfit",)
     assert figure_input_modules(load_pipeline({"stages": [{"name": "ingest"},
                                                           {"name": "flowfit"}]})) == ()
+
+
+def test_a_flow_fit_is_read_without_scipy(tmp_path):
+    """A figure worker sent a FlowFit unpickles it: that imports
+    ``seanv_analysis.fit`` and must not import scipy.optimize with it (1.1 s
+    of a lone Fig. 4's task): the fit functions import it when they fit."""
+    import pickle
+
+    from conftest import write_synthetic_dataset
+    from fresh_process import modules_after
+
+    from seanv_analysis.stages import run_stages
+
+    root = write_synthetic_dataset(tmp_path / "data", n_flow=8, n_position=0)
+    fit = run_stages(root, ["ingest", "flowfit"], options={"flowfit": {"n_boot": 0}}
+                     ).result("flowfit")
+    assert type(fit).__name__ == "FlowFit"
+    (tmp_path / "fit.pkl").write_bytes(pickle.dumps(fit))
+    code = f"import pickle\nfit = pickle.loads(open({str(tmp_path / 'fit.pkl')!r}, 'rb').read())"
+    assert modules_after(code, ["seanv_analysis.fit", "scipy.optimize"]) == ["seanv_analysis.fit"]

@@ -16,7 +16,6 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..models import ValveSide, signed_power
 from ..models.sealing import fluid_force_n
@@ -78,6 +77,8 @@ def _start(side, theta, p1, dp, q, sigma, z0_guess: float) -> tuple[float, float
 def _solve(side, theta, p1, dp, q, sigma, x0, f_scale):
     def fun(x):
         return (q - side_flow(side, x[0], x[1], theta, p1, dp)) / sigma
+
+    from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
 
     return least_squares(fun, x0, loss="soft_l1", f_scale=f_scale,
                          x_scale=[0.01, max(abs(x0[1]), 1e-3)], diff_step=[1e-5, 1e-6])
@@ -189,6 +190,7 @@ def bootstrap_joint(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_m
     x0 = np.asarray(x_hat, dtype=float)
     x_scale = [0.01, max(abs(x0[1]), 1e-3)]
     out = []
+    from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
     for _ in range(n_boot):
         idx = resample_indices(rng, members)
         if np.unique(theta[idx]).size < 2:

@@ -37,7 +37,6 @@ from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..estimate import Estimate
 from ..models import ValveSide
@@ -251,6 +250,7 @@ def fit_leakage(parts: Sequence[SideRuns], *, upper_mm3_s_per_mpa: float,
     lo[-1], hi[-1] = 0.0, float(upper_mm3_s_per_mpa)
     x_scale = [v for p in parts for v in (0.01, max(abs(p.start[1]), 1e-3))] + [1.0]
     res = None
+    from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
     for _ in range(2):       # f_scale from the start, then from the first solution
         f_scale = max(1.4826 * float(np.median(np.abs(fun(x)))), 1e-6)
         res = least_squares(fun, x, jac=jac, bounds=(lo, hi), loss="soft_l1", f_scale=f_scale,

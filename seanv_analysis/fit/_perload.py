@@ -14,8 +14,6 @@ import math
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.special import fdtrc  # F survival function, as scipy.stats.f.sf (0.2 s lighter)
 
 from ..models import ValveSide, signed_power
 
@@ -78,6 +76,7 @@ def fit_noise_model(residual_mm3_s, q_model_mm3_s) -> NoiseModel:
     def fun(p):
         return (_ABS_MEAN * (p[0] + p[1] * q) - r) / scale
 
+    from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
     res = least_squares(fun, [max(mad, floor_min), 0.01], bounds=([floor_min, 0.0], [np.inf, 1.0]),
                         loss="soft_l1", f_scale=1.0)
     return NoiseModel(float(res.x[0]), float(res.x[1]))
@@ -153,6 +152,7 @@ def fit_load(theta_deg, q_mm3_s, *, opens_upward: bool, sigma_mm3_s=None,
     f_scale = max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-6)
     if sigma_mm3_s is not None:
         f_scale = 1.0
+    from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
     res = least_squares(fun, [theta_d0, alpha0], loss="soft_l1", f_scale=f_scale,
                         x_scale=[1.0, max(abs(alpha0), 1e-3)])
     theta_d, alpha = (float(v) for v in res.x)
@@ -207,6 +207,7 @@ def two_step(side: ValveSide, theta_d_deg, theta_d_se_deg, alpha, alpha_se, p1_m
     def fun(z):
         return (side.threshold_deg(p1_thr, dp_thr, z0_mm=z[0]) - th) * np.sqrt(w_th)
 
+    from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
     res = least_squares(fun, [side.z0_mm], x_scale=[0.01])
     out["z0_mm"] = float(res.x[0])
     out["z0_se_mm"] = float(_stderr(res.jac, res.fun, n_par=1)[0]) if th.size > 1 else math.nan
@@ -342,6 +343,7 @@ def lack_of_fit_test(residual_mm3_s, conditions, *, sigma_mm3_s=None, flow_mm3_s
         return LackOfFit(None, reason="repeats agree exactly: no repeats' scatter", **base)
     ms_pe = ss_pe / df_pe
     f_stat = (ss_lof / df_lof) / ms_pe
+    from scipy.special import fdtrc  # F survival function, as scipy.stats.f.sf (0.2 s lighter)
     p = float(fdtrc(df_lof, df_pe, f_stat))   # = scipy.stats.f.sf(f_stat, df_lof, df_pe)
     ratio = math.sqrt(f_stat)
     flow2 = float(np.sum(w * q ** 2))
