@@ -64,8 +64,8 @@ class Result:
     module : the module that defines ``type`` (None: none to name): the
         figure workers import it while the analysis runs
         (:func:`~seanv_analysis.stages.figures.warm_figure_worker`), so a
-        result sent to them is read without its imports (``seanv_analysis.fit``
-        and scipy.optimize: 0.5 s of a lone Fig. 4's 1.7 s)
+        result sent to them is read without its imports (a ``Discovery``:
+        ``seanv_analysis.discover`` with scipy.optimize, 0.5 s)
     """
 
     name: str
