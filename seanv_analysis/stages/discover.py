@@ -33,9 +33,10 @@ NAME = "discover"
 ORDER = 60
 NEEDS = ("ingest",)
 FOLDER = "discover"
+#: where the ``Validation`` results are defined (:attr:`Result.module`)
+_VALIDATION = "seanv_analysis.analysis.validate"
 #: the closed-loop check's validations (with the base model, which is validate's
 #: when that stage ran, and with the augmented one) and the discovery
-_VALIDATION = "seanv_analysis.analysis.validate"
 RESULTS = (Result("validation", "Validation", get=lambda value, ctx: getattr(value.before,
                                                                              "validation", None),
                   module=_VALIDATION),
