@@ -167,6 +167,31 @@ def test_coulomb_interval_holds_the_linear_law_when_the_stribeck_term_may_vanish
     assert blo <= linear["viscous_ci95"][0] and linear["viscous_ci95"][1] <= bhi
 
 
+def test_a_stribeck_velocity_the_data_do_not_bound_gets_an_open_interval(monkeypatch):
+    """A v_s far below every measured speed has a Jacobian column near 0: its
+    log interval's half-width ran past exp's range and ``identify`` ended
+    in OverflowError (benchmarks/bench_identify.py, foreign rig seed 4:
+    v_s 0.80 mm/s, speeds 3-46 mm/s). Its interval is now (0, inf), and
+    the Stribeck choice, which needs v_s bounded, falls back to F_c + b v."""
+    from seanv_analysis.identify import friction
+
+    rng = np.random.default_rng(0)
+    v = np.concatenate([np.linspace(3.0, 46.0, 40), -np.linspace(3.0, 46.0, 40)])
+    f = np.sign(v) * 40.0 + 1.576 * v + rng.normal(0.0, 0.5, v.size)
+    wide = friction._half_widths_95      # the Stribeck fit's log v_s: 1e4 wider
+
+    def wider(jac, s2):
+        return wide(jac, s2) + (np.array([0.0, 0.0, 1e4]) if jac.shape[1] == 3 else 0.0)
+
+    monkeypatch.setattr(friction, "_half_widths_95", wider)
+    fit = friction.fit_stribeck(v, f, 54.6, (40.0, 1.576, 1.0))
+    assert fit["stribeck_ci95"] == (0.0, np.inf)
+    pick = np.arange(v.size) % 3 == 2
+    linear = friction.fit_friction(v[~pick], f[~pick])
+    best, why = friction._stribeck_choice(v, f, pick, 54.6, linear, 1.0, (50.0, 60.0))
+    assert best is None and why
+
+
 def test_supply_pressure_and_unidentified_mass(foreign_own):
     """The foreign supply (3.0 MPaG at no flow, 2e-5 MPa per mm^3/s drawn):
     both from the supply flow steps' steady pressure vs flow (measured:

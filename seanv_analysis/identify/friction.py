@@ -90,6 +90,13 @@ def _half_widths_95(jac: np.ndarray, s2: float) -> np.ndarray:
         return np.full(jac.shape[1], math.nan)
 
 
+def _exp(x: float) -> float:
+    """exp(x) of a log-parameter or its interval's end: inf beyond the float
+    range (a v_s the data do not constrain has a Jacobian column near 0, so
+    a half-width of 1e3 and more in log v_s)."""
+    return math.exp(x) if not x >= 709.0 else math.inf
+
+
 def fit_stribeck(v_mm_s, f_net_n, static_n: float, start: tuple[float, float, float]
                  ) -> dict[str, Any]:
     """(F_c [N], b [N s/mm], v_s [mm/s]) of F = sign(v) [F_c + (F_s - F_c)
@@ -112,12 +119,12 @@ def fit_stribeck(v_mm_s, f_net_n, static_n: float, start: tuple[float, float, fl
     s2 = float(np.sum(res ** 2)) / max(v.size - 3, 1)
     jac = sol.jac * scale
     half = _half_widths_95(jac, s2)
-    vs = math.exp(sol.x[2])
+    vs = _exp(sol.x[2])
     return {"coulomb_n": float(sol.x[0]), "viscous_n_s_per_mm": float(sol.x[1]),
             "stribeck_velocity_mm_s": vs,
             "coulomb_ci95": (float(sol.x[0] - half[0]), float(sol.x[0] + half[0])),
             "viscous_ci95": (float(sol.x[1] - half[1]), float(sol.x[1] + half[1])),
-            "stribeck_ci95": (vs * math.exp(-half[2]), vs * math.exp(half[2])),
+            "stribeck_ci95": (vs * _exp(-half[2]), vs * _exp(half[2])),
             "rss_n2": float(np.sum(res ** 2)), "rmse_n": float(np.sqrt(np.mean(res ** 2))),
             "predict": lambda vv: (np.sign(vv) * (sol.x[0] + (static_n - sol.x[0])
                                                   * np.exp(-(np.asarray(vv) / vs) ** 2))
