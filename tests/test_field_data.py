@@ -82,6 +82,15 @@ def test_field_servo_intervals_hold_the_truth(field_root, name):
     assert hi - lo < 0.5 * truth["servo_dead_time_s"] + 0.01
     lo, hi = fit.tau_ci95
     assert lo <= truth["servo_time_constant_s"] <= hi, fit
+    # the rate limit: reached in 0.1-0.2 % of the samples only, but on
+    # field-clean the rig file's 240 deg/s fits the logs far worse than the
+    # free fit (likelihood ratio ~100): taken from the logs, its interval
+    # holds the truth; on field-slow-servo the free fit is no better
+    # (truth 250): the rig file's rate is kept, said not identified
+    assert fit.rate_identified == (name == "field-clean"), fit.rate_note
+    if fit.rate_identified:
+        lo, hi = fit.rate_ci95
+        assert lo <= truth["servo_rate_limit_deg_s"] <= hi, fit
 
 
 def test_field_friction_is_a_stribeck_law(field_root, summaries):
@@ -109,14 +118,15 @@ def test_field_friction_is_a_stribeck_law(field_root, summaries):
     assert fits["heldout"] < 3.0          # N; 4.2 with F_c + b v, 2.1 measured
 
 
-def test_field_line_keeps_the_tube_when_the_heldout_run_disagrees(field_root, summaries):
+def test_field_line_keeps_the_tube_despite_the_play(field_root, summaries):
     """field-drift-backlash's position runs carry a 1.5 deg play between
-    servo and cam that the twin has not: fitted on the training run alone,
-    the line's inertance went to the end of its range (0.03 x the tube's
-    water column) for 3 % less SSE and took the play in (discover then named
-    a delay, not the backlash). The held-out run's replay is worse with that
-    line, so the rig file's tube is kept and the note says why (on
-    field-clean the tube is the best line outright: benchmarks/bench_field)."""
+    servo and cam that the twin has not. With the rig file's servo rate
+    (240 deg/s for the rig's 300), fitted on the training run alone, the
+    line's inertance went to the end of its range (0.03 x the tube's water
+    column) for 3 % less SSE and took the play in; only the held-out
+    replay's veto kept the tube. With the rate the servo logs give (297),
+    the tube is the best line on the training run outright, by 24 % of
+    the flow SSE over the next factor, and the rig file's tube is kept."""
     from seanv_analysis.identify import identify_rig
     from seanv_analysis.io.reader import find_runs, read_run
 
@@ -125,6 +135,10 @@ def test_field_line_keeps_the_tube_when_the_heldout_run_disagrees(field_root, su
     pos = [r for r in (read_run(p, rig=rig) for p in find_runs(field_root / name))
            if r.kind == "position_control"]
     ident = identify_rig(summaries(name), rig, position_runs=pos, n_boot=0)
+    truth = field_truth(field_root, name)["plant"]
+    rate = next(c for c in ident.constants if c.key == "servo.max_rate_deg_s")
+    assert rate.identified and rate.value == pytest.approx(truth["servo_rate_limit_deg_s"],
+                                                           rel=0.05), rate
     line = next(c for c in ident.constants if c.key == "tube.inertance_factor")
     assert line.value == rig["tube"]["inertance_factor"], line
-    assert "replays the held-out runs worse" in line.note, line.note
+    assert "no other inertance fits significantly better" in line.note, line.note
