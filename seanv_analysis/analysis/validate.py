@@ -289,6 +289,9 @@ class RunValidation:
     steps_simulated: pd.DataFrame = field(repr=False)
     overlay: pd.DataFrame = field(repr=False)
     simulated: Run | None = field(default=None, repr=False)
+    #: starts [s] of the per-segment re-runs (``*_seg_*`` overlay columns;
+    #: empty when none was made)
+    segment_starts_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
 
 def _applicable(rec: dict[str, Any]) -> dict[str, Any]:
@@ -617,7 +620,7 @@ def validate_run(run: Run, model, *, rig=None, seed: int = 0, effects: Sequence[
            "limit_cycle_duration_measured_s": lc_m.duration_s,
            "limit_cycle_duration_simulated_s": lc_s.duration_s,
            "flagged": _flagged(fit_x, threshold_pct, lc)}
-    return RunValidation(run.run_id, row, sm, ss, ov, sim)
+    return RunValidation(run.run_id, row, sm, ss, ov, sim, seg.starts_s)
 
 
 def _flagged(fit_position_pct: float, threshold_pct: float, limit_cycle: str) -> bool:

@@ -103,13 +103,29 @@ def discover_dataset(runs, summary, *, rig, model=None, holdout: str = "chrono",
                                       "message": f"dynamic effects not tested: {exc}"})
 
 
+def changed_with_use(result) -> list[tuple[str, str]]:
+    """(side, valve key) of each named static effect that moves a valve
+    constant with use (a drift's C, a threshold shift's z0:
+    ``Effect.CHANGES_WITH_USE``): the position-control runs, outside the
+    flow-step sequence, set that constant's value for the dynamic search."""
+    from ..models.effects import EFFECTS
+
+    out = []
+    for e in (result.effects if result is not None else ()):
+        key = getattr(EFFECTS.get(e.name), "CHANGES_WITH_USE", None)
+        if key and e.side in ("supply", "drain") and (e.side, key) not in out:
+            out.append((e.side, key))
+    return out
+
+
 def _closed_loop_dynamic(position, result, *, rig, model, valve, seed, search: DynamicSearch):
     """The dynamic candidates fitted on the identified twin (logged cam
     command replayed) beside the static ``result`` (None: no flow steps); a
     dynamic effect found makes the held-out closed-loop flow RMSE the
     headline."""
     train, held = split_position_runs(position)
-    findings, base_held = search(train, held, valve, rig, seed=seed)
+    findings, base_held = search(train, held, valve, rig, seed=seed,
+                                 free_valve=changed_with_use(result))
     named = [f for f in findings if f.named]
     if result is None:
         rmse = base_held.get("rmse_flow_mm3_s", float("nan"))
@@ -122,12 +138,16 @@ def _closed_loop_dynamic(position, result, *, rig, model, valve, seed, search: D
                     + (f", held-out flow RMSE {-f.replay_improvement:+.0%} replayed, "
                        f"{-f.heldout_improvement:+.0%} in closed loop" if f.heldout_before
                        else "") + ")" for f in findings)
+    refit = findings[0].valve_refit if findings else []
+    if refit:
+        msg = findings[0].valve_refit_sentence() + "; " + (msg or "no candidate")
     change: dict[str, Any] = {"position_control": {
         "method": ("dynamic effects fitted on the identified twin replaying the logged cam "
                    "command (open loop), checked on held-out runs replayed and re-run in "
                    "closed loop (each segment from the logged state; whole runs as free_*)"),
         "n_runs": len(position), "n_heldout_runs": len(held), "found": bool(named),
         "message": msg or "no candidate", "candidates": [f.to_json_dict() for f in findings],
+        "valve_at_position_runs": refit,
         "heldout_twin": base_held}}
     for f in named:
         change["effects"] = [*result.effects, EffectFinding(

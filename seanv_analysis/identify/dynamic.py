@@ -22,13 +22,23 @@ the base twin with its constants free. An effect is named when
   sum of squares over the residual variance (with the residuals' effective
   sample size) beats the chi-square(1) 99.9 % quantile with a Bonferroni
   factor for the candidates, and
-- on the held-out runs (never used to fit), replayed the same way, the
-  flow error drops significantly (the per-sample drop of the squared error,
-  its mean against its spread over the effective sample size, one-sided,
-  below ``alpha_heldout``, 5 %: one confirmatory test of the one candidate
-  the training screen kept) and by at least ``min_improvement`` (10 %) of the RMSE:
-  the twin's other misfits (friction law, line) stay in both errors, so
-  the drop is judged by its significance, with a floor for what matters.
+- on the held-out runs (never used to fit) the flow error drops, in the
+  replay and in the closed loop segment by segment (neither gets worse),
+  and one of the two drops significantly and by at least
+  ``min_improvement`` (10 %) of the RMSE: the replay's by the per-sample
+  drop of the squared error, its mean against its spread over the
+  effective sample size; the closed loop's by a sign-flip permutation test
+  of the segments' flow SSE drops (each segment re-run from the logged
+  state is one paired observation). One-sided, each below
+  ``alpha_heldout`` / 2 (5 % in all, Bonferroni over the two): one
+  confirmatory test of the one candidate the training screen kept. The
+  twin's other misfits (friction law, line) stay in both errors, so the
+  drop is judged by its significance, with a floor for what matters. Why
+  both measures: the replay is driven by the logged commands, which
+  already carry the loop's response to the effect; on the field rig's cam
+  play the held-out replay fell 10-25 % depending on where in the training
+  error's flat valley the line's bulk modulus ended, the closed loop per
+  segment 42-48 % each time (12 segments, 7 better, p 0.008).
 
 The grid only brackets the value: the best grid point is refined between
 its neighbours. The kept candidate's 95 % interval spans two: the profile
@@ -106,6 +116,24 @@ class DynamicFinding:
     replay_after: dict[str, float] = field(default_factory=dict)
     replay_value: float = math.nan   # the value the replay fit gave (``value``: refined in closed loop)
     heldout_p_value: float = math.nan  # the held-out replay's error drop: one-sided p
+    #: the held-out closed loop's error drop from the base twin (its line
+    #: refitted alone: ``heldout_base_twin``), segment by segment: one-sided p
+    heldout_segments_p_value: float = math.nan
+    heldout_base_twin: dict[str, float] = field(default_factory=dict)
+    #: the valve constants that change with use, refitted on the training
+    #: position-control runs (:func:`valve_at_position_runs`; [] : none)
+    valve_refit: list[dict[str, Any]] = field(default_factory=list)
+
+    def valve_refit_sentence(self) -> str:
+        """'supply C 15.99 at the position runs (flow steps 15.1: it changes
+        with use)' for each refitted constant, '; '-joined ('' : none)."""
+        out = []
+        for r in self.valve_refit:
+            name, unit = _USE_NAMES[r["key"]]
+            out.append(f"{r['side']} {name} {r[f'{name}_position_runs_{unit}']:.4g} at the "
+                       f"position runs (flow steps {r[f'{name}_flow_steps_{unit}']:.4g}: it "
+                       "changes with use)")
+        return "; ".join(out)
 
     @property
     def spec(self) -> str:
@@ -116,6 +144,13 @@ class DynamicFinding:
         """Drop of the held-out closed-loop flow RMSE (per-segment re-runs
         from the logged state: the headline)."""
         return _drop(self.heldout_before, self.heldout_after)
+
+    @property
+    def closed_loop_improvement(self) -> float:
+        """Drop of the held-out closed-loop flow RMSE (per segment) from the
+        base twin, its line refitted alone (what the held-out check compares:
+        like with like, as the replay)."""
+        return _drop(self.heldout_base_twin, self.heldout_after)
 
     @property
     def replay_improvement(self) -> float:
@@ -150,7 +185,9 @@ class DynamicFinding:
                 "heldout_before": self.heldout_before, "heldout_after": self.heldout_after,
                 "replay_heldout_before": self.replay_before,
                 "replay_heldout_after": self.replay_after,
-                "p_value_heldout": self.heldout_p_value}
+                "p_value_heldout": self.heldout_p_value,
+                "p_value_heldout_segments": self.heldout_segments_p_value,
+                "heldout_base_twin": self.heldout_base_twin}
 
 
 def _heldout_drop_p(before, after) -> float:
@@ -174,6 +211,38 @@ def _heldout_drop_p(before, after) -> float:
     return float(stats.norm.sf(z))
 
 
+def _segment_drop_p(before, after, *, seed: int = 0) -> float:
+    """One-sided p of the held-out closed-loop error drop, segment by
+    segment: each segment re-run from the logged state
+    (:mod:`~seanv_analysis.analysis.rerun`) is one paired observation, its
+    flow SSE before minus after; a sign-flip permutation test of their sum
+    (exact up to 16 segments, else 2^16 random flips). Runs are matched by
+    id and must have the same segments; NaN with fewer than 6 segments
+    that differ."""
+    after_by_id = {a.run_id: a for a in after}
+    d = []
+    for b in before:
+        a = after_by_id.get(b.run_id)
+        st = b.segment_starts_s
+        if a is None or st.size == 0 or not np.array_equal(st, a.segment_starts_s):
+            continue
+        k = np.searchsorted(st, b.overlay["t_s"].to_numpy(float), side="right") - 1
+        eb = (b.overlay["q_mm3_s"] - b.overlay["q_seg_mm3_s"]).to_numpy(float)
+        ea = (a.overlay["q_mm3_s"] - a.overlay["q_seg_mm3_s"]).to_numpy(float)
+        ok = np.isfinite(eb) & np.isfinite(ea) & (k >= 0)
+        d.append(np.bincount(k[ok], eb[ok] ** 2, minlength=st.size)
+                 - np.bincount(k[ok], ea[ok] ** 2, minlength=st.size))
+    d = np.concatenate(d) if d else np.zeros(0)
+    d = d[d != 0]
+    if d.size < 6:
+        return math.nan
+    res = stats.permutation_test((d,), lambda x, axis: np.sum(x, axis=axis),
+                                 permutation_type="samples", vectorized=True,
+                                 n_resamples=2 ** 16, alternative="greater",
+                                 rng=np.random.default_rng(seed))
+    return float(res.pvalue)
+
+
 def _drop(before: dict[str, float], after: dict[str, float]) -> float:
     b, a = before.get("rmse_flow_mm3_s"), after.get("rmse_flow_mm3_s")
     return 1.0 - a / b if b and a is not None and math.isfinite(b) and b > 0 else math.nan
@@ -194,18 +263,83 @@ def _summary(results) -> dict[str, float]:
     return whole
 
 
+#: how far the position-control runs may move a valve constant that changes
+#: with use from the flow steps' value: C by a factor, z0 by an offset [mm]
+#: (a drift's few % a step over a few steps; a threshold shift's 1e-5 mm a
+#: run over hundreds of runs, where 0.01 mm of z0 moves theta_d ~2 deg)
+_USE_RANGE = {"c_flow": ("factor", 0.7, 1.3), "z0_mm": ("offset", -0.05, 0.05)}
+#: the JSON names of those constants (name, unit suffix), as flowfit's
+_USE_NAMES = {"c_flow": ("C", "mm3_s_deg2_sqrtMPa"), "z0_mm": ("z0", "mm")}
+
+
+def valve_at_position_runs(train: Sequence[Any], valve, rig,
+                           free: Sequence[tuple[str, str]]) -> tuple[Any, list[dict[str, Any]]]:
+    """``valve`` with each (side, key) of ``free`` refitted on the training
+    position-control runs (``train``: replay targets), the flow SSE of their
+    replay minimised by bounded Brent, one constant after the other.
+
+    A constant that changes with use (a named drift's C, a threshold shift's
+    z0: :attr:`~seanv_analysis.models.effects.Effect.CHANGES_WITH_USE`) has,
+    at runs outside the flow-step sequence, a value the flow steps do not
+    give: their fit is an average over the trend, and the trend's
+    extrapolation cannot tell whether the position runs carry the last
+    step's use or a fresh start. On field-drift-backlash the flow steps'
+    supply C was 15.10 (the drift's average), the extrapolated drift 12.67,
+    and the position runs fit 16.0; with 15.10 the twin's misfit hid the
+    cam's play (held-out replay -5 %), with 16.0 it was named (-24 %).
+    Returns (valve, [{"side", "key", "<name>_flow_steps_<unit>",
+    "<name>_position_runs_<unit>"}]) ("C_..._mm3_s_deg2_sqrtMPa", "z0_..._mm")."""
+    out = []
+    for side, key in free:
+        if key not in _USE_RANGE:
+            raise ValueError(f"valve_at_position_runs: {key!r} is not a constant that changes "
+                             f"with use ({', '.join(_USE_RANGE)})")
+        v0 = float(getattr(valve.side(side), key))
+        v1 = _refit_one(train, valve, rig, side, key, v0)
+        valve = valve.with_side(side, **{key: v1})
+        name, unit = _USE_NAMES[key]
+        out.append({"side": side, "key": key, f"{name}_flow_steps_{unit}": v0,
+                    f"{name}_position_runs_{unit}": v1})
+    return valve, out
+
+
+def _refit_one(train, valve, rig, side: str, key: str, v0: float) -> float:
+    """The value of one valve constant (``v0`` moved within :data:`_USE_RANGE`)
+    with the least training replay flow SSE (bounded Brent)."""
+    how, lo, hi = _USE_RANGE[key]
+
+    def moved(k: float) -> float:
+        return v0 * k if how == "factor" else v0 + k
+
+    def sse(k: float) -> float:
+        return flow_sse(replay_on_twin(train, valve.with_side(side, **{key: moved(k)}), rig),
+                        effective=False)[0]
+
+    r = optimize.minimize_scalar(sse, bounds=(lo, hi), method="bounded",
+                                 options={"xatol": 0.002 if how == "factor" else 2e-4,
+                                          "maxiter": 16})
+    return float(f"{moved(float(r.x)):.6g}")
+
+
 def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *,
                         candidates: Sequence[str] = tuple(DYNAMIC_CANDIDATES),
                         alpha: float = 1e-3, alpha_heldout: float = 0.05,
-                        min_improvement: float = 0.10, seed: int = 0
+                        min_improvement: float = 0.10, seed: int = 0,
+                        free_valve: Sequence[tuple[str, str]] = ()
                         ) -> tuple[list[DynamicFinding], dict[str, float]]:
     """Fit each dynamic candidate on ``train`` (the twin ``rig`` with the
     valve ``valve``) and check it on ``held``; returns every candidate's
     finding (``named`` True for the kept one, at most one) and the held-out
-    closed-loop numbers of the twin without effects."""
-    base_held = _summary(validate_on_twin(held, valve, rig))
+    closed-loop numbers of the twin without effects. ``free_valve``: the
+    valve's (side, key) pairs that change with use, refitted on ``train``
+    first (:func:`valve_at_position_runs`) and used for every candidate, the
+    base twin and the held-out checks alike."""
     train_runs, held_runs = train, held
     train, held = replay_targets(train, rig), replay_targets(held, rig)
+    refit: list[dict[str, Any]] = []
+    if free_valve and train:
+        valve, refit = valve_at_position_runs(train, valve, rig, free_valve)
+    base_held = _summary(validate_on_twin(held_runs, valve, rig))
     base_train = flow_sse(replay_on_twin(train, valve, rig))
     if base_train[2] == 0:
         return [], base_held
@@ -282,7 +416,9 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
 
         costs = list(zip(costs_of([(f"{name}:{param}={v:.4g}", bulk) for v in grid]), grid))
         s2 = sse1 / max(n_eff - 1.0, 1.0)
-        stat = (sse0 - sse1) / s2 if s2 > 0 else 0.0
+        # at its null value (no delay, no play) the candidate is the base
+        # twin: a lower SSE there is the line's refit, not evidence
+        stat = (sse0 - sse1) / s2 if s2 > 0 and best > 0 else 0.0
         p = float(stats.chi2.sf(max(stat, 0.0), 1))
         lim = sse1 + stats.chi2.ppf(0.95, 1) * s2
         inside = [v for c, v in costs if c <= lim] + [best]
@@ -293,6 +429,7 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
 
     for name, (f, profile) in zip(candidates, _map(search, candidates, stop)):
         profiles[name] = profile
+        f.valve_refit = refit
         findings.append(f)
     findings.sort(key=lambda f: f.p_value)
     for f in findings[:1]:
@@ -327,11 +464,29 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         f.replay_before, f.replay_after = _summary(rb), _summary(ra)
         f.heldout_p_value = _heldout_drop_p(rb, ra)
         f.heldout_before = base_held
-        f.heldout_after = _summary(validate_on_twin(held_runs, valve, twin, [f.spec]))
-        imp = f.replay_improvement
-        f.named = (math.isfinite(imp) and imp >= min_improvement
-                   and f.heldout_p_value < alpha_heldout)
+        after = validate_on_twin(held_runs, valve, twin, [f.spec])
+        f.heldout_after = _summary(after)
+        # the test compares like with like, as the replay's does: the base
+        # twin has its line refitted alone (the headline's before is the
+        # identified twin: with it, a delay of 0 s and the line refitted
+        # passed on the foreign rig's run paper data)
+        base = validate_on_twin(held_runs, valve, base_twin)
+        f.heldout_base_twin = _summary(base)
+        f.heldout_segments_p_value = _segment_drop_p(base, after, seed=seed)
+        f.named = _confirmed(f, min_improvement, alpha_heldout / 2.0)
     return findings, base_held
+
+
+def _confirmed(f: DynamicFinding, min_improvement: float, alpha: float) -> bool:
+    """The held-out check of a candidate the training screen kept: neither
+    held-out error (replayed, closed loop per segment) rises, and one of
+    them drops by >= ``min_improvement`` with its one-sided p below
+    ``alpha``."""
+    drops = [(f.replay_improvement, f.heldout_p_value),
+             (f.closed_loop_improvement, f.heldout_segments_p_value)]
+    if any(math.isfinite(d) and d < 0 for d, _ in drops):
+        return False
+    return any(math.isfinite(d) and d >= min_improvement and p < alpha for d, p in drops)
 
 
 def _command_timing_u(runs) -> float:

@@ -323,6 +323,11 @@ class Effect:
     SENTENCE: ClassVar[str] = ""
     #: the static form for discover's flow-step fit; None: the effect has none
     STATIC: ClassVar[StaticForm | None] = None
+    #: the valve side's constant the effect moves with use (``"c_flow"``,
+    #: ``"z0_mm"``; None: none): where it is named on the flow steps, that
+    #: constant's value at runs outside their sequence (position-control runs)
+    #: is not known from them, and the dynamic search refits it on those runs
+    CHANGES_WITH_USE: ClassVar[str | None] = None
     #: a named effect of discover's vocabulary (it is tried as a candidate);
     #: False for the generic ``term``, which only holds a given expression
     VOCABULARY: ClassVar[bool] = True
@@ -494,6 +499,7 @@ class Drift(Effect):
                                               {"every": None, "offset": None}, ("run_index",))
     #: longest drift period the static search tries [runs]
     MAX_EVERY: ClassVar[int] = 12
+    CHANGES_WITH_USE: ClassVar[str | None] = "c_flow"
 
     side: str = "drain"
     step: float = 0.05
@@ -572,6 +578,7 @@ class ThresholdShift(Effect):
                                "(z0 changes {rate_mm_per_run:+.2e} mm per run)")
     STATIC: ClassVar[StaticForm] = StaticForm(("rate_mm_per_run",), (0.0,), (-0.01,), (0.01,),
                                               needs=("run_index",))
+    CHANGES_WITH_USE: ClassVar[str | None] = "z0_mm"
 
     side: str = "supply"
     rate_mm_per_run: float = 2.0e-5

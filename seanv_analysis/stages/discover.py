@@ -169,7 +169,7 @@ def _twin_search(ctx: Context, summary, runs, held: dict[str, Any]):
 
     given = ctx.result("identify")
 
-    def search(train, held_runs, valve, rig, *, seed: int = 0):
+    def search(train, held_runs, valve, rig, *, seed: int = 0, free_valve=()):
         if given is not None:
             twin_rig = given.rig
         else:
@@ -184,7 +184,8 @@ def _twin_search(ctx: Context, summary, runs, held: dict[str, Any]):
                              "feedback), so neither can a twin to test dynamic effects on")
             held["twin"] = ident
             twin_rig = ident.rig
-        return closed_loop_effects(train, held_runs, valve, twin_rig, seed=seed)
+        return closed_loop_effects(train, held_runs, valve, twin_rig, seed=seed,
+                                   free_valve=free_valve)
 
     return search
 
