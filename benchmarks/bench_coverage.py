@@ -92,12 +92,15 @@ REASONS = {
         "the Stribeck law's slope: the steady speeds' force is F_c + (F_s - F_c) exp(-v/v_s) "
         "+ b v, whose tangent a straight line fitted alone would give"),
     ("field", "tube.effective_bulk_modulus_mpa"): (
-        "field-clean: 313 [308, 339] MPa for 300: on the identified twin the training run's "
-        "replay is best at B ~310, the held-out run's at >= 330 (a scan over B): the field "
-        "rig's line is not the twin's R-I-C ladder, and one effective B is a compromise of "
-        "the runs; field-drift-backlash's position runs carry an undeclared 1.5 deg backlash "
-        "the twin has not (263 MPa); field-slow-servo has no flow steps, so the twin's valve "
-        "is the rig file's, unlike this rig's (352 MPa): B takes the twin's misfit"),
+        "field-clean: 317 [304, 318] MPa for 300 (with the servo's rate from the logs; 313 "
+        "[308, 339] with the rig file's): on the identified twin the training run's replay "
+        "is best at B ~310, the held-out run's at >= 330 (a scan over B): the field rig's "
+        "line is not the twin's R-I-C ladder, and one effective B is a compromise of the "
+        "runs; field-drift-backlash (250 [248, 271]): the twin's supply C is the flow steps' "
+        "average over the drift (15.10; the position runs fit 16.0) and its position runs "
+        "carry an undeclared 1.5 deg backlash the twin has not; field-slow-servo has no flow "
+        "steps, so the twin's valve is the rig file's, unlike this rig's (352 MPa): B takes "
+        "the twin's misfit"),
     ("field", "valve.supply.c_flow"): (
         "field-drift-backlash: its supply C falls 4 % every third sweep (an undeclared "
         "effect): one C cannot hold it (discover's job)"),
