@@ -94,19 +94,29 @@ def _coverage(doc: dict, truth: dict) -> dict[str, dict]:
     return out
 
 
-def _replay_drop(candidate: dict) -> float | None:
-    """1 - after / before of a dynamic candidate's held-out replay flow RMSE."""
-    before = (candidate.get("replay_heldout_before") or {}).get("rmse_flow_mm3_s")
-    after = (candidate.get("replay_heldout_after") or {}).get("rmse_flow_mm3_s")
+def _drop(candidate: dict, before_key: str, after_key: str) -> float | None:
+    """1 - after / before of a dynamic candidate's held-out flow RMSE (the
+    replay: ``replay_heldout_*``; the closed loop per segment:
+    ``heldout_before`` (the identified twin: the headline),
+    ``heldout_base_twin`` (its line refitted alone: what the check compares)
+    and ``heldout_after``)."""
+    before = (candidate.get(before_key) or {}).get("rmse_flow_mm3_s")
+    after = (candidate.get(after_key) or {}).get("rmse_flow_mm3_s")
     if not before or after is None:
         return None
     return round(1.0 - after / before, 3)
 
 
+#: the fields of each dynamic candidate in the results, in order
+CANDIDATE_FIELDS = ("name", "named", "p_value", "p_value_heldout (replay)", "replay drop",
+                    "p_value_heldout_segments", "closed-loop drop vs the base twin",
+                    "closed-loop drop vs the identified twin (headline)")
+
+
 def main() -> dict:
     data = _unpacked()
     from field_data import FIELD_SETS as SETS
-    out: dict = {"sets": {}, "confusion": {}, "coverage": {}}
+    out: dict = {"sets": {}, "confusion": {}, "coverage": {}, "candidate_fields": CANDIDATE_FIELDS}
     with tempfile.TemporaryDirectory() as tmp:
         for name in SETS:
             truth = json.loads((data / "_truth" / f"{name}.json").read_text())
@@ -132,7 +142,12 @@ def main() -> dict:
                 row[key].update(verdict=doc.get("verdict"), named=_named(doc),
                                 heldout=doc.get("heldout"),
                                 candidates=[(c["name"], c["named"], c.get("p_value"),
-                                             c.get("p_value_heldout"), _replay_drop(c))
+                                             c.get("p_value_heldout"),
+                                             _drop(c, "replay_heldout_before",
+                                                   "replay_heldout_after"),
+                                             c.get("p_value_heldout_segments"),
+                                             _drop(c, "heldout_base_twin", "heldout_after"),
+                                             _drop(c, "heldout_before", "heldout_after"))
                                             for c in (doc.get("position_control") or {})
                                             .get("candidates", [])])
             injected = sorted({EFFECT_NAMES[k] for k in truth.get("effects", {})
