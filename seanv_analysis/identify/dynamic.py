@@ -38,7 +38,8 @@ the base twin with its constants free. An effect is named when
   already carry the loop's response to the effect; on the field rig's cam
   play the held-out replay fell 10-25 % depending on where in the training
   error's flat valley the line's bulk modulus ended, the closed loop per
-  segment 42-48 % each time (12 segments, 7 better, p 0.008).
+  segment 42 % each time (12 segments; p 0.004-0.02 against the base
+  twin).
 
 The grid only brackets the value: the best grid point is refined between
 its neighbours. The kept candidate's 95 % interval spans two: the profile
@@ -154,7 +155,8 @@ class DynamicFinding:
 
     @property
     def replay_improvement(self) -> float:
-        """Drop of the held-out open-loop replay flow RMSE (what decides)."""
+        """Drop of the held-out open-loop replay flow RMSE (one of the two
+        held-out checks, :func:`_confirmed`)."""
         return _drop(self.replay_before, self.replay_after)
 
     @property
@@ -285,8 +287,9 @@ def valve_at_position_runs(train: Sequence[Any], valve, rig,
     extrapolation cannot tell whether the position runs carry the last
     step's use or a fresh start. On field-drift-backlash the flow steps'
     supply C was 15.10 (the drift's average), the extrapolated drift 12.67,
-    and the position runs fit 16.0; with 15.10 the twin's misfit hid the
-    cam's play (held-out replay -5 %), with 16.0 it was named (-24 %).
+    and the position runs fit 16.0 (truth 16.2); with 15.10 the twin's
+    misfit hid the cam's play (held-out replay -5 %), with 16.0 it was named
+    (held-out closed loop per segment -42 %).
     Returns (valve, [{"side", "key", "<name>_flow_steps_<unit>",
     "<name>_position_runs_<unit>"}]) ("C_..._mm3_s_deg2_sqrtMPa", "z0_..._mm")."""
     out = []
