@@ -51,6 +51,19 @@ def test_segment_test_sees_no_drop_where_the_segments_disagree():
     assert _segment_drop_p(before, after) >= 0.5
 
 
+def test_segment_test_on_many_segments_samples_the_flips():
+    """400 segments (an hour of position control): 2^16 random flips, drawn
+    in batches; a drop in 300 of them is significant, none is not."""
+    rng = np.random.default_rng(1)
+    starts = np.arange(400) * 1.0
+    sse = rng.uniform(100.0, 1000.0, 400)
+    better = np.where(np.arange(400) < 300, 0.5, 1.2) * sse
+    before = [_validation("r1", starts, sse)]
+    assert _segment_drop_p(before, [_validation("r1", starts, better)]) < 1e-3
+    same = sse * rng.choice([0.8, 1.25], 400)
+    assert _segment_drop_p(before, [_validation("r1", starts, same)]) > 0.01
+
+
 def test_segment_test_needs_matched_runs_and_enough_segments():
     """Runs are paired by id and segment starts; fewer than 6 segments: NaN."""
     sse = [400.0, 900, 100, 2500, 300, 700, 1600, 200]
