@@ -162,3 +162,22 @@ def test_only_constants_that_change_with_use_are_refitted(rig, position_target):
     with pytest.raises(ValueError, match="needle_y_c_mm"):
         valve_at_position_runs(position_target, ValveModel.from_rig(rig), rig,
                                [("supply", "needle_y_c_mm")])
+
+
+def test_the_closed_loop_check_takes_the_position_runs_constant_not_the_trend(rig):
+    """discover's closed-loop check runs the position-control runs with the
+    C the dynamic search set from them and without the drift that C
+    replaces (the drift extrapolated to those runs is what the refit
+    replaces); the other side's drift and the other effects stay."""
+    from seanv_analysis.discover.result import at_position_runs
+    from seanv_analysis.models import ValveModel
+
+    model = ValveModel.from_rig(rig)
+    specs = ["drift:side=drain,step=0.05,every=3,offset=0",
+             "drift:side=supply,step=0.02,every=3,offset=0", "backlash:width_deg=1.2"]
+    refit = [{"side": "drain", "key": "c_flow", "C_flow_steps_mm3_s_deg2_sqrtMPa": -18.55,
+              "C_position_runs_mm3_s_deg2_sqrtMPa": -22.44}]
+    out, kept = at_position_runs(model, specs, refit)
+    assert out.drain.c_flow == -22.44 and out.supply == model.supply
+    assert kept == specs[1:]
+    assert at_position_runs(model, specs, []) == (model, specs)

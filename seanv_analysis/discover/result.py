@@ -409,6 +409,24 @@ class Discovery(JsonResult):
             return self.proposed_term.model or self.model, [*specs, self.proposed_term.spec]
         return self.model, specs
 
+    def position_run_model_and_effects(self, rig=None) -> tuple[ValveModel, list[str]]:
+        """:meth:`augmented_model_and_effects` for the position-control runs:
+        where the dynamic search set a constant that changes with use from
+        those runs (``position_control['valve_at_position_runs']``: a
+        drift's C, a threshold shift's z0), the valve carries that value and
+        the effect of use on that side is left out (the runs lie outside the
+        flow steps' sequence: extrapolating the trend to them is what the
+        refit replaces).
+
+        Raises
+        ------
+        ConfigError
+            As :meth:`augmented_model_and_effects`.
+        """
+        model, specs = self.augmented_model_and_effects(rig)
+        refit = (self.position_control or {}).get("valve_at_position_runs") or []
+        return at_position_runs(model, specs, refit)
+
     def __repr__(self) -> str:
         found = ", ".join(f"{e.name} ({e.side})" for e in self.effects) or "nothing"
         return (f"<Discovery {self.verdict}: {found}; held-out RMSE "
@@ -501,3 +519,23 @@ class Discovery(JsonResult):
                 except (KeyError, TypeError):
                     lines.append(f"Closed loop (validate, {ctrl}): {json.dumps(b)} -> {json.dumps(a)}")
         return "\n".join(lines)
+
+
+def at_position_runs(model: ValveModel, specs: list[str],
+                     refit: list[dict[str, Any]]) -> tuple[ValveModel, list[str]]:
+    """``model`` with each refitted constant of ``refit`` (entries of
+    ``position_control['valve_at_position_runs']``: side, key and
+    ``<name>_position_runs_<unit>``) and ``specs`` without the effects of use
+    that move those constants on those sides (``Effect.CHANGES_WITH_USE``)."""
+    moved = set()
+    for r in refit:
+        value = next(v for k, v in r.items() if "_position_runs_" in k)
+        model = model.with_side(r["side"], **{r["key"]: float(value)})
+        moved.add((r["side"], r["key"]))
+    kept = []
+    for spec in specs:
+        effect = fx.parse_effect(spec)
+        side = getattr(effect, "side", None)
+        if (side, getattr(type(effect), "CHANGES_WITH_USE", None)) not in moved:
+            kept.append(spec)
+    return model, kept

@@ -97,7 +97,8 @@ class DiscoverResult(JsonResult):
 def closed_loop(ctx: Context, discovery, twin: Any = None) -> DiscoverResult:
     """The closed-loop check of a discovery: the position-control runs
     validated with the base model and with the augmented model and effects
-    (a proposed closed-form term included: ``augmented_model_and_effects``),
+    (a proposed closed-form term included; a constant that changes with use
+    at the value the position runs set: ``position_run_model_and_effects``),
     on ``twin`` (the rig identified for the dynamic search when discover did
     it itself: its keys over the context's twin; None: the context's)."""
     if not position_paths(ctx) or not (discovery.effects or discovery.proposed_term):
@@ -107,7 +108,7 @@ def closed_loop(ctx: Context, discovery, twin: Any = None) -> DiscoverResult:
     extra = getattr(discovery, "twin_overrides", None)
     overrides = _merge(base, extra or {})
     try:
-        augmented, specs = discovery.augmented_model_and_effects(ctx.plant_rig)
+        augmented, specs = discovery.position_run_model_and_effects(ctx.plant_rig)
     except SeanvError as exc:
         note = f"effects not simulated in the closed-loop check: {one_line(exc)}"
         augmented, specs = discovery.model, []
