@@ -23,7 +23,7 @@ def test_closed_loop_check_survives_effects_that_cannot_be_simulated(monkeypatch
         base_model = "start model"
         twin_overrides = {"tube": {"effective_bulk_modulus_mpa": 120.0}}
 
-        def augmented_model_and_effects(self, rig):
+        def position_run_model_and_effects(self, rig):
             raise ConfigError("effect 'delay': delay_s = -0.038 s; expected >= 0")
 
         def with_closed_loop(self, before, after):
