@@ -80,6 +80,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from ..estimate import Estimate
+from ..fit.flowfit import C_KEY
 from ..units import unit_of_key
 from ._threads import Stopped as _Stopped
 from ._threads import map_on_threads as _map
@@ -272,8 +273,8 @@ def _summary(results) -> dict[str, float]:
 #: (a drift's few % a step over a few steps; a threshold shift's 1e-5 mm a
 #: run over hundreds of runs, where 0.01 mm of z0 moves theta_d ~2 deg)
 _USE_RANGE = {"c_flow": ("factor", 0.7, 1.3), "z0_mm": ("offset", -0.05, 0.05)}
-#: the JSON names of those constants (name, unit suffix), as flowfit's
-_USE_NAMES = {"c_flow": ("C", "mm3_s_deg2_sqrtMPa"), "z0_mm": ("z0", "mm")}
+#: the JSON names of those constants (name, unit suffix), flowfit's
+_USE_NAMES = {"c_flow": ("C", C_KEY.removeprefix("C_")), "z0_mm": ("z0", "mm")}
 
 
 def valve_at_position_runs(train: Sequence[Any], valve, rig,
