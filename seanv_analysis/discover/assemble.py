@@ -137,7 +137,9 @@ def _closed_loop_dynamic(position, result, *, rig, model, valve, seed, search: D
     msg = "; ".join(f"{f.name} {f.param} {f.value:g} (p = {f.p_value:.2g}"
                     + (f", held-out flow RMSE {-f.replay_improvement:+.0%} replayed, "
                        f"{-f.heldout_improvement:+.0%} in closed loop" if f.heldout_before
-                       else "") + ")" for f in findings)
+                       else "")
+                    + (f", its 95 % interval [{f.ci95[0]:.3g}, {f.ci95[1]:.3g}] holds 0"
+                       if f.interval_holds_null else "") + ")" for f in findings)
     refit = findings[0].valve_refit if findings else []
     if refit:
         msg = findings[0].valve_refit_sentence() + "; " + (msg or "no candidate")

@@ -22,7 +22,9 @@ with its constants free. An effect is named when
 - on the training runs it lowers the error significantly: the drop of the
   sum of squares over the residual variance (with the residuals' effective
   sample size) beats the chi-square(1) 99.9 % quantile with a Bonferroni
-  factor for the candidates, and
+  factor for the candidates, and its 95 % interval (below) excludes the
+  null value 0 (a delay within the command instants' uncertainty, or a
+  play the segments do not agree on, is not an effect), and
 - on the held-out runs (never used to fit) the flow error drops, in the
   replay and in the closed loop segment by segment (neither gets worse),
   and one of the two drops significantly and by at least
@@ -126,6 +128,9 @@ class DynamicFinding:
     #: the valve constants that change with use, refitted on the training
     #: position-control runs (:func:`valve_at_position_runs`; [] : none)
     valve_refit: list[dict[str, Any]] = field(default_factory=list)
+    #: the training screen kept it but its 95 % interval holds the null
+    #: value (0): not an effect, not checked on the held-out runs
+    interval_holds_null: bool = False
 
     def valve_refit_sentence(self) -> str:
         """'supply C 15.99 at the position runs (flow steps 15.1: it changes
@@ -191,7 +196,8 @@ class DynamicFinding:
                 "replay_heldout_after": self.replay_after,
                 "p_value_heldout": self.heldout_p_value,
                 "p_value_heldout_segments": self.heldout_segments_p_value,
-                "heldout_base_twin": self.heldout_base_twin}
+                "heldout_base_twin": self.heldout_base_twin,
+                "interval_holds_null": self.interval_holds_null}
 
 
 def _heldout_drop_p(before, after) -> float:
@@ -459,8 +465,16 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
             res = float(rig["servo"].get("resolution_deg", 0.0))
             lo, hi = max(lo - res, 0.0), hi + res
         f.ci95 = (lo, hi)
-        twin = with_bulk(rig, f.bulk_mpa, where="discover")
         f.replay_value = f.value
+        if lo <= 0.0:
+            # the interval holds the null value (no delay, no play): the
+            # training drop is the line's refit, or a delay within the
+            # command instants' uncertainty; no effect to check on held-out
+            # runs (on the field rig's clean runs: a 0.2 deg play, interval
+            # [0, 0.30], whose held-out errors rose 0-15 %)
+            f.interval_holds_null = True
+            break
+        twin = with_bulk(rig, f.bulk_mpa, where="discover")
         f.value = _closed_loop_value(train_runs, valve, twin, f.name, f.param, f.value, (lo, hi))
         if not held:
             break
