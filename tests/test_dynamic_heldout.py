@@ -6,6 +6,7 @@ use, refitted on the position-control runs.
 from __future__ import annotations
 
 import math
+import threading
 from types import SimpleNamespace
 
 import numpy as np
@@ -14,8 +15,11 @@ import pytest
 
 from seanv_analysis.discover.assemble import changed_with_use
 from seanv_analysis.identify.dynamic import (
+    _REFINE_MAXFEV,
     DynamicFinding,
     _confirmed,
+    _parabola_min,
+    _refine,
     _segment_drop_p,
     valve_at_position_runs,
 )
@@ -181,3 +185,40 @@ def test_the_closed_loop_check_takes_the_position_runs_constant_not_the_trend(ri
     assert out.drain.c_flow == -22.44 and out.supply == model.supply
     assert kept == specs[1:]
     assert at_position_runs(model, specs, []) == (model, specs)
+
+
+def test_the_joint_refinement_finds_a_tilted_valley_in_its_budget():
+    """The grid's best (value, log B) refined on an error valley along a
+    diagonal (a softer line mimics a delay), its floor at (0.083 s, log 290):
+    COBYQA lands within 5 % of the floor's value in at most
+    _REFINE_MAXFEV evaluations and never returns worse than its start."""
+    calls = []
+
+    def sse(z):
+        v, lb = z
+        calls.append(z)
+        u, w = (v - 0.083) / 0.02, (lb - math.log(290.0)) / 0.1
+        return 1e6 * (1.0 + (u - w) ** 2 + 0.2 * (u + w) ** 2)
+
+    start = (0.1, math.log(300.0))
+    v, lb, c = _refine(sse, start, (0.06, 0.15), (math.log(100.0), math.log(900.0)))
+    assert len(calls) <= _REFINE_MAXFEV + 1          # + the start
+    assert c <= sse(start) and v == pytest.approx(0.083, rel=0.05)
+    assert math.exp(lb) == pytest.approx(290.0, rel=0.05)
+
+
+def test_the_profile_refit_takes_the_parabolas_vertex():
+    """Three evaluations about x and one at the parabola's vertex: an exact
+    parabola's minimum, and no fourth evaluation where it opens downwards."""
+    stop = threading.Event()
+    calls = []
+
+    def f(x):
+        calls.append(x)
+        return 5.0 + 3.0 * (x - 0.13) ** 2
+
+    assert _parabola_min(f, 0.0, 0.2, 0.5, stop) == pytest.approx(5.0)
+    assert len(calls) == 4 and calls[-1] == pytest.approx(0.13)
+    calls.clear()
+    assert _parabola_min(lambda x: calls.append(x) or -x * x, 0.0, 0.2, 0.5, stop) == pytest.approx(-0.04)
+    assert len(calls) == 3

@@ -618,12 +618,12 @@ def _refine(cost, start: tuple[float, float], bracket: tuple[float, float],
     Returns the best (value, log B, SSE) it evaluated (the start when none
     is better)."""
     sv, sb = max(bracket[1] - bracket[0], 1e-9), math.log(1.4)
-    best = [(cost(start), start[0], start[1])]
+    evaluated = [(cost(start), start[0], start[1])]     # (SSE, value, log B)
 
     def log_cost(x) -> float:
         z = (float(x[0]) * sv, float(x[1]) * sb)
         c = cost(z)
-        best.append((c, *z))
+        evaluated.append((c, *z))
         return math.log(c) if c > 0 else -700.0
 
     optimize.minimize(log_cost, [start[0] / sv, start[1] / sb], method="COBYQA",
@@ -631,7 +631,7 @@ def _refine(cost, start: tuple[float, float], bracket: tuple[float, float],
                               (log_b_bounds[0] / sb, log_b_bounds[1] / sb)],
                       options={"maxfev": _REFINE_MAXFEV, "initial_tr_radius": 0.25,
                                "final_tr_radius": 0.01})
-    c, v, lb = min(best)
+    c, v, lb = min(evaluated)
     return v, lb, c
 
 
