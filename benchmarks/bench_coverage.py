@@ -96,11 +96,12 @@ REASONS = {
         "[308, 339] with the rig file's): on the identified twin the training run's replay "
         "is best at B ~310, the held-out run's at >= 330 (a scan over B): the field rig's "
         "line is not the twin's R-I-C ladder, and one effective B is a compromise of the "
-        "runs; field-drift-backlash (250 [248, 271]): the twin's supply C is the flow steps' "
-        "average over the drift (15.10; the position runs fit 16.0) and its position runs "
-        "carry an undeclared 1.5 deg backlash the twin has not; field-slow-servo has no flow "
-        "steps, so the twin's valve is the rig file's, unlike this rig's (352 MPa): B takes "
-        "the twin's misfit"),
+        "runs; field-drift-backlash (250 [248, 271]): its position runs carry an undeclared "
+        "1.5 deg backlash the twin has not (with the play, discover's joint search puts B at "
+        "275-305; with the position runs' supply C, 16.0 for the flow steps' 15.10 averaged "
+        "over the drift, identify's B is 253: the play moves it, not the drift); "
+        "field-slow-servo has no flow steps, so the twin's valve is the rig file's, unlike "
+        "this rig's (352 MPa): B takes the twin's misfit"),
     ("field", "valve.supply.c_flow"): (
         "field-drift-backlash: its supply C falls 4 % every third sweep (an undeclared "
         "effect): one C cannot hold it (discover's job)"),
