@@ -465,19 +465,32 @@ def _write_table(path_stem: Path, df: pd.DataFrame, fmt: str) -> None:
         pq.write_table(pa.Table.from_pandas(df, preserve_index=False),
                        path_stem.with_suffix(".parquet"))
     else:
-        df.to_csv(path_stem.with_suffix(".csv"), index=False, float_format="%.6g",
-                  na_rep="")
+        path_stem.with_suffix(".csv").write_text(_csv_text(df))
 
 
-def _fmt_t(df: pd.DataFrame) -> pd.DataFrame:
-    # timestamps to the microsecond in CSV (float_format %.6g would cut them);
-    # the other float columns as text here, as to_csv(float_format="%.6g",
-    # na_rep="") writes them (it formats value by value, several times slower)
-    df = df.copy()
-    df["t_s"] = df["t_s"].map(lambda v: f"{v:.6f}")
-    for col in df.columns[df.dtypes.map(lambda d: d.kind == "f").to_numpy(bool)]:
-        df[col] = ["%.6g" % v if v == v else "" for v in df[col].tolist()]
-    return df
+def _csv_text(df: pd.DataFrame) -> str:
+    """The CSV text of ``df`` as ``to_csv(index=False, float_format="%.6g",
+    na_rep="")`` writes it, with the timestamps to the microsecond (%.6g
+    would cut them), built column by column (to_csv formats value by value
+    through pandas' string arrays, several times slower). Text columns are
+    written as they are: this rig's never hold a comma, quote or newline."""
+    cols = []
+    for name in df.columns:
+        values = df[name].tolist()
+        kind = df[name].dtype.kind
+        if name == "t_s":
+            cols.append([f"{v:.6f}" for v in values])
+        elif kind == "f":
+            cols.append(["%.6g" % v if v == v else "" for v in values])
+        elif kind in "iub":
+            cols.append([str(v) for v in values])
+        else:
+            text = [str(v) for v in values]
+            if any(c in v for v in text for c in ',"\n\r'):
+                raise ValueError(f"column {name!r}: text to quote; use to_csv")
+            cols.append(text)
+    lines = [",".join(df.columns)] + [",".join(row) for row in zip(*cols)]
+    return "\n".join(lines) + "\n"
 
 
 def _write_run(run_dir: Path, meta: dict, tables: dict[str, pd.DataFrame],
@@ -486,7 +499,7 @@ def _write_run(run_dir: Path, meta: dict, tables: dict[str, pd.DataFrame],
     (run_dir / "run.json").write_text(json.dumps(meta, indent=2))
     for name, df in tables.items():
         fmt = formats.get(name, "csv")
-        _write_table(run_dir / name, df if fmt == "parquet" else _fmt_t(df), fmt)
+        _write_table(run_dir / name, df, fmt)
 
 
 def _iso(t: datetime) -> str:
