@@ -25,6 +25,7 @@ report both, with the rig file's constants and with the identified ones.
 """
 from __future__ import annotations
 
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Sequence
 
 import pandas as pd
@@ -85,13 +86,41 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     -------
     Identification
     """
+    unknown = set(parts) - set(PARTS)
+    if unknown:
+        raise ValueError(f"parts: unknown {sorted(unknown)}; expected some of {list(PARTS)}")
+    train_pos, held_pos = split_runs(position_runs)
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-servo") as pool:
+        # the servo's fit reads its logs and the rig file's servo section
+        # only: it runs beside the geometry's, its result taken in its place
+        servo = pool.submit(_servo_part, train_pos, held_pos, flow_runs, rig) \
+            if "servo" in parts else None
+        return _identify(summary, rig, position_runs, train_pos, held_pos, parts, n_boot, seed,
+                         log, servo)
+
+
+def _servo_part(train_pos, held_pos, flow_runs, rig) -> tuple[tuple, list[str]]:
+    """The servo's (constants, fits, notes) and the notes said before them."""
+    tr = [d for d in (servo_data(r) for r in train_pos) if d is not None]
+    he = [d for d in (servo_data(r) for r in held_pos) if d is not None]
+    before = []
+    if not tr:
+        steps = [d for d in (servo_data(r) for r in flow_runs) if d is not None]
+        tr, he = steps[0::2][:40], steps[1::2][:20]
+        if tr:
+            before.append("servo: from the flow steps' logs (no position-control run with "
+                          "cam feedback); the command instant is known to half a servo "
+                          "sample only")
+    return servo_constants(tr, he, rig), before
+
+
+def _identify(summary, rig, position_runs, train_pos, held_pos, parts, n_boot, seed, log,
+              servo: Future | None) -> Identification:
+    """:func:`identify_rig`'s parts in order; ``servo``: the servo's part, running."""
     from ..errors import FitError
     from ..fit import fit_flow
     from ..models import ValveModel
 
-    unknown = set(parts) - set(PARTS)
-    if unknown:
-        raise ValueError(f"parts: unknown {sorted(unknown)}; expected some of {list(PARTS)}")
     constants: list[Constant] = []
     fits: dict[str, Any] = {}
     notes: list[str] = []
@@ -161,21 +190,13 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         notes.append("geometry: no flow-step runs")
     valve = model if model is not None else ValveModel.from_rig(current)
 
-    train_pos, held_pos = split_runs(position_runs)
     if position_runs:
         current = take("controller", controller_constants(position_runs, valve, current))
-    if "servo" in parts:
+    if servo is not None:
         log("identify: servo from its logs")
-        tr = [d for d in (servo_data(r) for r in train_pos) if d is not None]
-        he = [d for d in (servo_data(r) for r in held_pos) if d is not None]
-        if not tr:
-            steps = [d for d in (servo_data(r) for r in flow_runs) if d is not None]
-            tr, he = steps[0::2][:40], steps[1::2][:20]
-            if tr:
-                notes.append("servo: from the flow steps' logs (no position-control run with "
-                             "cam feedback); the command instant is known to half a servo "
-                             "sample only")
-        current = take("servo", servo_constants(tr, he, current))
+        found, before = servo.result()
+        notes.extend(before)
+        current = take("servo", found)
     if "friction" in parts:
         log("identify: friction from the flow steps' force balance")
         current = take("friction", friction_constants(summary, current, runs=position_runs))
