@@ -10,7 +10,8 @@ Order (each part uses what the ones before found):
    (flowfit's joint fit, bootstrap intervals);
 2. servo (:mod:`.servo`): dead time, time constant, rate limit from the
    servo logs of the position-control runs (of the flow steps when there are
-   none), by simulation error with the simulator's own servo step;
+   none), by simulation error with the simulator's own servo step (it needs
+   nothing the parts before find: it runs on a thread beside them);
 3. friction (:mod:`.friction`): Coulomb and viscous from the flow steps'
    steady force balance;
 4. load regulator (:mod:`.load`): its time constant from the load changes
