@@ -67,6 +67,7 @@ from ._pp import (
     _RIPPLE_HZ,
     _SERVO_DEAD_TICKS,
     _SERVO_RES,
+    _SERVO_TAU,
     _STOP,
     _STROKE,
     _SUBSTEPS,
@@ -318,6 +319,7 @@ def servo_track(t_cmd, cmd, t0, h, n, dead_s, pp, theta0):
     theta = theta0
     j = 0
     m = t_cmd.size
+    decay = math.exp(-h / pp[_SERVO_TAU])   # the lag's, over each step of h
     for i in range(n):
         if i % 65536 == 0 and pp[_STOP] != 0.0:   # stopped from outside (Ctrl-C): return now
             break
@@ -325,6 +327,6 @@ def servo_track(t_cmd, cmd, t0, h, n, dead_s, pp, theta0):
         while j + 1 < m and t_cmd[j + 1] <= t_eff:
             j += 1
         target = cmd[j] if t_cmd[j] <= t_eff else cmd[0]
-        theta = RB.servo_step(theta, target, h, pp)
+        theta = RB.servo_step_decay(theta, target, h, pp, decay)
         out[i] = theta
     return out

@@ -84,7 +84,7 @@ from ._pp import (
 )
 
 __all__ = ["GAMMA", "FR_SMOOTH", "FR_SLIDE", "FR_STUCK", "plant_f", "plant_step", "servo_step",
-           "thresholds", "term_flow", "TERM_DP_STEP"]
+           "servo_step_decay", "thresholds", "term_flow", "TERM_DP_STEP"]
 
 #: ROS2 parameter (L-stable choice)
 GAMMA = 1.0 + 1.0 / math.sqrt(2.0)
@@ -455,12 +455,20 @@ def servo_step(theta, target, h, pp):
     error to the plant's inputs (a ROS2 step of the lag at 1 ms is off by
     ~2e-3 deg after a 20 deg command, at the switch from the rate limit to
     the lag)."""
+    return servo_step_decay(theta, target, h, pp, math.exp(-h / pp[_SERVO_TAU]))
+
+
+@njit(cache=True, nogil=True, inline='always')
+def servo_step_decay(theta, target, h, pp, decay):
+    """:func:`servo_step` with its lag's decay over the step, ``decay`` =
+    exp(-h / tau), given: a loop of equal steps (:func:`.kernel.servo_track`)
+    computes it once, the same number every step."""
     tau = pp[_SERVO_TAU]
     e = target - theta
     ae = abs(e)
     lim = pp[_SERVO_RATE] * tau          # |error| [deg] below which the lag is not rate-limited
     if ae <= lim:
-        return target - e * math.exp(-h / tau)
+        return target - e * decay
     t_lim = (ae - lim) / pp[_SERVO_RATE]  # time [s] spent at the rate limit
     if t_lim >= h:
         return theta + math.copysign(pp[_SERVO_RATE] * h, e)
