@@ -195,6 +195,7 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th, tw,
     backlash_deg = pp[_BACKLASH]
     ctick = 0
     servo_target = cam0_deg
+    servo_decay = math.exp(-dt / pp[_SERVO_TAU])   # the servo lag's, over one plant step
     p_load_set = p_load
     step = 0
     for i in range(n_fast):
@@ -259,7 +260,7 @@ def simulate_kernel(pp, sup, sup_z, sup_th, dr, dr_z, dr_th, tw,
             # servo (the rate-limited lag solved exactly over the step),
             # quantised position, backlash play, extra transport delay ->
             # needle at the step's end
-            theta_s = RB.servo_step(y[ith], servo_target, dt, pp)
+            theta_s = RB.servo_step_decay(y[ith], servo_target, dt, pp, servo_decay)
             theta_q = round(theta_s / res) * res
             theta_b = J.backlash_play(theta_b, theta_q, backlash_deg)
             delay_ring[di] = theta_b
