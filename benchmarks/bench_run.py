@@ -85,13 +85,21 @@ def compare(a: list[str], b: list[str], out: Path, n: int) -> dict:
         if i:
             ra.append(x)
             rb.append(y)
+    return _paired(ra, rb, load0)
+
+
+def _paired(ra: list[dict], rb: list[dict], load0: list[float], names=("a", "b")) -> dict:
+    """Medians of the runs ``ra`` and ``rb`` (counted pairs, in order), the
+    per-pair ratios a/b and their median, the exit codes, the last pair's
+    stage times, the load before (``load0``) and now."""
+    a, b = names
     ratios = [x["wall_s"] / y["wall_s"] for x, y in zip(ra, rb)]
-    return {"pairs": n, "a_median_s": round(statistics.median(r["wall_s"] for r in ra), 3),
-            "b_median_s": round(statistics.median(r["wall_s"] for r in rb), 3),
+    return {"pairs": len(ratios), f"{a}_median_s": round(statistics.median(r["wall_s"] for r in ra), 3),
+            f"{b}_median_s": round(statistics.median(r["wall_s"] for r in rb), 3),
             "ratio_median": round(statistics.median(ratios), 3),
             "ratios": [round(r, 3) for r in ratios],
             "exit_codes": sorted({r["exit_code"] for r in ra + rb}),
-            "a_stages_s": ra[-1]["stages_s"], "b_stages_s": rb[-1]["stages_s"],
+            f"{a}_stages_s": ra[-1]["stages_s"], f"{b}_stages_s": rb[-1]["stages_s"],
             "load_before": load0, "load_after": _load()}
 
 
@@ -125,14 +133,7 @@ def rerun_after_edit(data: Path, tmp: Path, n: int) -> dict:
         if i:
             firsts.append(first)
             seconds.append(second)
-    ratios = [s["wall_s"] / f["wall_s"] for f, s in zip(firsts, seconds)]
-    return {"pairs": n, "first_median_s": round(statistics.median(r["wall_s"] for r in firsts), 3),
-            "rerun_median_s": round(statistics.median(r["wall_s"] for r in seconds), 3),
-            "ratio_median": round(statistics.median(ratios), 3),
-            "ratios": [round(r, 3) for r in ratios],
-            "exit_codes": sorted({r["exit_code"] for r in firsts + seconds}),
-            "rerun_stages_s": seconds[-1]["stages_s"],
-            "load_before": load0, "load_after": _load()}
+    return _paired(seconds, firsts, load0, names=("rerun", "first"))
 
 
 def _free_port() -> int:
