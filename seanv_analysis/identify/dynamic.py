@@ -50,7 +50,11 @@ of the training SSE (the values whose SSE, the bulk modulus refitted at
 each, stays within the chi-square(1) 95 % quantile of the residual variance
 above the minimum; right when the residuals are noise), and a bootstrap
 over the training runs' reference-step segments (right when they are the
-twin's misfit, which differs from step to step).
+twin's misfit, which differs from step to step). Where the profile's
+interval, widened as below, already holds the null value (no delay, no
+play), the bootstrap is not run: it could only widen the interval, and the
+candidate is not an effect either way (the interval given is then the
+profile's).
 
 The kept candidate's value is then refined for the closed loop: within its
 interval, the value whose training runs re-run in closed loop segment by
@@ -447,23 +451,27 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         if f.p_value >= alpha / m:
             break
         prof = _profile_interval(*profiles[f.name], f.value, stop=stop)
-        boot = _segment_bootstrap(train, valve, rig, f.name, f.param, f.value, f.bulk_mpa,
-                                  seed=seed, stop=stop)
-        lo, hi = min(prof[0], boot[0]), max(prof[1], boot[1])
+        widen = 0.0
         if f.name == "delay":
             # the simulator's delay line holds whole time steps: values within a
             # step of each other are the same twin, so the interval is widened
             # by one; and the replay's command instants (the servo log's) are
             # known to half a servo-log sample only, as is the servo's dead
             # time fitted on them: the delay is known as their sum
-            step = float(rig["sim"]["time_step_s"]) + _command_timing_u(train_runs)
-            lo, hi = max(lo - step, 0.0), hi + step
+            widen = float(rig["sim"]["time_step_s"]) + _command_timing_u(train_runs)
         elif f.name == "backlash":
             # the replay's cam angles are the servo feedback, quantised to its
             # resolution: each edge of the play is known to half a count, the
             # width (their difference) to one
-            res = float(rig["servo"].get("resolution_deg", 0.0))
-            lo, hi = max(lo - res, 0.0), hi + res
+            widen = float(rig["servo"].get("resolution_deg", 0.0))
+        lo, hi = prof
+        if prof[0] - widen > 0.0:
+            # the bootstrap can only widen the interval: where the profile's
+            # already holds the null value it is not run (its grid of replays)
+            boot = _segment_bootstrap(train, valve, rig, f.name, f.param, f.value, f.bulk_mpa,
+                                      seed=seed, stop=stop)
+            lo, hi = min(prof[0], boot[0]), max(prof[1], boot[1])
+        lo, hi = max(lo - widen, 0.0), hi + widen
         f.ci95 = (lo, hi)
         f.replay_value = f.value
         if lo <= 0.0:
