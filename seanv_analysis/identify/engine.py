@@ -100,7 +100,8 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
                          log, servo)
 
 
-def _servo_part(train_pos, held_pos, flow_runs, rig) -> tuple[tuple, list[str]]:
+def _servo_part(train_pos: Sequence[Any], held_pos: Sequence[Any], flow_runs: Sequence[Any],
+                rig) -> tuple[tuple, list[str]]:
     """The servo's (constants, fits, notes) and the notes said before them."""
     tr = [d for d in (servo_data(r) for r in train_pos) if d is not None]
     he = [d for d in (servo_data(r) for r in held_pos) if d is not None]
@@ -115,8 +116,9 @@ def _servo_part(train_pos, held_pos, flow_runs, rig) -> tuple[tuple, list[str]]:
     return servo_constants(tr, he, rig), before
 
 
-def _identify(summary, rig, position_runs, train_pos, held_pos, parts, n_boot, seed, log,
-              servo: Future | None) -> Identification:
+def _identify(summary: pd.DataFrame, rig, position_runs: Sequence[Any],
+              train_pos: Sequence[Any], held_pos: Sequence[Any], parts: Sequence[str],
+              n_boot: int, seed: int, log, servo: Future | None) -> Identification:
     """:func:`identify_rig`'s parts in order; ``servo``: the servo's part, running."""
     from ..errors import FitError
     from ..fit import fit_flow
