@@ -601,10 +601,9 @@ def _segment_bootstrap(targets, valve, rig, name: str, param: str, value: float,
     est = values[i].astype(float)
     inner = (i > 0) & (i < values.size - 1)
     for j in np.flatnonzero(inner):     # parabola through the minimum and its neighbours
-        y0, y1, y2 = totals[j, i[j] - 1], totals[j, i[j]], totals[j, i[j] + 1]
-        den = y0 - 2 * y1 + y2
-        if den > 0:
-            est[j] += 0.5 * (y0 - y2) / den * (values[1] - values[0])
+        shift = _vertex_shift(*totals[j, i[j] - 1:i[j] + 2], values[1] - values[0])
+        if shift is not None:
+            est[j] += shift
     return float(np.percentile(est, 2.5)), float(np.percentile(est, 97.5))
 
 
@@ -651,12 +650,19 @@ def _parabola_min(cost, x: float, step: float, reach: float,
     evaluations."""
     xs = [x - step, x, x + step]
     ys = _map(cost, xs, stop)
-    den = ys[0] - 2.0 * ys[1] + ys[2]
-    if den > 0:
-        xv = x + 0.5 * step * (ys[0] - ys[2]) / den
+    shift = _vertex_shift(*ys, step)
+    if shift is not None:
+        xv = x + shift
         if abs(xv - x) <= reach and min(abs(xv - a) for a in xs) > 1e-3 * step:
             ys.append(cost(xv))
     return float(min(ys))
+
+
+def _vertex_shift(y0: float, y1: float, y2: float, step: float) -> float | None:
+    """Offset from the middle point to the vertex of the parabola through
+    (-step, y0), (0, y1), (+step, y2); None when it does not open upwards."""
+    den = y0 - 2.0 * y1 + y2
+    return 0.5 * step * (y0 - y2) / den if den > 0 else None
 
 
 def _bracket(grid: Sequence[float], best: float) -> tuple[float, float]:
