@@ -38,7 +38,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .bench_figures import replicate, subset
+from .bench_figures import CLI, replicate, subset
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "run.json"
@@ -48,7 +48,6 @@ PAPER_FLOW_RUNS = 240
 MANY_RUNS = 960
 TARGETS = {"paper_2_workers_s": 12.0, "speedup_2_vs_1": 1.4, "dask_vs_local": 1.2,
            "rerun_after_edit": 0.40}
-CLI = [sys.executable, "-m", "seanv_analysis"]
 ENV = {**os.environ, "CI": "1", "MPLBACKEND": "Agg"}
 
 
