@@ -115,10 +115,12 @@ def test_bulk_modulus_interval_holds_the_truth_on_the_true_twin(rig):
 
 
 def test_field_clean_valve_holds_its_truth(field_root):
-    """field-clean (a rig nobody here wrote): C of both sides and the seat
-    leakage's conductance inside their intervals, its truth read from
-    _truth/field-clean.json (z0 is not compared: the rig's x_c differs from
-    the rig file's and z0 absorbs it)."""
+    """field-clean (a rig nobody here wrote): C of both sides, the needle
+    centres y_c and the seat leakage's conductance inside their intervals,
+    its truth read from _truth/field-clean.json (z0 is not compared: the
+    rig's x_c differs from the rig file's and z0 absorbs it). y_c's interval
+    is clustered by load level (before, by load x cam: supply -30.9 [-31.7,
+    -30.0] mm for -32)."""
     from seanv_analysis.stages import run_stages
 
     truth = field_truth(field_root, "field-clean")
@@ -129,6 +131,10 @@ def test_field_clean_valve_holds_its_truth(field_root):
         base = fit_flow(summary, ctx.rig, n_boot=0)
         consts, _, _ = geometry_constants(base.per_run, base.model, ctx.rig)
     ident = {c.key: c for c in consts}
+    for s in ("supply", "drain"):
+        y = ident[f"valve.{s}.needle_y_c_mm"]
+        assert y.identified and y.ci95[0] <= truth[s]["y_c_mm"] <= y.ci95[1], (s, y)
+        assert y.ci95[1] - y.ci95[0] < 0.25 * abs(truth[s]["y_c_mm"]), (s, y)  # told, not vague
     rig = ctx.rig.with_overrides({"valve": {s: {"needle_y_c_mm": ident[f"valve.{s}.needle_y_c_mm"]
                                                 .value} for s in ("supply", "drain")}})
     with warnings.catch_warnings():
