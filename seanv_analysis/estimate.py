@@ -20,12 +20,22 @@ from typing import Any, Iterable, Mapping
 
 from .units import key_suffix
 
-__all__ = ["Estimate", "Estimates", "SOURCES"]
+__all__ = ["Estimate", "Estimates", "SOURCES", "widen_interval"]
 
 #: where an estimate's value comes from: the data ('identified'), the rig
 #: file (or another default) kept because the data cannot tell it
 #: ('rig_file'), or nowhere (the estimate failed: value NaN, 'not_estimated')
 SOURCES = ("identified", "rig_file", "not_estimated")
+
+
+def widen_interval(x: float, ci, half: float) -> tuple[float, float]:
+    """Interval ``ci`` around ``x`` with a half-width ``half`` added in
+    quadrature on each side (an interval with a NaN end, or ``half`` 0,
+    is returned as it is)."""
+    lo, hi = (float(v) for v in ci)
+    if not half or not (math.isfinite(lo) and math.isfinite(hi)):
+        return (lo, hi)
+    return (x - math.hypot(x - lo, half), x + math.hypot(hi - x, half))
 
 
 def _num(x: Any) -> float | None:

@@ -144,7 +144,7 @@ def test_geometry_fit_ending_where_eq4_cannot_be_inverted(monkeypatch):
     assert not geometry._valid(base, bad_y)
     theta, p1, dp, q, load = _flow_steps(base, (0.1, 0.3, 0.5))
 
-    def stuck(runs, x0, lo, hi, f_scale, layout, y_fixed, g_fixed, g_prior_sd=None):
+    def stuck(runs, x0, lo, hi, f_scale, layout, y_fixed, g_fixed, g_prior_sd=None, **_):
         n = sum(r.q_mm3_s.size for r in runs.values())
         sol = type("Sol", (), {"fun": np.ones(n), "jac": np.ones((n, x0.size)), "cost": 1.0})()
         x = np.array(x0, float)

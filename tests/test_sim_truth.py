@@ -80,6 +80,9 @@ def test_identified_geometry_holds_the_simulator_truth(fit, rig):
     -20.27 [-20.31, -20.23] mm for -20 on paper-flowsteps seed 0)."""
     consts, fits, notes = geometry_constants(fit.per_run, fit.model, rig)
     for c in consts:
+        if c.key.endswith(".needle_x_c_mm"):    # not told by flow steps: said so
+            assert not c.identified and "z0" in c.note and c.confounded_with, c
+            continue
         assert c.identified, c.note
         assert c.ci95[0] <= c.default <= c.ci95[1], (c.key, c.value, c.ci95)
     assert all(f["seat_leak"]["ci95_mm3_s_per_mpa"][0] <= f["seat_leak"]["conductance_mm3_s_per_mpa"]

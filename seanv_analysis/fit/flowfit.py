@@ -93,7 +93,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import ConfigError, DataError, FitError
-from ..estimate import Estimate, Estimates
+from ..estimate import Estimate, Estimates, widen_interval
 from ..jsonable import JsonResult, json_num
 from ..models import SIDES, ValveModel, signed_power
 from ..models.valve import MIN_DP_MPA, SEAT_LEAK_KEY
@@ -721,8 +721,8 @@ def _fit_side(side_name: str, rows: pd.DataFrame, base: ValveModel, *, procedure
             dz0_leak, dc_leak = _leak_sensitivity(
                 side, theta, p1, dp, q, sigma, dp_leak, leak_half95, procedure=procedure,
                 x_hat=(result.z0_mm, result.c_flow))
-            result.z0_ci95 = _widen(result.z0_mm, result.z0_ci95_stat, math.hypot(dz0, dz0_leak))
-            result.c_ci95 = _widen(result.c_flow, result.c_ci95_stat, math.hypot(dc, dc_leak))
+            result.z0_ci95 = widen_interval(result.z0_mm, result.z0_ci95_stat, math.hypot(dz0, dz0_leak))
+            result.c_ci95 = widen_interval(result.c_flow, result.c_ci95_stat, math.hypot(dc, dc_leak))
             if cam_u95_deg or flow_scale_u95:
                 result.ci_method += (f" (+) calibration: cam zero {cam_u95_deg:g} deg, flow "
                                      f"scale {flow_scale_u95:.2%} (95 %, in quadrature)")
@@ -761,11 +761,6 @@ def _threshold_slope(side, z0_mm: float, p1, dp) -> float:
     d = side.threshold_deg(p1m, dpm, z0_mm=z0_mm + h) - side.threshold_deg(p1m, dpm,
                                                                           z0_mm=z0_mm - h)
     return max(abs(float(d)) / (2 * h), 1e-9)
-
-
-def _widen(x: float, ci: tuple[float, float], half: float) -> tuple[float, float]:
-    """Interval ``ci`` around ``x`` with a half-width ``half`` added in quadrature."""
-    return (x - math.hypot(x - ci[0], half), x + math.hypot(ci[1] - x, half))
 
 
 def _leak_sensitivity(side, theta, p1, dp, q, sigma, dp_leak, half, *, procedure,

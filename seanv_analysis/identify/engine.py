@@ -26,12 +26,15 @@ report both, with the rig file's constants and with the identified ones.
 """
 from __future__ import annotations
 
+import math
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Sequence
 
 import pandas as pd
 
 from ..discover.split import split_position_runs as split_runs
+from ..estimate import widen_interval
+from ..fit.flowfit import C_KEY
 from ..models import SIDES
 from .controller import controller_constants
 from .flowpath import closed_loop_fits, flow_path_constants
@@ -163,17 +166,21 @@ def _identify(summary: pd.DataFrame, rig, position_runs: Sequence[Any],
             sf = refit.sides.get(side)
             if sf is not None and sf.success:
                 dz0, dc = spread.get(side, {}).get("z0", 0.0), spread.get(side, {}).get("c", 0.0)
+                xz0, xc = _x_c_spread(fits["geometry"].get(side))
                 how = "flowfit with the identified geometry" + (
-                    ", interval widened by y_c's" if dz0 or dc else "")
+                    ", interval widened by y_c's" if dz0 or dc else "") + (
+                    f"{' and' if dz0 or dc else ', interval widened by'} x_c's" if xz0 or xc
+                    else "")
+                dz0, dc = math.hypot(dz0, xz0), math.hypot(dc, xc)
                 fitted = sf.estimates()
                 added += [
                     Constant(f"valve.{side}.z0_mm", f"{side} z0", sf.z0_mm,
                              float(rig["valve"][side]["z0_mm"]), "mm", True,
-                             how, _widen(sf.z0_mm, sf.z0_ci95, dz0),
+                             how, widen_interval(sf.z0_mm, sf.z0_ci95, dz0),
                              method=fitted[f"{side}.z0"].method),
                     Constant(f"valve.{side}.c_flow", f"{side} C", sf.c_flow,
                              float(rig["valve"][side]["c_flow"]), "mm^3/(s deg^2 MPa^0.5)", True,
-                             how, _widen(sf.c_flow, sf.c_ci95, dc),
+                             how, widen_interval(sf.c_flow, sf.c_ci95, dc),
                              method=fitted[f"{side}.C"].method)]
                 continue
             # no z0 to go with a new centre: the rig file's centre stays
@@ -227,14 +234,13 @@ def _say_how(constants: list[Constant], part: str) -> list[Constant]:
     return constants
 
 
-def _widen(x: float, ci, half: float) -> tuple[float, float]:
-    """``ci`` around ``x`` with a half-width ``half`` added in quadrature (NaN stays)."""
-    import math
-
-    lo, hi = (float(v) for v in ci)
-    if not half or not (math.isfinite(lo) and math.isfinite(hi)):
-        return (lo, hi)
-    return (x - math.hypot(x - lo, half), x + math.hypot(hi - x, half))
+def _x_c_spread(geometry_fit: dict[str, Any] | None) -> tuple[float, float]:
+    """(|dz0| [mm], |dC|) that the rig file's 95 % range of x_c moves a
+    side's z0 and C (the geometry fit's slopes x its range; 0 without)."""
+    x = (geometry_fit or {}).get("x_c") or {}
+    u, per = float(x.get("uncertainty_mm", 0.0)), x.get("per_mm", {})
+    out = tuple(abs(float(per.get(k, math.nan))) * u for k in ("z0_mm", C_KEY))
+    return tuple(v if math.isfinite(v) else 0.0 for v in out)
 
 
 def _geometry_spread(summary, current, constants, refit) -> dict[str, Any]:
@@ -243,8 +249,6 @@ def _geometry_spread(summary, current, constants, refit) -> dict[str, Any]:
     bootstrap) with each identified y_c at its interval's two edges, half
     the difference; summed in quadrature over the sides' y_c.
     {side: {'z0', 'c'}, 'leak'}."""
-    import math
-
     from ..fit import fit_flow
 
     out: dict[str, Any] = {"leak": 0.0}
@@ -283,7 +287,7 @@ def _leak_constant(leak, rig, spread: float) -> Constant:
                         note=leak.message or "not fitted")
     how = ("flow steps: Q_leak = g (dp_supply - dp_drain) beside eq. (5), fitted with both "
            "sides' z0 and C" + (", interval widened by y_c's" if spread else ""))
-    lo, hi = _widen(leak.conductance_mm3_s_per_mpa, leak.ci95, spread)
+    lo, hi = widen_interval(leak.conductance_mm3_s_per_mpa, leak.ci95, spread)
     return Constant(key, name, leak.conductance_mm3_s_per_mpa, default, unit, True, how,
                     (max(lo, 0.0), hi), method=leak.method)
 
@@ -335,8 +339,6 @@ def _supply_pressure(summary, runs, rig) -> list[Constant]:
     runs and the supply flow steps (95 % interval: bootstrap over runs,
     spanned with the position-control records' mean over their whole
     seconds: a flow step's short window keeps part of a pump-ripple period)."""
-    import math
-
     import numpy as np
     from scipy import stats
 

@@ -33,12 +33,13 @@ rig file's value stays.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 
+from ..estimate import widen_interval
 from ..fit import SideRuns, cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
 from ..fit.flowfit import C_KEY
 from ..models import ValveSide, fluid_force_n
@@ -69,6 +70,7 @@ class GeometryFit:
     force_span_n: float
     leak_mm3_s_per_mpa: float = 0.0
     leak_ci95: tuple[float, float] = (math.nan, math.nan)
+    x_c_slope: tuple[float, float, float] = (math.nan, math.nan, math.nan)
 
 
 def _with(side: ValveSide, z0, c, y_c) -> ValveSide:
@@ -126,7 +128,7 @@ class _Layout:
 
 
 def _fit(runs: dict[str, SideRuns], x0, lo, hi, f_scale, layout: _Layout, y_fixed, g_fixed,
-         g_prior_sd: float = math.inf):
+         g_prior_sd: float = math.inf, starts: Sequence[float] | None = None):
     """least_squares from ``x0`` (a few starts of the free y_c); returns (x,
     solution, residual function). A fitted leakage conductance has the prior
     N(``g_fixed``, ``g_prior_sd``^2): one more residual."""
@@ -149,7 +151,7 @@ def _fit(runs: dict[str, SideRuns], x0, lo, hi, f_scale, layout: _Layout, y_fixe
         x_scale += [0.01, max(abs(runs[n].side.c_flow), 1e-3)] + ([1.0] if free else [])
     x_scale += [1.0] if layout.fit_leak else []
     best = None
-    factors = (1.0, 0.75, 1.3) if any(layout.free) else (1.0,)
+    factors = starts or ((1.0, 0.75, 1.3) if any(layout.free) else (1.0,))
     for k in factors:   # a few starts: the threshold is piecewise in the parameters
         p0 = np.array(x0, float)
         for n, free in zip(layout.names, layout.free):
@@ -188,6 +190,38 @@ class JointGeometry:
     leak_mm3_s_per_mpa: float
     leak_ci95: tuple[float, float]
     leak_default_mm3_s_per_mpa: float
+    x_c_slope: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+    x_c_slope_default: dict[str, tuple[float, float, float]] = field(default_factory=dict)
+
+
+#: x_c step [mm] of :func:`_x_c_slopes` (z0, C, y_c move linearly with x_c
+#: over several mm: field-clean, supply y_c 0.197 mm/mm from -10.1 to -3.1)
+X_C_STEP_MM = 1.0
+
+
+def _x_c_slopes(runs: dict[str, SideRuns], x: np.ndarray, lo, hi, f_scale, layout: _Layout,
+                y_fixed, g_fixed, g_prior_sd) -> dict[str, tuple[float, float, float]]:
+    """How far each side's fitted (z0 [mm], C, y_c [mm]) moves per mm of the
+    needle centres' x_c (which the fit holds at the rig file's): the same fit
+    from its solution with one side's x_c moved by :data:`X_C_STEP_MM`, for
+    each side (the sides share the leakage, so one side's x_c moves the
+    other's too a little); per side and parameter the sum in quadrature over
+    the moved sides. y_c's is 0 where y_c is held."""
+    sq: dict[str, np.ndarray] = {n: np.zeros(3) for n in layout.names}
+    for m in layout.names:
+        moved = dict(runs)
+        r = runs[m]
+        moved[m] = replace(r, side=replace(r.side, geometry=replace(
+            r.side.geometry, needle_x_c_mm=r.side.geometry.needle_x_c_mm + X_C_STEP_MM)))
+        try:
+            x1, _, _ = _fit(moved, x, lo, hi, f_scale, layout, y_fixed, g_fixed, g_prior_sd,
+                            starts=(1.0,))
+        except ValueError:      # eq. (4) not invertible with the moved centre
+            return {}
+        for n in layout.names:
+            a, b = layout.side_x(x, n, y_fixed[n]), layout.side_x(x1, n, y_fixed[n])
+            sq[n] += ((np.asarray(b, float) - np.asarray(a, float)) / X_C_STEP_MM) ** 2
+    return {n: tuple(float(v) for v in np.sqrt(sq[n])) for n in layout.names}
 
 
 def fit_geometry_sides(runs: dict[str, SideRuns], *, free_y: Sequence[str],
@@ -237,6 +271,7 @@ def fit_geometry_sides(runs: dict[str, SideRuns], *, free_y: Sequence[str],
     lay_d, x0_d, lo_d, hi_d = setup(())
     sd = float(leak_prior_sd_mm3_s_per_mpa)
     x_def, _, _ = _fit(runs, x0_d, lo_d, hi_d, f_scale, lay_d, y_fixed, g0, sd)
+    slopes_def = _x_c_slopes(runs, x_def, lo_d, hi_d, f_scale, lay_d, y_fixed, g0, sd)
     default = {n: lay_d.side_x(x_def, n, y_fixed[n]) for n in names}
     g_def = float(lay_d.leak(x_def, g0))
     lay, x0, lo, hi = setup(tuple(free_y))
@@ -265,10 +300,11 @@ def fit_geometry_sides(runs: dict[str, SideRuns], *, free_y: Sequence[str],
         if fit_leak and np.isfinite(cov[-1, -1]) and cov[-1, -1] >= 0:
             half = 1.96 * math.sqrt(cov[-1, -1])
             g_ci = (max(float(x[-1]) - half, 0.0), float(x[-1]) + half)
+    slopes = _x_c_slopes(runs, x, lo, hi, f_scale, lay, y_fixed, g0, sd)
     return JointGeometry({n: tuple(float(v) for v in lay.side_x(x, n, y_fixed[n]))
                           for n in names}, ci,
                          {n: tuple(float(v) for v in default[n]) for n in names},
-                         float(lay.leak(x, g0)), g_ci, g_def)
+                         float(lay.leak(x, g0)), g_ci, g_def, slopes, slopes_def)
 
 
 def _load_covariance(runs: dict[str, SideRuns], names: Sequence[str], jac: np.ndarray,
@@ -374,14 +410,43 @@ def _side_results(runs: dict[str, SideRuns], *, leak_mm3_s_per_mpa: float, fit_l
         force = fluid_force_n(r.p1_mpa, r.dp_mpa, side.geometry)
         span = float(np.ptp(force)) if force.size else 0.0
         ok, note = _judge(side, x[2], jg.y_ci95[n], levels[n], span)
+        # what x_c moves: in the fit whose centre is kept (y_c's, or the rig
+        # file's where y_c is not identified)
+        slope = (jg.x_c_slope if ok else jg.x_c_slope_default).get(n, (math.nan,) * 3)
         held = r.heldout if r.heldout is not None else \
             (r.theta_deg, r.p1_mpa, r.dp_mpa, r.q_mm3_s, r.dp_leak_mpa)
         out[n] = GeometryFit(n, x[0], x[1], x[2], jg.y_ci95[n], ok, note,
                              _rmse(side, x, jg.leak_mm3_s_per_mpa, held),
                              _rmse(side, jg.default[n], jg.leak_default_mm3_s_per_mpa, held),
                              int(r.q_mm3_s.size), int(levels[n]), span,
-                             jg.leak_mm3_s_per_mpa, jg.leak_ci95)
+                             jg.leak_mm3_s_per_mpa, jg.leak_ci95, slope)
     return out
+
+
+def x_c_uncertainty_mm(rig) -> float:
+    """The rig file's 95 % half-range of the needle centres' x_c [mm]
+    (``valve.needle_x_c_uncertainty_mm``; 0 where not given)."""
+    try:
+        return float(rig["valve"].get("needle_x_c_uncertainty_mm", 0.0))
+    except (KeyError, AttributeError, TypeError, ValueError):
+        return 0.0
+
+
+def _x_c_constant(name: str, rig, g: GeometryFit, u: float) -> Constant:
+    """x_c of one side: not told by the flow steps (see the module notes);
+    the rig file's value stays, with what its range moves."""
+    default = float(rig["valve"][name]["needle_x_c_mm"])
+    dz0, _, dy = g.x_c_slope
+    moves = (f"; 1 mm of the sides' x_c moves z0 by {dz0:.4f} mm" if math.isfinite(dz0)
+             else "") + (f" and y_c by {dy:.3f} mm" if math.isfinite(dy) and g.identified else "")
+    which = "z0's, C's and y_c's" if g.identified else "z0's and C's"
+    note = ("the flow steps cannot tell it: to first order x_c moves eq. (4) by a constant, "
+            "which z0 takes" + moves
+            + (f"; {which} intervals carry the rig file's +-{u:g} mm "
+               "(valve.needle_x_c_uncertainty_mm)" if u else ""))
+    return Constant(f"valve.{name}.needle_x_c_mm", f"{name} needle centre x_c", default, default,
+                    "mm", False, "flow steps (eq. 3-5)", note=note,
+                    confounded_with=(f"valve.{name}.z0_mm", f"valve.{name}.needle_y_c_mm"))
 
 
 def _fmt_ci(ci) -> str:
@@ -441,14 +506,18 @@ def geometry_constants(per_run, model, rig, *, leak_mm3_s_per_mpa: float | None 
     found = _side_results(runs, leak_mm3_s_per_mpa=g0, fit_leak=True,
                           leak_upper_mm3_s_per_mpa=band / max(p_supply, 0.1),
                           leak_prior_sd_mm3_s_per_mpa=prior_sd_mm3_s_per_mpa(band, p_supply))
+    u = x_c_uncertainty_mm(rig)
     for name, g in found.items():
         key, default, rows, train, n_held = meta[name]
         side = runs[name].side
         by = (f"threshold vs fluid force over {g.n_loads} load levels ({g.n_runs} flow steps, "
               f"F_w span {g.force_span_n:.1f} N)")
+        dy = abs(g.x_c_slope[2]) * u if math.isfinite(g.x_c_slope[2]) else 0.0
+        ci = widen_interval(g.y_c_mm, g.y_c_ci95, dy) if g.identified else (math.nan, math.nan)
+        note = g.note or (f"interval with x_c's +-{u:g} mm ({dy:.2g} mm of it)" if dy else "")
         consts.append(Constant(key, f"{name} needle centre y_c", g.y_c_mm if g.identified else
-                               default, default, "mm", g.identified, by,
-                               g.y_c_ci95 if g.identified else (math.nan, math.nan), note=g.note))
+                               default, default, "mm", g.identified, by, ci, note=note))
+        consts.append(_x_c_constant(name, rig, g, u))
         thr_default = threshold_span(side, rows["p1_mpa"], rows["dp_mpa"])
         thr_new = threshold_span(_with(side, g.z0_mm, g.c_flow, g.y_c_mm), rows["p1_mpa"],
                                  rows["dp_mpa"]) if _valid(side, g.y_c_mm) else thr_default
@@ -460,6 +529,9 @@ def geometry_constants(per_run, model, rig, *, leak_mm3_s_per_mpa: float | None 
                       "z0_mm": g.z0_mm, C_KEY: g.c_flow,
                       "seat_leak": {"conductance_mm3_s_per_mpa": g.leak_mm3_s_per_mpa,
                                     "ci95_mm3_s_per_mpa": list(g.leak_ci95)},
+                      "x_c": {"uncertainty_mm": u,
+                              "per_mm": dict(zip(("z0_mm", C_KEY, "needle_y_c_mm"),
+                                                 g.x_c_slope))},
                       "threshold_range_deg": [float(np.min(thr_new)), float(np.max(thr_new))],
                       "threshold_range_default_deg": [float(np.min(thr_default)),
                                                       float(np.max(thr_default))]}
