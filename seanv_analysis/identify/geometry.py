@@ -9,8 +9,11 @@ tan(phi) sin(phi)): at theta = -10..-25 deg, y_c sets it ~4-6 times more
 strongly than x_c, while x_c's effect on the height itself is a constant
 offset that z0 absorbs. So the one-parameter form fitted here is y_c with
 x_c kept at the rig file's value: with z0 it reproduces the threshold over
-the tested pressures whatever the true (x_c, y_c) (the acceptance is on the
-threshold angle, not on the centre itself).
+the tested pressures whatever the true (x_c, y_c). x_c itself the flow steps
+cannot tell (with it free the fit is singular): it is reported as not
+identified, confounded with z0 and y_c, and the rig file's 95 % range of it
+(``valve.needle_x_c_uncertainty_mm``) is carried into the intervals of y_c,
+z0 and C by what it moves them (:func:`_x_c_slopes`).
 
 Q = C (theta - theta_d(p1, dp; z0, y_c))^2 dp^0.5 (eq. 5) plus the needles'
 seat leakage g (dp_supply - dp_drain) (:func:`seanv_analysis.models.seat_leakage_mm3_s`)
@@ -195,7 +198,8 @@ class JointGeometry:
 
 
 #: x_c step [mm] of :func:`_x_c_slopes` (z0, C, y_c move linearly with x_c
-#: over several mm: field-clean, supply y_c 0.197 mm/mm from -10.1 to -3.1)
+#: over several mm: field-clean, supply y_c 0.146, 0.148, 0.146 mm/mm for
+#: steps of +1, -1, +2 mm)
 X_C_STEP_MM = 1.0
 
 
