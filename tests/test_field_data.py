@@ -142,6 +142,12 @@ def test_field_line_keeps_the_tube_despite_the_play(field_root, summaries):
     line = next(c for c in ident.constants if c.key == "tube.inertance_factor")
     assert line.value == rig["tube"]["inertance_factor"], line
     assert "no other inertance fits significantly better" in line.note, line.note
+    # the play is not in the twin: B (250 for 300) is called an effective value,
+    # the held-out run replaying better at its interval's upper end
+    bulk = next(c for c in ident.constants if c.key == "tube.effective_bulk_modulus_mpa")
+    assert not bulk.ci95[0] <= truth["line_bulk_modulus_mpa"] <= bulk.ci95[1], bulk
+    assert "upper end" in bulk.note and "effective value" in bulk.note, bulk.note
+    assert ident.fits["flow_path"]["bulk_modulus_heldout"]["beyond_interval"] is True
 
 
 def test_field_clean_needle_centres_hold_the_truth(field_root, summaries):

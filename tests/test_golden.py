@@ -110,6 +110,19 @@ def test_line_structure_kept_on_our_own_plant(golden_run):
     assert "kept" in c["note"]
 
 
+def test_bulk_modulus_not_called_effective_on_our_own_plant(golden_run):
+    """The held-out run replayed at B's value and interval ends: on our own
+    simulator's line no end replays it significantly better, so B is not
+    called an effective value (on the field rig it is: test_field_data)."""
+    doc, _ = golden_run
+    check = doc["identify"]["fits"]["flow_path"]["bulk_modulus_heldout"]
+    assert check["beyond_interval"] is False and len(check["heldout_rmse_mm3_s"]) == 3
+    lo, mid, hi = check["heldout_rmse_mm3_s"]
+    assert mid <= 1.001 * min(lo, hi), check   # the value replays it best (the ends no better)
+    (b,) = [c for c in doc["identify"]["constants"] if c["key"] == "tube.effective_bulk_modulus_mpa"]
+    assert "effective value" not in b["note"]
+
+
 def test_a_delay_within_the_command_timing_is_not_an_effect(golden_run):
     """Our simulator's position runs have no delay, but the replay's command
     instants are known to half a servo-log sample only: the delay candidate
