@@ -567,8 +567,9 @@ def flow_path_constants(train_runs, held_runs, rig, valve, *,
                     "heldout": lag_rmse(he, f["tau_s"], f["dead_s"]),
                     "n_train_runs": len(tr), "n_heldout_runs": len(he)}}
     twin = with_bulk(with_inertance(rig, inert), bulk)
-    effective = _heldout_bulk(held_runs, valve, with_inertance(rig, inert), bulk,
-                              fb["ci95"]) if ok else {}
+    held_twin = replay_on_twin(held_runs, valve, twin) if held_runs else []
+    effective = _heldout_bulk(held_runs, valve, with_inertance(rig, inert), bulk, fb["ci95"],
+                              held_twin) if ok else {}
     if effective.get("note"):
         b_const = next(c for c in consts if c.key == "tube.effective_bulk_modulus_mpa")
         b_const.note += "; " + effective["note"]
@@ -576,7 +577,8 @@ def flow_path_constants(train_runs, held_runs, rig, valve, *,
            "n_train_runs": len(train_runs), "n_heldout_runs": len(held_runs)}
     for part, runs in (("train", train_runs), ("heldout", held_runs)):
         for which, r in (("_default", rig), ("", twin)):
-            g = fit_summary(replay_on_twin(runs, valve, r))
+            g = fit_summary(held_twin if (part, which) == ("heldout", "") else
+                            replay_on_twin(runs, valve, r))
             if g:
                 rep[part + which] = g["fit_flow_pct"]
     fits["replay"] = rep
@@ -585,20 +587,22 @@ def flow_path_constants(train_runs, held_runs, rig, valve, *,
     return consts, fits, []
 
 
-def _heldout_bulk(held_runs, valve, rig, bulk: float, ci) -> dict[str, Any]:
-    """The held-out runs replayed with the line's bulk modulus at its value
-    and at its 95 % interval's two ends [MPa]: where an end replays them
+def _heldout_bulk(held_runs, valve, rig, bulk: float, ci, at_value) -> dict[str, Any]:
+    """The held-out runs replayed with the line's bulk modulus at its 95 %
+    interval's two ends [MPa] beside ``at_value``, their replays with its
+    value ``bulk`` (``rig``: the twin without B): where an end replays them
     better beyond the chi-square(1) quantile of their own residual variance,
     they ask for a B outside the interval, so the twin's line is not this
     rig's and B is an effective value of the training runs: said in
     ``note`` (field-clean: B 317 [304, 318] MPa for a true 300, the held-out
     run best at >= 330). {} without held-out runs or a finite interval."""
-    if not held_runs or not all(math.isfinite(v) for v in ci):
+    if not held_runs or not at_value or not all(math.isfinite(v) for v in ci):
         return {}
     targets = replay_targets(held_runs, rig)
+    ends = map_on_threads(lambda b: flow_sse(replay_on_twin(targets, valve, with_bulk(rig, b))),
+                          [float(ci[0]), float(ci[1])], threading.Event())
+    got = [ends[0], flow_sse(at_value), ends[1]]
     bs = (float(ci[0]), float(bulk), float(ci[1]))
-    got = map_on_threads(lambda b: flow_sse(replay_on_twin(targets, valve, with_bulk(rig, b))),
-                         bs, threading.Event())
     sse, n_eff, n = [g[0] for g in got], got[1][1], got[1][2]
     if not (all(math.isfinite(v) and v > 0 for v in sse) and n_eff > 1 and n > 0):
         return {}
