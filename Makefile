@@ -27,12 +27,12 @@ MAKE_STARTED := $(shell date +%s)
 demo: $(STAMP)
 	$(PY) -m seanv_analysis.demo --started-at $(MAKE_STARTED) --installed-at $(STAMP)
 
-# two pytest-xdist workers (the 2-core machine): about 13 CPU-minutes of tests
-# (most of it closed-loop identification and discovery) in about 7-7.5 min on
-# a clean clone (2026-11-28: 7 min 13 s, 8 min 34 s with the install). One
-# seed per case here; the multi-seed acceptance sweeps and their rates are
-# make bench's (benchmarks/bench_discover.py, bench_identify.py,
-# bench_coverage.py)
+# two pytest-xdist workers (the 2-core machine): about 13-16 CPU-minutes of
+# tests (most of it closed-loop identification and discovery) in about 7-8.5
+# min on a clean clone (2026-11-28: 7 min 13 s, and 8 min 26 s later that day;
+# 8 min 34 s and 9 min 59 s with the install). One seed per case here; the
+# multi-seed acceptance sweeps and their rates are make bench's
+# (benchmarks/bench_discover.py, bench_identify.py, bench_coverage.py)
 TEST_WORKERS ?= 2
 
 # bytecode caches allowed for the tests (__pycache__ is gitignored): where the
