@@ -167,10 +167,9 @@ def _identify(summary: pd.DataFrame, rig, position_runs: Sequence[Any],
             if sf is not None and sf.success:
                 dz0, dc = spread.get(side, {}).get("z0", 0.0), spread.get(side, {}).get("c", 0.0)
                 xz0, xc = _x_c_spread(fits["geometry"].get(side))
+                by = [who for who, moved in (("y_c's", dz0 or dc), ("x_c's", xz0 or xc)) if moved]
                 how = "flowfit with the identified geometry" + (
-                    ", interval widened by y_c's" if dz0 or dc else "") + (
-                    f"{' and' if dz0 or dc else ', interval widened by'} x_c's" if xz0 or xc
-                    else "")
+                    ", interval widened by " + " and ".join(by) if by else "")
                 dz0, dc = math.hypot(dz0, xz0), math.hypot(dc, xc)
                 fitted = sf.estimates()
                 added += [

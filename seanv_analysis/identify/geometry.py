@@ -430,10 +430,7 @@ def _side_results(runs: dict[str, SideRuns], *, leak_mm3_s_per_mpa: float, fit_l
 def x_c_uncertainty_mm(rig) -> float:
     """The rig file's 95 % half-range of the needle centres' x_c [mm]
     (``valve.needle_x_c_uncertainty_mm``; 0 where not given)."""
-    try:
-        return float(rig["valve"].get("needle_x_c_uncertainty_mm", 0.0))
-    except (KeyError, AttributeError, TypeError, ValueError):
-        return 0.0
+    return float(rig["valve"].get("needle_x_c_uncertainty_mm", 0.0))
 
 
 def _x_c_constant(name: str, rig, g: GeometryFit, u: float) -> Constant:
