@@ -182,6 +182,7 @@ def test_result_modules_define_their_results():
     import importlib
 
     from seanv_analysis.stages import STAGES
+    from seanv_analysis.stages.catalogue import task_modules
     from seanv_analysis.stages.figures import figure_input_modules
     from seanv_analysis.stages.pipeline import load_pipeline
 
@@ -198,6 +199,13 @@ def test_result_modules_define_their_results():
         {"name": "figures", "figs": [4]}]})) == ("seanv_analysis.fit.flowfit",)
     assert figure_input_modules(load_pipeline({"stages": [{"name": "ingest"},
                                                           {"name": "flowfit"}]})) == ()
+    # identify's tasks (its servo and flow fits) run on the workers too: they
+    # import its module while they wait, only where a stage sends them
+    for m in ("identify", "discover"):
+        assert "seanv_analysis.identify.engine" in getattr(STAGES[m], "TASK_MODULES", ())
+    assert task_modules(load_pipeline("paper")) == ("seanv_analysis.identify.engine",)
+    assert task_modules(load_pipeline({"stages": [{"name": "ingest"}, {"name": "flowfit"},
+                                                  {"name": "figures"}]})) == ()
 
 
 def test_a_flow_fit_is_read_without_scipy(tmp_path):

@@ -406,3 +406,32 @@ def test_load_regulator_interval_holds_the_spread_between_changes():
     assert np.log(hi / lo) / 2 >= 0.9 * half
     assert lo <= float(np.exp(logs.mean())) <= hi
     assert narrow[1] - narrow[0] < 0.5 * (hi - lo)
+
+
+def test_identify_parts_as_tasks_on_worker_processes_give_the_same_numbers(foreign_own):
+    """identify's independent fits (the servo's; the geometry part's refit
+    and its y_c interval-edge fits) run as tasks on an executor's worker
+    processes beside the main one (issue 35: parallel data-set stages):
+    every constant, interval and fit is the same as when all run here."""
+    from seanv_analysis.batch import make_executor
+    from seanv_analysis.identify import identify_rig
+    from seanv_analysis.jsonable import dumps
+    from seanv_analysis.stages import run_stages
+    from seanv_analysis.stages.identify import position_runs
+
+    root, _, _ = foreign_own
+    ctx = run_stages([root / "flow", root / "position"], ["ingest"])
+    ds, pos = ctx.result("ingest"), position_runs(ctx)
+    kw = dict(position_runs=pos, parts=("geometry", "servo"), n_boot=20)
+    here = identify_rig(ds.summary, ctx.rig, **kw)
+    calls = []
+    with make_executor(workers=2) as ex:
+        def mapper(func, items, **k):
+            calls.append((func.__name__, len(items)))
+            return ex.tasks(func, items, quiet=True, **k)
+        tasks = identify_rig(ds.summary, ctx.rig, map_tasks=mapper, **kw)
+    # the servo's fit, and the refit with both sides' y_c interval edges
+    assert sorted(calls) == [("_flow_fit_task", 5), ("_servo_task", 1)]
+    assert dumps(tasks.to_json_dict()) == dumps(here.to_json_dict())
+    assert {c.key for c in tasks.identified()} >= {"valve.supply.needle_y_c_mm",
+                                                    "servo.dead_time_s"}

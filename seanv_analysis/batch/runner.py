@@ -441,9 +441,11 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             ctx.task_slots = ex.workers
             warm = None
             if any(has_role(s.name, "draws_figures") for s in pipe.stages):
+                from ..stages.catalogue import task_modules
                 from ..stages.figures import figure_input_modules, warm_figure_worker
 
-                warm = partial(ex.warm, partial(warm_figure_worker, figure_input_modules(pipe)))
+                warm = partial(ex.warm, partial(warm_figure_worker, figure_input_modules(pipe)
+                                                + task_modules(pipe)))
             with one_blas_thread():     # the data-set stages, here (the workers have one)
                 _run_stages(pipe, ctx, result, after_ingest=warm)
             result.computed, result.cached = mapper.computed, mapper.cached

@@ -337,11 +337,12 @@ def _run_in(pipe, data, first, folder: Path, *, rig, model, quiet, folders, main
         if value is not None and name != "ingest":
             written.extend(Path(p) for p in stages[name].write(value, folder / folders.get(name, ".")))
 
+    from ..stages.catalogue import task_modules
     from ..stages.figures import figure_input_modules
 
     figures = any(s.name == "figures" for s in pipe.stages)
     with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet, figures=figures,
-                       warm_modules=figure_input_modules(pipe)) as ctx, \
+                       warm_modules=figure_input_modules(pipe) + task_modules(pipe)) as ctx, \
             warnings.catch_warnings(record=True):
         warnings.simplefilter("always")   # a result keeps what matters (skipped runs, notes)
         try:

@@ -11,7 +11,8 @@ Order (each part uses what the ones before found):
 2. servo (:mod:`.servo`): dead time, time constant, rate limit from the
    servo logs of the position-control runs (of the flow steps when there are
    none), by simulation error with the simulator's own servo step (it needs
-   nothing the parts before find: it runs on a thread beside them);
+   nothing the parts before find: it runs beside them, on a thread or, given
+   the executor's task mapper, a worker process);
 3. friction (:mod:`.friction`): Coulomb and viscous from the flow steps'
    steady force balance;
 4. load regulator (:mod:`.load`): its time constant from the load changes
@@ -28,7 +29,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import pandas as pd
 
@@ -44,7 +45,12 @@ from .load import load_constants
 from .result import Constant, Identification, nest_constants
 from .servo import servo_constants, servo_data
 
-__all__ = ["identify_rig", "PARTS", "split_runs"]
+__all__ = ["identify_rig", "PARTS", "split_runs", "TaskMapper"]
+
+#: ``map_tasks(func, items, *, kwargs, desc) -> [(ok, value or one-line
+#: error)]``: the executor's task mapper (:class:`seanv_analysis.stages.TaskMapper`:
+#: worker processes or Dask), on which identify runs its independent fits
+TaskMapper = Callable[..., list]
 
 #: the parts of the rig ``identify`` looks at, in order
 PARTS = ("geometry", "servo", "friction", "load", "flow_path")
@@ -71,7 +77,8 @@ PART_METHODS = {
 
 def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (),
                  flow_runs: Sequence[Any] = (), parts: Sequence[str] = PARTS,
-                 n_boot: int = 100, seed: int = 0, log=lambda msg: None) -> Identification:
+                 n_boot: int = 100, seed: int = 0, log=lambda msg: None,
+                 map_tasks: TaskMapper | None = None) -> Identification:
     """Identify the rig constants the paper does not publish.
 
     Parameters
@@ -85,6 +92,10 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
         position-control run has servo feedback
     parts : which of :data:`PARTS` to identify
     n_boot : bootstrap resamples of the z0/C refit
+    map_tasks : the executor's task mapper (worker processes or Dask): the
+        servo's fit and the flow fits of the geometry part (the refit and
+        y_c's interval edges) run there as tasks, beside this process; the
+        same numbers as without (None: all here, the servo on a thread)
 
     Returns
     -------
@@ -97,15 +108,40 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-servo") as pool:
         # the servo's fit reads its logs and the rig file's servo section
         # only: it runs beside the geometry's, its result taken in its place
-        servo = pool.submit(_servo_part, train_pos, held_pos, flow_runs, rig) \
+        servo = pool.submit(_servo_part, train_pos, held_pos, flow_runs, rig, map_tasks) \
             if "servo" in parts else None
         return _identify(summary, rig, position_runs, train_pos, held_pos, parts, n_boot, seed,
-                         log, servo)
+                         log, servo, map_tasks)
+
+
+def _on_tasks(map_tasks: TaskMapper | None, func: Callable, items: Sequence[Any],
+              kwargs: dict[str, Any], desc: str) -> list:
+    """``[func(x, **kwargs) for x in items]``, as tasks on ``map_tasks``
+    where given (None: here). A task that failed there is run again here, so
+    its error is the exception this process raises, as without tasks."""
+    if map_tasks is None:
+        return [func(x, **kwargs) for x in items]
+    done = map_tasks(func, list(items), kwargs=kwargs, desc=desc)
+    return [v if ok else func(x, **kwargs) for x, (ok, v) in zip(items, done)]
+
+
+def _servo_task(data: tuple[list, list], *, rig) -> tuple:
+    """Task: :func:`.servo.servo_constants` of (training, held-out) servo data."""
+    return servo_constants(data[0], data[1], rig)
+
+
+def _flow_fit_task(item: tuple[Any, int, int], *, summary: pd.DataFrame):
+    """Task: flowfit of ``summary`` with item = (rig, n_boot, seed)."""
+    from ..fit import fit_flow
+
+    rig, n_boot, seed = item
+    return fit_flow(summary, rig, n_boot=n_boot, seed=seed)
 
 
 def _servo_part(train_pos: Sequence[Any], held_pos: Sequence[Any], flow_runs: Sequence[Any],
-                rig) -> tuple[tuple, list[str]]:
-    """The servo's (constants, fits, notes) and the notes said before them."""
+                rig, map_tasks: TaskMapper | None = None) -> tuple[tuple, list[str]]:
+    """The servo's (constants, fits, notes) and the notes said before them;
+    its fit a task on ``map_tasks`` where given."""
     tr = [d for d in (servo_data(r) for r in train_pos) if d is not None]
     he = [d for d in (servo_data(r) for r in held_pos) if d is not None]
     before = []
@@ -116,13 +152,16 @@ def _servo_part(train_pos: Sequence[Any], held_pos: Sequence[Any], flow_runs: Se
             before.append("servo: from the flow steps' logs (no position-control run with "
                           "cam feedback); the command instant is known to half a servo "
                           "sample only")
-    return servo_constants(tr, he, rig), before
+    (found,) = _on_tasks(map_tasks, _servo_task, [(tr, he)], {"rig": rig}, "identify: servo")
+    return found, before
 
 
 def _identify(summary: pd.DataFrame, rig, position_runs: Sequence[Any],
               train_pos: Sequence[Any], held_pos: Sequence[Any], parts: Sequence[str],
-              n_boot: int, seed: int, log, servo: Future | None) -> Identification:
-    """:func:`identify_rig`'s parts in order; ``servo``: the servo's part, running."""
+              n_boot: int, seed: int, log, servo: Future | None,
+              map_tasks: TaskMapper | None = None) -> Identification:
+    """:func:`identify_rig`'s parts in order; ``servo``: the servo's part,
+    running; ``map_tasks``: where the geometry part's flow fits run."""
     from ..errors import FitError
     from ..fit import fit_flow
     from ..models import ValveModel
@@ -156,11 +195,15 @@ def _identify(summary: pd.DataFrame, rig, position_runs: Sequence[Any],
             notes.append(f"geometry: no flow fit to start from ({exc})")
     if base_fit is not None:
         current = take("geometry", geometry_constants(base_fit.per_run, base_fit.model, rig))
-        refit = fit_flow(summary, current, n_boot=n_boot, seed=seed)
         # z0, C and the seat leakage are refitted with y_c held at its value:
         # its own 95 % interval moves them too (z0 most: it absorbs the
-        # threshold's offset), added in quadrature to theirs
-        spread = _geometry_spread(summary, current, constants, refit)
+        # threshold's offset), added in quadrature to theirs. The refit and
+        # the fits at y_c's interval edges are independent: tasks side by side
+        edges = _y_c_edges(current, constants)
+        items = [(current, n_boot, seed)] + [(r, 0, 0) for _, pair in edges for r in pair]
+        refit, *edge_fits = _on_tasks(map_tasks, _flow_fit_task, items, {"summary": summary},
+                                      "identify: flow fits")
+        spread = _geometry_spread(edges, edge_fits, refit)
         added = []
         for side in SIDES:
             sf = refit.sides.get(side)
@@ -242,25 +285,32 @@ def _x_c_spread(geometry_fit: dict[str, Any] | None) -> tuple[float, float]:
     return tuple(v if math.isfinite(v) else 0.0 for v in out)
 
 
-def _geometry_spread(summary, current, constants, refit) -> dict[str, Any]:
-    """How far y_c's 95 % half-width moves each side's z0 [mm] and C and the
-    seat leakage's conductance [mm^3/(s MPa)]: flowfit refitted (no
-    bootstrap) with each identified y_c at its interval's two edges, half
-    the difference; summed in quadrature over the sides' y_c.
-    {side: {'z0', 'c'}, 'leak'}."""
-    from ..fit import fit_flow
-
-    out: dict[str, Any] = {"leak": 0.0}
+def _y_c_edges(current, constants) -> list[tuple[str, tuple[Any, Any]]]:
+    """(side, (rig at y_c's lower 95 % edge, rig at its upper edge)) of each
+    side whose identified y_c has a finite interval."""
+    out = []
     for c in constants:
         if not (c.identified and c.key and c.key.endswith(".needle_y_c_mm")):
             continue
         side = c.key.split(".")[1]
         lo, hi = c.ci95
-        if not (math.isfinite(lo) and math.isfinite(hi)):
-            continue
-        edge = [fit_flow(summary, current.with_overrides(
-            {"valve": {side: {"needle_y_c_mm": float(v)}}}, where="identify"), n_boot=0)
-            for v in (lo, hi)]
+        if math.isfinite(lo) and math.isfinite(hi):
+            out.append((side, tuple(current.with_overrides(
+                {"valve": {side: {"needle_y_c_mm": float(v)}}}, where="identify")
+                for v in (lo, hi))))
+    return out
+
+
+def _geometry_spread(edges, edge_fits, refit) -> dict[str, Any]:
+    """How far y_c's 95 % half-width moves each side's z0 [mm] and C and the
+    seat leakage's conductance [mm^3/(s MPa)]: flowfit refitted (no
+    bootstrap) with each identified y_c at its interval's two edges
+    (``edges``: :func:`_y_c_edges`; ``edge_fits``: their fits, lower and
+    upper edge in turn), half the difference; summed in quadrature over the
+    sides' y_c. {side: {'z0', 'c'}, 'leak'}."""
+    out: dict[str, Any] = {"leak": 0.0}
+    for k in range(len(edges)):
+        edge = edge_fits[2 * k:2 * k + 2]
         for s in refit.sides:
             a, b = edge[0].sides.get(s), edge[1].sides.get(s)
             if a is None or b is None or not (a.success and b.success):

@@ -53,6 +53,9 @@ DESCRIPTION = "what the model misses: residual -> effect -> refit, held-out erro
 #: holdout: 'chrono' (the last 30 % of each side's runs) or 'kfold' (5 folds
 #: by run); seed: of the permutation check
 OPTIONS: dict[str, Any] = {"holdout": "chrono", "seed": 0}
+#: where its tasks run (the twin's identification, when no identify stage
+#: gave one: :func:`seanv_analysis.identify.identify_rig`'s ``map_tasks``)
+TASK_MODULES = ("seanv_analysis.identify.engine",)
 
 def check_option(key: str, value: Any) -> Any:
     if key == "holdout" and value not in ("chrono", "kfold"):
@@ -179,7 +182,9 @@ def _twin_search(ctx: Context, summary, runs, held: dict[str, Any]):
             start = ctx.rig.with_overrides(_valve_keys(valve), where="discover")
             ident = identify_rig(summary, start, position_runs=runs,
                                  flow_runs=servo_flow_runs(ctx, runs), parts=TWIN_PARTS,
-                                 n_boot=0, seed=seed, log=ctx.log)
+                                 n_boot=0, seed=seed, log=ctx.log,
+                                 map_tasks=ctx.map_tasks if getattr(ctx, "task_slots", 1) > 1
+                                 else None)
             if not any(c.key.startswith("servo.") for c in ident.identified()):
                 raise NoTwin("the servo cannot be identified from these logs (no cam "
                              "feedback), so neither can a twin to test dynamic effects on")

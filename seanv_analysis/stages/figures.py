@@ -108,7 +108,8 @@ def figure_input_modules(pipe: Any) -> tuple[str, ...]:
     of its stages' results that a selected figure needs), in stage order,
     each once; () without a figures stage. Only those: a worker importing
     ``identify``'s (1.6 s), which no figure reads, would spend it for
-    nothing."""
+    nothing (unless identify's own tasks run there:
+    :func:`~seanv_analysis.stages.catalogue.task_modules`)."""
     from .catalogue import STAGES
 
     stage = pipe.stage(NAME)
@@ -123,8 +124,10 @@ def figure_input_modules(pipe: Any) -> tuple[str, ...]:
 def warm_figure_worker(modules: Sequence[str] = ()) -> None:
     """What a figure worker runs while the analysis goes on: import
     ``modules`` (:func:`figure_input_modules`: the results the figures will
-    be sent are then read without their imports) and pay the first figure's
-    costs (:func:`seanv_analysis.plots.warm_up`)."""
+    be sent are then read without their imports; and
+    :func:`~seanv_analysis.stages.catalogue.task_modules`: the data-set
+    stages' tasks run without theirs) and pay the first figure's costs
+    (:func:`seanv_analysis.plots.warm_up`)."""
     import importlib
 
     from ..plots import warm_up

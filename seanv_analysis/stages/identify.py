@@ -34,6 +34,9 @@ DESCRIPTION = ("identify the rig's unpublished constants (needle geometry, servo
 #: n_boot: bootstrap resamples of the z0/C refit; seed: its seed
 OPTIONS: dict[str, Any] = {"parts": ["geometry", "servo", "friction", "load", "flow_path"],
                            "n_boot": 100, "seed": 0}
+#: where its tasks run (the servo's fit, the geometry's flow fits: on the
+#: executor's workers beside this process, :func:`identify_rig`'s ``map_tasks``)
+TASK_MODULES = ("seanv_analysis.identify.engine",)
 
 
 def check_option(key: str, value: Any) -> Any:
@@ -64,7 +67,8 @@ def run(ctx: Context, options: Mapping[str, Any]):
     pos = position_runs(ctx)
     return identify_rig(ds.summary, ctx.rig, position_runs=pos, flow_runs=servo_flow_runs(ctx, pos),
                         parts=tuple(opts["parts"]), n_boot=int(opts["n_boot"]),
-                        seed=int(opts["seed"]), log=ctx.log)
+                        seed=int(opts["seed"]), log=ctx.log,
+                        map_tasks=ctx.map_tasks if getattr(ctx, "task_slots", 1) > 1 else None)
 
 
 def servo_flow_runs(ctx: Context, pos) -> list:
