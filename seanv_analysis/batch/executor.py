@@ -279,6 +279,20 @@ class Executor:
         return [(r.ok, r.value if r.ok else r.error)
                 for r in self.map(func, items, kwargs=kwargs, desc=desc, quiet=quiet)]
 
+    def preload(self, modules: Sequence[str]) -> None:
+        """Import ``modules`` here before a forked pool's workers start, so
+        that they inherit them rather than each importing them again (the
+        modules the data-set stages' tasks run in and the figures' inputs,
+        which this process imports anyway when it runs those stages:
+        identify's costs a worker 0.7 s, the discovery result's 0.5 s).
+        Nothing for the serial and Dask back ends, or once the workers run."""
+        if self.kind != "process" or self._pool is not None:
+            return
+        import importlib
+
+        for name in modules:
+            importlib.import_module(name)
+
     def warm(self, func: Callable[[], Any]) -> None:
         """Start a process pool's workers now and run ``func()`` once on each
         worker, without waiting (e.g. import matplotlib and lay out a first

@@ -439,13 +439,14 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             ctx.map_runs = mapper
             ctx.map_tasks = partial(ex.tasks, quiet=quiet)   # the figures, each a task
             ctx.task_slots = ex.workers
+            from ..stages.catalogue import task_modules
+            from ..stages.figures import figure_input_modules, warm_figure_worker
+
+            worker_modules = figure_input_modules(pipe) + task_modules(pipe)
+            ex.preload(worker_modules)    # the workers start with them (forked at ingest)
             warm = None
             if any(has_role(s.name, "draws_figures") for s in pipe.stages):
-                from ..stages.catalogue import task_modules
-                from ..stages.figures import figure_input_modules, warm_figure_worker
-
-                warm = partial(ex.warm, partial(warm_figure_worker, figure_input_modules(pipe)
-                                                + task_modules(pipe)))
+                warm = partial(ex.warm, partial(warm_figure_worker, worker_modules))
             with one_blas_thread():     # the data-set stages, here (the workers have one)
                 _run_stages(pipe, ctx, result, after_ingest=warm)
             result.computed, result.cached = mapper.computed, mapper.cached

@@ -185,6 +185,7 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
         yield ctx
         return
     with make_executor(workers=os.cpu_count()) as ex:
+        ex.preload(warm_modules)    # the workers start with them (forked at the first task)
         warm = None
         if figures:
             from ..stages.figures import warm_figure_worker
