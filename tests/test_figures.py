@@ -314,7 +314,8 @@ def test_dataset_figure_not_redrawn_when_its_inputs_are_unchanged(position_runs,
         fig.subplots().plot([0, 1], [0, results["tracking"].lag_s])
         return save_figure(fig, folder, "fig7", formats=formats, dpi=30)
 
-    monkeypatch.setitem(FIGURES, "fig7", dataclasses.replace(FIGURES["fig7"], draw=tiny_fig7))
+    monkeypatch.setitem(FIGURES, "fig7", dataclasses.replace(FIGURES["fig7"], draw=tiny_fig7,
+                                                            parts=None))  # one file
 
     def draw(tracking, rig=rig, formats=("png",)):
         ctx = SimpleNamespace(log=lambda msg: None, result=lambda name: None, rig=rig)

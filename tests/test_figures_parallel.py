@@ -226,3 +226,40 @@ def test_a_flow_fit_is_read_without_scipy(tmp_path):
     (tmp_path / "fit.pkl").write_bytes(pickle.dumps(fit))
     code = f"import pickle\nfit = pickle.loads(open({str(tmp_path / 'fit.pkl')!r}, 'rb').read())"
     assert modules_after(code, ["seanv_analysis.fit", "scipy.optimize"]) == ["seanv_analysis.fit"]
+
+
+def test_a_figure_drawn_in_parts_is_a_task_per_part_and_the_same_files(tmp_path):
+    """Fig. 7 (the data set's, then one per run) and validate's figure (an
+    overlay per run, then the fit % chart) declare independent parts
+    (``Figure.parts``): each part is a task of its own, side by side on the
+    workers (issue 35: validate's three figures were one task, laid out
+    twice, once per format), and the files are those the figure writes
+    whole, byte for byte, in the same order."""
+    from conftest import write_synthetic_dataset
+
+    from seanv_analysis.plots import FIGURES
+    from seanv_analysis.stages import run_stages, serial_tasks
+    from seanv_analysis.stages.figures import draw_figures, results_for_figures
+
+    root = write_synthetic_dataset(tmp_path / "data", n_flow=0, n_position=2, duration_s=1.0)
+    ctx = run_stages(root, ["ingest", "tracking", "validate"],
+                     options={"tracking": {"shift_s": 0.1}})
+    jobs = []
+
+    def recording(func, items, **kwargs):
+        jobs.extend((kind, name, what[1]) for kind, name, what, *_ in items)
+        return serial_tasks(func, items, **kwargs)
+
+    ctx.map_tasks, ctx.task_slots = recording, 2
+    res = draw_figures(ctx, ["fig7", "validate_fit"], tmp_path / "parts", formats=("png",))
+    n_track, n_val = len(ctx.result("tracking").runs), len(ctx.result_named("validation").runs)
+    assert n_track >= 1 and n_val == 2 and not res.problems
+    assert jobs == ([("part", "fig7", "dataset")] + [("part", "fig7", i) for i in range(n_track)]
+                    + [("part", "validate_fit", i) for i in range(n_val)]
+                    + [("part", "validate_fit", "summary")])
+    results = results_for_figures(ctx)
+    for name in ("fig7", "validate_fit"):
+        whole = FIGURES[name].draw(results, tmp_path / "whole", formats=("png",))
+        assert [p.name for p in res.paths[name]] == [p.name for p in whole]
+        for a, b in zip(res.paths[name], whole, strict=True):
+            assert a.read_bytes() == b.read_bytes(), a.name

@@ -28,7 +28,7 @@ from ._style import (
 )
 from .registry import Figure, register_figure
 
-__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", "draw",
+__all__ = ["plot_fig7", "plot_fig7_run", "draw_flow_time", "draw_flow_scatter", "draw", "parts",
            "scatter_runs"]
 
 _K = 1e-3  # axes in 10^3 mm^3/s, as the paper
@@ -179,13 +179,25 @@ def plot_fig7(tracking, out_dir: str | Path, *, stem: str = "fig7", per_run: boo
     return paths
 
 
+def parts(results: Mapping[str, Any]) -> list:
+    """The figure's independent parts: the data set's ("dataset"), then each
+    run's (its index in the tracking's runs)."""
+    return ["dataset"] + list(range(len(results["tracking"].runs)))
+
+
 def draw(results: Mapping[str, Any], folder: Path, *,
-         formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+         formats: Sequence[str] = DEFAULT_FORMATS, part=None) -> list[Path]:
     """Registry entry: Fig. 7 of ``results["tracking"]``, the data set
-    (``folder/fig7.<format>``) and each run (``folder/fig7_<run_id>.<format>``)."""
-    return plot_fig7(results["tracking"], folder, formats=formats)
+    (``folder/fig7.<format>``) and each run (``folder/fig7_<run_id>.<format>``);
+    ``part`` (:func:`parts`): only the data set's or only that run's."""
+    tracking = results["tracking"]
+    if part is None:
+        return plot_fig7(tracking, folder, formats=formats)
+    if part == "dataset":
+        return plot_fig7(tracking, folder, formats=formats, per_run=False)
+    return plot_fig7_run(tracking, tracking.runs[int(part)], folder, formats=formats)
 
 
 register_figure(Figure(
-    name="fig7", number=7, needs=("tracking",), draw=draw, order=30,
+    name="fig7", number=7, needs=("tracking",), draw=draw, parts=parts, order=30,
     title="Fig. 7: flow tracking, target vs actual flow (delay-shifted), all runs and per run"))

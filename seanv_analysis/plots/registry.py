@@ -8,6 +8,9 @@ drawing function that writes its files and returns their paths:
   where ``results`` maps each of its ``needs`` to a result of the stages by
   name (the catalogue's ``RESULTS``, :mod:`seanv_analysis.stages.catalogue`:
   ``seanv-analyze run --list-stages`` lists them with their types);
+  a data-set figure with independent files (one per run beside a summary)
+  may also declare ``parts(results) -> [part, ...]``, its ``draw`` then
+  taking ``part=`` to write one part (each part is then a task of its own);
 - a per-run figure (``per_run=True``, ``needs=("runs",)``) has
   ``draw_run(run, folder, *, formats, rig) -> [paths]``, called once per run
   of kind ``run_kind`` (the batch runner runs these as parallel, cached
@@ -26,7 +29,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 from ..io.names import safe_name
 
@@ -71,6 +74,12 @@ class Figure:
         command draws the figures its stage's results feed and these
     order : where the report shows it (lower first; equal orders in the
         order registered)
+    parts : data-set figures whose files are independent of each other (one
+        per run beside a summary): ``parts(results) -> [part, ...]`` (small,
+        picklable keys); ``draw(results, folder, *, formats, part=key)`` then
+        writes one part's files, and without ``part`` all of them. The
+        figures stage draws each part as a task of its own, side by side on
+        the workers (None: the figure is one task)
     """
 
     name: str
@@ -83,6 +92,7 @@ class Figure:
     run_kind: str | None = None
     shown_with: tuple[str, ...] = ()
     order: float = float("inf")
+    parts: Callable[[Mapping[str, Any]], Sequence[Any]] | None = None
 
     def __post_init__(self) -> None:
         where = f"figure {self.name!r}"
@@ -104,10 +114,14 @@ class Figure:
             if needs != ("runs",) or not self.run_kind:
                 raise ValueError(f"{where}: a per-run figure needs ('runs',) and a run_kind "
                                  "such as 'position_control'")
+            if self.parts is not None:
+                raise ValueError(f"{where}: a per-run figure has no parts (each run is one)")
         else:
             if self.draw is None or self.draw_run is not None:
                 raise ValueError(f"{where}: a data-set figure has draw and no draw_run "
                                  "(set per_run=True for a figure drawn once per run)")
+            if self.parts is not None and not callable(self.parts):
+                raise ValueError(f"{where}: parts must be a function of the results")
             if "runs" in needs or self.run_kind is not None:
                 raise ValueError(f"{where}: needs 'runs' and run_kind belong to per-run figures "
                                  "(per_run=True)")

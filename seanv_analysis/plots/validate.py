@@ -25,7 +25,7 @@ from ._style import (
 )
 from .registry import Figure, register_figure
 
-__all__ = ["plot_overlay", "plot_overlay_run", "draw"]
+__all__ = ["plot_overlay", "plot_overlay_run", "draw", "parts"]
 
 
 def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = None,
@@ -80,12 +80,13 @@ def plot_overlay_run(run_validation, out_dir: str | Path, *, stem: str | None = 
 
 
 def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True,
-                 formats: str | Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
-    """Overlay figure per run, plus (``summary``) a bar chart of the
+                 formats: str | Sequence[str] = DEFAULT_FORMATS, runs: bool = True
+                 ) -> list[Path]:
+    """Overlay figure per run (``runs``), plus (``summary``) a bar chart of the
     position/flow/cam fit [%] per run with the flag threshold
     (``validate_fit.<format>``), in ``formats`` (default PNG and SVG)."""
     paths: list[Path] = []
-    for r in validation.runs:
+    for r in (validation.runs if runs else ()):
         paths += plot_overlay_run(r, out_dir, formats=formats)
     if summary and not validation.table.empty:
         tab = validation.table
@@ -119,13 +120,27 @@ def plot_overlay(validation, out_dir: str | Path, *, summary: bool = True,
     return paths
 
 
-def draw(results, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS) -> list[Path]:
+def parts(results) -> list:
+    """The figure's independent parts: each run's overlay (its index), then
+    the fit % chart ("summary")."""
+    v = results["validation"]
+    return list(range(len(v.runs))) + ([] if v.table.empty else ["summary"])
+
+
+def draw(results, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS,
+         part=None) -> list[Path]:
     """Closed-loop validation: the fit % per run (``validate_fit.<format>``)
-    and measured vs simulated overlays, one per run (:func:`plot_overlay`)."""
-    return plot_overlay(results["validation"], folder, formats=check_formats(formats))
+    and measured vs simulated overlays, one per run (:func:`plot_overlay`);
+    ``part`` (:func:`parts`): only that run's overlay or only the chart."""
+    v, formats = results["validation"], check_formats(formats)
+    if part is None:
+        return plot_overlay(v, folder, formats=formats)
+    if part == "summary":
+        return plot_overlay(v, folder, formats=formats, runs=False)
+    return plot_overlay_run(v.runs[int(part)], folder, formats=formats)
 
 
 register_figure(Figure(
-    name="validate_fit", needs=("validation",), draw=draw, order=40,
+    name="validate_fit", needs=("validation",), draw=draw, parts=parts, order=40,
     title="Closed-loop validation: measured vs simulated position control, fit % per run "
           "and overlays"))

@@ -242,7 +242,11 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
             drawn[fig.name] = reused
             continue
         fig_keys[fig.name] = key
-        jobs.append(("dataset", fig.name, inputs, str(folder)))
+        split = _parts_of(fig, inputs)
+        if split is None:
+            jobs.append(("dataset", fig.name, inputs, str(folder)))
+        else:           # independent parts of one figure: a task each, side by side
+            jobs += [("part", fig.name, (inputs, part), str(folder)) for part in split]
     map_tasks = getattr(ctx, "map_tasks", serial_tasks)
     tasks = _split_formats(jobs, tuple(formats), getattr(ctx, "task_slots", 1))
     outcomes = map_tasks(draw_figure_task, tasks, kwargs={"formats": tuple(formats),
@@ -289,6 +293,20 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
     return FiguresResult(paths, tuple(problems), keys.save())
 
 
+def _parts_of(fig, inputs: Mapping[str, Any]) -> list | None:
+    """The parts a data-set figure is drawn in (:attr:`Figure.parts
+    <seanv_analysis.plots.registry.Figure.parts>`), or None: one task (no
+    parts, a single part, or parts that cannot be listed: the figure then
+    draws, or fails, whole)."""
+    if fig.parts is None:
+        return None
+    try:
+        split = list(fig.parts(inputs))
+    except Exception:
+        return None
+    return split if len(split) > 1 else None
+
+
 def _split_formats(jobs: list[tuple], formats: tuple[str, ...], slots: int) -> list[tuple]:
     """The figure tasks: each job with the formats it writes. With fewer jobs
     than ``slots`` (tasks running at once), each data-set figure becomes one
@@ -303,8 +321,10 @@ def _split_formats(jobs: list[tuple], formats: tuple[str, ...], slots: int) -> l
 def draw_figure_task(job: tuple, *, formats: tuple[str, ...], rig: Any) -> dict[str, Any]:
     """Task of :func:`draw_figures` (module level: it runs in worker
     processes): ``job`` is ("dataset", figure name, {result name: result},
-    folder[, formats]) or ("run", figure name, run folder, folder[,
-    formats]); the job's formats, where given, replace ``formats``. Returns
+    folder[, formats]), ("part", figure name, ({result name: result}, part),
+    folder[, formats]) (one part of a figure drawn in parts) or ("run",
+    figure name, run folder, folder[, formats]); the job's formats, where
+    given, replace ``formats``. Returns
     ``{"paths": [...]}``, ``{"output_error": line}`` (a file that cannot be
     written: the run ends) or ``{"problem": line}`` (the figure cannot be
     drawn: a note); it never raises."""
@@ -319,6 +339,8 @@ def draw_figure_task(job: tuple, *, formats: tuple[str, ...], rig: Any) -> dict[
 
             paths = FIGURES[name].draw_run(read_run(what, rig=rig), Path(folder),
                                            formats=formats, rig=rig)
+        elif kind == "part":
+            paths = FIGURES[name].draw(what[0], Path(folder), formats=formats, part=what[1])
         else:
             paths = FIGURES[name].draw(what, Path(folder), formats=formats)
     except OutputError as exc:
