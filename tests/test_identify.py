@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 from dataclasses import replace
+from functools import partial
 
 import numpy as np
 import pytest
@@ -427,7 +428,7 @@ def test_identify_parts_as_tasks_on_worker_processes_give_the_same_numbers(forei
     calls = []
     with make_executor(workers=2) as ex:
         def mapper(func, items, **k):
-            calls.append((func.__name__, len(items)))
+            calls.append((k["kwargs"]["task"].__name__, len(items)))
             return ex.tasks(func, items, quiet=True, **k)
         tasks = identify_rig(ds.summary, ctx.rig, map_tasks=mapper, **kw)
     # the servo's fit, and the refit with both sides' y_c interval edges
@@ -435,3 +436,32 @@ def test_identify_parts_as_tasks_on_worker_processes_give_the_same_numbers(forei
     assert dumps(tasks.to_json_dict()) == dumps(here.to_json_dict())
     assert {c.key for c in tasks.identified()} >= {"valve.supply.needle_y_c_mm",
                                                     "servo.dead_time_s"}
+
+
+def _warning_task(x, *, k):
+    import warnings
+
+    if x < 0:
+        raise ValueError(f"negative {x}")
+    warnings.warn(f"task {x}", RuntimeWarning, stacklevel=2)
+    return x * k
+
+
+def test_a_task_on_a_worker_gives_its_warnings_here_and_its_error_as_here():
+    """identify's tasks on worker processes: each task's warnings are given
+    again in this process (a command and the batch record them with the
+    rest), and a task that failed there is run here, raising its own error."""
+    import warnings
+
+    from seanv_analysis.batch import make_executor
+    from seanv_analysis.identify.engine import _on_tasks
+
+    with make_executor(workers=2) as ex:
+        mapper = partial(ex.tasks, quiet=True)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert _on_tasks(mapper, _warning_task, [1, 2], {"k": 3}, "test") == [3, 6]
+        assert sorted(str(w.message) for w in caught) == ["task 1", "task 2"]
+        assert {w.category for w in caught} == {RuntimeWarning}
+        with pytest.raises(ValueError, match="negative -1"):
+            _on_tasks(mapper, _warning_task, [1, -1], {"k": 3}, "test")

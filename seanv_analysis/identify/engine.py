@@ -28,6 +28,7 @@ report both, with the rig file's constants and with the identified ones.
 from __future__ import annotations
 
 import math
+import warnings
 from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Any, Callable, Sequence
 
@@ -117,12 +118,32 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
 def _on_tasks(map_tasks: TaskMapper | None, func: Callable, items: Sequence[Any],
               kwargs: dict[str, Any], desc: str) -> list:
     """``[func(x, **kwargs) for x in items]``, as tasks on ``map_tasks``
-    where given (None: here). A task that failed there is run again here, so
-    its error is the exception this process raises, as without tasks."""
+    where given (None: here). The warnings a task gave are given again here
+    (a command or the batch records them, as those of the work done here).
+    A task that failed there is run again here, so its error is the
+    exception this process raises, as without tasks."""
     if map_tasks is None:
         return [func(x, **kwargs) for x in items]
-    done = map_tasks(func, list(items), kwargs=kwargs, desc=desc)
-    return [v if ok else func(x, **kwargs) for x, (ok, v) in zip(items, done)]
+    done = map_tasks(_warned, list(items), kwargs={"task": func, **kwargs}, desc=desc)
+    out = []
+    for x, (ok, v) in zip(items, done):
+        if not ok:
+            out.append(func(x, **kwargs))
+            continue
+        value, caught = v
+        for category, message in caught:
+            warnings.warn(message, category, stacklevel=2)
+        out.append(value)
+    return out
+
+
+def _warned(item: Any, *, task: Callable, **kwargs) -> tuple[Any, list[tuple[type, str]]]:
+    """Task wrapper: (``task(item, **kwargs)``, the warnings it gave as
+    (category, message))."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        value = task(item, **kwargs)
+    return value, [(w.category, str(w.message)) for w in caught]
 
 
 def _servo_task(data: tuple[list, list], *, rig) -> tuple:
