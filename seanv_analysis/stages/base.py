@@ -45,7 +45,7 @@ from ..io.validate import one_line
 from ..models import ValveModel
 
 __all__ = ["Context", "FailedRun", "RunOutcome", "RunMapper", "TaskMapper", "serial_map",
-           "serial_tasks", "one_line",
+           "serial_tasks", "tasks_beside", "one_line",
            "with_path", "find_run_dirs", "one_blas_thread", "Result", "stage_info"]
 
 
@@ -147,6 +147,14 @@ def serial_tasks(func: Callable[..., Any], items: Sequence[Any], *,
         except SeanvError as exc:
             out.append((False, one_line(exc)))
     return out
+
+
+def tasks_beside(ctx) -> TaskMapper | None:
+    """The context's task mapper where its tasks run beside this process (more
+    than one slot: the executor's workers), for a data-set stage to send its
+    independent pieces of work to; None: they run here, as the stage's own
+    code."""
+    return ctx.map_tasks if getattr(ctx, "task_slots", 1) > 1 else None
 
 
 def one_blas_thread():

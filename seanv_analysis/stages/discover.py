@@ -22,7 +22,7 @@ from typing import Any, Mapping
 from ..errors import SeanvError
 from ..jsonable import JsonResult
 from ..report import ReportSection, sections
-from .base import Context, FailedRun, Result, one_line
+from .base import Context, FailedRun, Result, one_line, tasks_beside
 from .dataset import position_runs
 from .pipeline import MAX_SEED, check_count
 from .validate import controller_numbers, position_paths, validate_model
@@ -183,8 +183,7 @@ def _twin_search(ctx: Context, summary, runs, held: dict[str, Any]):
             ident = identify_rig(summary, start, position_runs=runs,
                                  flow_runs=servo_flow_runs(ctx, runs), parts=TWIN_PARTS,
                                  n_boot=0, seed=seed, log=ctx.log,
-                                 map_tasks=ctx.map_tasks if getattr(ctx, "task_slots", 1) > 1
-                                 else None)
+                                 map_tasks=tasks_beside(ctx))
             if not any(c.key.startswith("servo.") for c in ident.identified()):
                 raise NoTwin("the servo cannot be identified from these logs (no cam "
                              "feedback), so neither can a twin to test dynamic effects on")

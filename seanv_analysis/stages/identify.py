@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from ..report import ReportSection, sections
-from .base import Context, Result
+from .base import Context, Result, tasks_beside
 from .dataset import position_runs
 from .pipeline import MAX_N_BOOT, MAX_SEED, check_count
 
@@ -68,7 +68,7 @@ def run(ctx: Context, options: Mapping[str, Any]):
     return identify_rig(ds.summary, ctx.rig, position_runs=pos, flow_runs=servo_flow_runs(ctx, pos),
                         parts=tuple(opts["parts"]), n_boot=int(opts["n_boot"]),
                         seed=int(opts["seed"]), log=ctx.log,
-                        map_tasks=ctx.map_tasks if getattr(ctx, "task_slots", 1) > 1 else None)
+                        map_tasks=tasks_beside(ctx))
 
 
 def servo_flow_runs(ctx: Context, pos) -> list:
