@@ -151,9 +151,11 @@ def figures_reading(stage: str) -> list[str]:
 def task_modules(pipe: Any) -> tuple[str, ...]:
     """The modules in which the stages of pipeline ``pipe`` run tasks on the
     executor's workers (a stage's ``TASK_MODULES``, e.g. identify's fits), in
-    stage order, each once: what a worker imports while it waits
-    (:func:`seanv_analysis.stages.figures.warm_figure_worker`), so a task
-    does not pay the import (identify's: 1.5 s)."""
+    stage order, each once: imported here before a forked pool starts
+    (:meth:`seanv_analysis.batch.executor.Executor.preload`), so the workers
+    start with them and a task does not pay the import (identify's: 0.7 s);
+    also imported by :func:`seanv_analysis.stages.figures.warm_figure_worker`
+    where a pipeline draws figures (for workers that were not forked)."""
     mods = [m for s in pipe.stages if s.name in STAGES
             for m in getattr(STAGES[s.name], "TASK_MODULES", ())]
     return tuple(dict.fromkeys(mods))
