@@ -46,7 +46,7 @@ from ..io.hashing import code_version, file_sha256
 from ..io.readback import load_json_back, read_back
 from .codec import CodecError, decode, encode
 
-__all__ = ["RunCache", "run_key", "code_version", "folder_listing", "CACHE_DIRNAME"]
+__all__ = ["RunCache", "run_key", "code_version", "folder_listing", "own_folder", "CACHE_DIRNAME"]
 
 CACHE_DIRNAME = ".cache"
 _INDEX_SCHEMA = "seanv-batch-index/1"
@@ -59,7 +59,7 @@ _RUN_RECORD = {"listing": [str], "files": {str: lambda v: (
     and isinstance(v[2], str))}}
 
 
-def _own_folder(folder: Path) -> None:
+def own_folder(folder: Path) -> None:
     """Make ``folder`` (a folder of the cache) or check the one there: a
     link or anything but a folder is refused, never followed.
 
@@ -158,7 +158,7 @@ class RunCache:
         self.enabled = enabled
         self.entries = self.root / "runs"
         for folder in (self.root, self.entries):
-            _own_folder(folder)
+            own_folder(folder)
         #: one line per entry found malformed (removed, recomputed)
         self.rejected: list[str] = []
         self.removed_partial = self.clean_partial()

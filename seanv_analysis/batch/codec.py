@@ -1,18 +1,22 @@
-"""Plain-data encoding of cached per-run results (no pickle, no code).
+"""Plain-data encoding of cached results (no pickle, no code).
 
-A per-run result is a tree of dicts, lists, tuples, numbers, strings,
-numpy arrays, pandas DataFrames/Series/Timestamps, paths and the few
-dataclasses named in :data:`DATACLASSES`. :func:`encode` turns it into
-JSON-ready data (arrays as their raw bytes in base64, bit-exact);
-:func:`decode` builds it again. Decoding only ever creates those types: a
-tag it does not know, a dataclass not on the list, an object dtype, is a
+A cached result (a run's, or a data-set stage's: :mod:`.stage_memo`) is a
+tree of dicts, lists, tuples, numbers, strings, numpy arrays and scalars,
+pandas DataFrames/Series/Timestamps, paths and the dataclasses of the
+package's result modules (:data:`DATACLASS_MODULES`). :func:`encode` turns
+it into JSON-ready data (arrays and numpy scalars as their raw bytes in
+base64, bit-exact: a value decoded has the content digest of the one
+encoded, :func:`~seanv_analysis.io.hashing.content_sha256`); :func:`decode`
+builds it again. Decoding only ever creates those types: a tag it does not
+know, a dataclass of another module, an object dtype, is a
 :class:`CodecError` (the cache then recomputes), so whatever a file holds,
-reading it runs no code.
+reading it runs no code but a listed dataclass's own checks.
 """
 from __future__ import annotations
 
 import base64
 import dataclasses
+import importlib
 import math
 from pathlib import Path, PurePath
 from typing import Any
@@ -20,7 +24,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-__all__ = ["encode", "decode", "CodecError", "DATACLASSES"]
+__all__ = ["encode", "decode", "CodecError", "DATACLASS_MODULES"]
 
 
 class CodecError(ValueError):
@@ -28,28 +32,52 @@ class CodecError(ValueError):
     what :func:`encode` writes."""
 
 
-def _dataclasses() -> dict[str, type]:
-    from ..analysis.validate import RunValidation
+#: the modules whose dataclasses a cached result may hold (explicit
+#: allow-list: the results of the per-run work and of the data-set stages)
+DATACLASS_MODULES = (
+    "seanv_analysis.analysis.validate",
+    "seanv_analysis.config",
+    "seanv_analysis.discover.result",
+    "seanv_analysis.discover.static",
+    "seanv_analysis.fit.flowfit",
+    "seanv_analysis.fit._leakage",
+    "seanv_analysis.identify.result",
+    "seanv_analysis.models.effects",
+    "seanv_analysis.models.sealing",
+    "seanv_analysis.models.valve",
+    "seanv_analysis.stages.base",
+    "seanv_analysis.stages.discover",
+    "seanv_analysis.stages.validate",
+)
 
-    return {"RunValidation": RunValidation}
 
+def _dataclass_of(module: Any, name: Any) -> type:
+    """The dataclass ``module.name`` when the module is on the allow-list
+    (imported then, not before: a worker decoding a run's entry needs one)."""
+    if module not in DATACLASS_MODULES or not isinstance(name, str) or not name.isidentifier():
+        raise CodecError(f"dataclass {module}.{name} is not on the allow-list")
+    cls = getattr(importlib.import_module(module), name, None)
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls) and cls.__module__ == module):
+        raise CodecError(f"{module}.{name} is not a dataclass of that module")
+    return cls
 
-#: the dataclasses a cached result may hold, by name (explicit allow-list)
-DATACLASSES = ("RunValidation",)
 
 _NUMERIC_KINDS = "biufcmM"   # bool, int, uint, float, complex, timedelta, datetime
 
 
 def encode(value: Any) -> Any:
     """JSON-ready form of ``value`` (see the module docstring)."""
+    if isinstance(value, np.generic):   # before float: np.float64 is one
+        if value.dtype.kind not in _NUMERIC_KINDS:
+            return encode(value.item())
+        return {"t": "scalar", "dtype": value.dtype.str,
+                "b64": base64.b64encode(value.tobytes()).decode("ascii")}
     if value is None or isinstance(value, (bool, str)):
         return value
     if isinstance(value, int) and not isinstance(value, np.integer):
         return value
     if isinstance(value, float):
         return value if math.isfinite(value) else {"t": "float", "v": repr(value)}
-    if isinstance(value, np.generic):
-        return encode(value.item())
     if isinstance(value, dict):
         if all(isinstance(k, str) for k in value):
             return {"t": "dict", "v": {k: encode(v) for k, v in value.items()}}
@@ -69,15 +97,19 @@ def encode(value: Any) -> Any:
         return {"t": "timestamp", "v": value.isoformat()}
     if isinstance(value, PurePath):
         return {"t": "path", "v": str(value)}
-    if dataclasses.is_dataclass(value) and type(value).__name__ in DATACLASSES:
-        return {"t": "dataclass", "name": type(value).__name__,
+    cls = type(value)
+    if dataclasses.is_dataclass(value) and cls.__module__ in DATACLASS_MODULES:
+        return {"t": "dataclass", "module": cls.__module__, "name": cls.__qualname__,
                 "v": {f.name: encode(getattr(value, f.name)) for f in dataclasses.fields(value)}}
     raise CodecError(f"cannot store a {type(value).__name__} as plain data")
 
 
 def _encode_array(a: np.ndarray) -> dict[str, Any]:
+    if a.dtype.kind == "U":     # text of a fixed width: the same dtype back
+        return {"t": "strarray", "dtype": a.dtype.str, "shape": list(a.shape),
+                "v": a.ravel().tolist()}
     if a.dtype.kind not in _NUMERIC_KINDS:
-        if a.dtype.kind in "OUS":
+        if a.dtype.kind in "OS":
             return {"t": "objarray", "v": [encode(v) for v in a.ravel().tolist()],
                     "shape": list(a.shape)}
         raise CodecError(f"cannot store an array of dtype {a.dtype}")
@@ -128,6 +160,13 @@ def _decode(doc: Any) -> Any:
         return items if tag == "list" else tuple(items)
     if tag == "ndarray":
         return _decode_array(doc)
+    if tag == "strarray":
+        dtype = np.dtype(str(doc["dtype"]))
+        if dtype.kind != "U" or not all(isinstance(v, str) for v in _sequence(doc["v"])):
+            raise CodecError("text array: not text")
+        return np.array(doc["v"], dtype=dtype).reshape([int(n) for n in _sequence(doc["shape"])])
+    if tag == "scalar":
+        return _decode_array({**doc, "shape": []})[()]
     if tag == "objarray":
         return np.array([_decode(v) for v in doc["v"]], dtype=object).reshape(doc["shape"])
     if tag == "frame":
@@ -147,14 +186,16 @@ def _decode(doc: Any) -> Any:
     if tag == "path":
         return Path(str(doc["v"]))
     if tag == "dataclass":
-        cls = _dataclasses().get(doc.get("name")) if doc.get("name") in DATACLASSES else None
-        if cls is None:
-            raise CodecError(f"dataclass {doc.get('name')!r} is not on the allow-list")
-        fields = {f.name for f in dataclasses.fields(cls)}
+        cls = _dataclass_of(doc.get("module"), doc.get("name"))
+        fields = {f.name: f for f in dataclasses.fields(cls)}
         values = {k: _decode(v) for k, v in _mapping(doc["v"]).items()}
-        if set(values) != fields:
+        if set(values) != set(fields):
             raise CodecError(f"{cls.__name__}: fields {sorted(values)} != {sorted(fields)}")
-        return cls(**values)
+        obj = cls(**{k: v for k, v in values.items() if fields[k].init})
+        for k, v in values.items():   # a field its constructor does not take
+            if not fields[k].init:
+                object.__setattr__(obj, k, v)
+        return obj
     raise CodecError(f"unknown tag {tag!r}")
 
 

@@ -13,6 +13,7 @@ otherwise (or with ``force``) it runs.
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 from importlib import metadata
@@ -24,7 +25,7 @@ from ..io.hashing import file_sha256
 from ..io.readback import load_json_back, regular_file_inside
 from .cache import code_version, folder_listing
 
-__all__ = ["pipeline_key", "recorded_run", "record_run", "forget_run", "MEMO_NAME"]
+__all__ = ["pipeline_key", "recorded_run", "record_run", "forget_run", "library_versions", "MEMO_NAME"]
 
 MEMO_NAME = "pipeline.json"
 _SCHEMA = "seanv-pipeline-memo/1"
@@ -32,14 +33,20 @@ _SCHEMA = "seanv-pipeline-memo/1"
 _LIBRARIES = ("numpy", "scipy", "pandas", "pyarrow", "numba", "matplotlib")
 
 
-def _versions() -> dict[str, str]:
+@functools.lru_cache(maxsize=1)
+def _library_versions() -> tuple[tuple[str, str], ...]:
     out = {}
     for name in _LIBRARIES:
         try:
             out[name] = metadata.version(name)
         except metadata.PackageNotFoundError:
             out[name] = ""
-    return out
+    return tuple(out.items())
+
+
+def library_versions() -> dict[str, str]:
+    """{library: version} of the numerical libraries (:data:`_LIBRARIES`)."""
+    return dict(_library_versions())
 
 
 def pipeline_key(pipeline: dict, rig: dict, data: Iterable[Path], run_dirs: Iterable[Path],
@@ -49,7 +56,7 @@ def pipeline_key(pipeline: dict, rig: dict, data: Iterable[Path], run_dirs: Iter
     for d in sorted(Path(p).resolve() for p in run_dirs):
         files = {name: file_sha256(d / name) for name in sorted(folder_listing(d))}
         runs.append([str(d), files])
-    doc = {"pipeline": pipeline, "rig": rig, "code": code_version(), "libraries": _versions(),
+    doc = {"pipeline": pipeline, "rig": rig, "code": code_version(), "libraries": library_versions(),
            "data": [str(Path(p).resolve()) for p in data], "runs": runs, "extra": extra}
     return hashlib.sha256(json.dumps(doc, sort_keys=True, default=str).encode()).hexdigest()
 

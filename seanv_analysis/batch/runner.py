@@ -33,6 +33,7 @@ from ..stages.pipeline import Pipeline, load_pipeline
 from .cache import CACHE_DIRNAME, RunCache, run_key
 from .executor import Executor, TaskResult, make_executor, one_line_error
 from .memo import forget_run, pipeline_key, record_run, recorded_run
+from .stage_memo import StageMemo
 from .tasks import cached_run_task
 
 __all__ = ["PipelineResult", "FailedRun", "run_pipeline", "CachedMapper", "owned_outputs"]
@@ -447,15 +448,21 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             warm = None
             if any(has_role(s.name, "draws_figures") for s in pipe.stages):
                 warm = partial(ex.warm, partial(warm_figure_worker, worker_modules))
+            stages = StageMemo(out / CACHE_DIRNAME, enabled=not force)
             with one_blas_thread():     # the data-set stages, here (the workers have one)
-                _run_stages(pipe, ctx, result, after_ingest=warm)
+                _run_stages(pipe, ctx, result, after_ingest=warm, run=stages.run)
             result.computed, result.cached = mapper.computed, mapper.cached
             cache.save_index(force=True)
-            if cache.rejected:
-                n = len(cache.rejected)
+            rejected = cache.rejected + stages.rejected
+            if rejected:
+                n = len(rejected)
                 result.stage_notes["cache"] = (
                     f"{n} malformed cache {'entry' if n == 1 else 'entries'} removed and "
-                    f"recomputed (first: {cache.rejected[0]})")
+                    f"recomputed (first: {rejected[0]})")
+            if stages.reused:
+                result.stage_notes["stage_cache"] = (
+                    f"inputs unchanged since the last run: {', '.join(stages.reused)} "
+                    f"reused from {out / CACHE_DIRNAME / 'stages'}")
         result.warnings += [f"{w.category.__name__}: {w.message}" for w in caught
                             if not issubclass(w.category, (DeprecationWarning, ResourceWarning))]
     result.model = ctx.model
@@ -471,12 +478,14 @@ def _as_list(data) -> list:
 
 
 def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, *,
-                after_ingest: Callable[[], None] | None = None) -> None:
+                after_ingest: Callable[[], None] | None = None,
+                run: Callable[..., Any] | None = None) -> None:
     """Each stage of ``pipe`` in order (:func:`~seanv_analysis.stages.execute`),
     timed and logged; a stage that fails on the data is recorded and the
     others go on; each value is recorded and written. ``after_ingest``:
     called once the runs are read (the workers are idle from then on while
-    the data-set stages run here: they load matplotlib for the figures)."""
+    the data-set stages run here: they load matplotlib for the figures);
+    ``run``: how a stage is run (:meth:`.stage_memo.StageMemo.run`)."""
     started: dict[str, float] = {}
 
     def start(name: str) -> None:   # the stage's lines: stages.execute
@@ -510,7 +519,7 @@ def _run_stages(pipe: Pipeline, ctx: Context, result: PipelineResult, *,
                 result.report_path = result.outputs[-1]
         finish(name)
 
-    execute(pipe, ctx, start=start, on_error=on_error, done=done)
+    execute(pipe, ctx, start=start, on_error=on_error, done=done, run=run)
 
 
 def _retire_other_stages(pipe: Pipeline, out: Path) -> None:

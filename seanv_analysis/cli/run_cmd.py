@@ -27,8 +27,8 @@ __all__ = ["run_cmd", "failures_to_stderr"]
                    "DASK_SCHEDULER_ADDRESS environment variable, if set (and --workers not given). "
                    "The cluster is never shut down by this command.")
 @click.option("--force", is_flag=True,
-              help="Recompute everything instead of reusing the last run or the per-run "
-                   "results in <out>/.cache.")
+              help="Recompute everything instead of reusing the last run, the per-run "
+                   "results or the data-set stages' in <out>/.cache.")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change. Default: data_schema/rig/default.toml.")
 @click.option("--json", "as_json", is_flag=True,
@@ -48,11 +48,15 @@ def run_cmd(pipeline: str | None, data: Path | None, out_dir: Path | None, worke
     DATA the built-in simulated paper data sets are used.
 
     Per-run work (reading, summarising, Fig. 6, closed-loop validation) runs
-    in parallel; data-set stages (flow fit, tracking, discovery) run here.
+    in parallel; data-set stages (flow fit, identify, tracking, discovery)
+    run here, their independent fits and the figures on the workers.
     Results are identical whichever executor ran them. Per-run results are
     cached in <out>/.cache keyed by the input files' SHA-256, the stage
     options, the rig config and the package version: a killed run picks up
-    where it stopped. When nothing changed since the last successful run into
+    where it stopped. A data-set stage whose inputs did not change (the
+    per-run summary, the runs it reads itself, the stages before it) is
+    reused too: an edit that leaves a flow step's summary as it was redoes
+    only that run. When nothing changed since the last successful run into
     --out (the inputs' content, the pipeline, the rig, the code, the library
     versions) and its outputs are untouched, the run reuses them and writes
     nothing (about 1 s; --force recomputes).

@@ -19,6 +19,10 @@ catalogue (:mod:`.catalogue`) finds it:
 ``write(result, folder) -> list[Path]``   its files, each written atomically
 ``expected(ds) -> bool``   optional: whether the data set would give its result
                  (a figure missing it is then worth a note)
+``raw_inputs(ctx, options) -> [run folder]``   optional, a data-set stage: the runs
+                 whose files it reads itself, beyond the per-run summary; the
+                 batch runner then reuses its last value while its inputs are
+                 unchanged (:mod:`seanv_analysis.batch.stage_memo`)
 ``ROLE``         optional, what the batch runner treats apart (:data:`.catalogue.ROLES`):
                  "reads_runs" (a data error in it ends the pipeline: there is no
                  data set; the workers are idle after it), "draws_figures" (the

@@ -244,6 +244,18 @@ def geometry_readings(geometry: Mapping[str, Any], constants) -> dict[str, Any]:
     return out
 
 
+def raw_inputs(ctx: Context, options: Mapping[str, Any]) -> list[str]:
+    """The run folders this stage reads itself, beyond the per-run summary
+    (the data-set stage cache's key, :mod:`seanv_analysis.batch.stage_memo`):
+    the position-control runs, and without an ``identify`` stage those its
+    own twin is identified from (:data:`TWIN_PARTS`)."""
+    from . import identify
+
+    if ctx.result("identify") is not None:
+        return [str(p) for p in position_paths(ctx)]
+    return identify.raw_inputs(ctx, {"parts": list(TWIN_PARTS)})
+
+
 def write(result: DiscoverResult, folder: Path) -> list[Path]:
     """discover.json, model_augmented.json, discover.txt (a paragraph for a
     lab note); the closed-loop check's validation with the augmented model

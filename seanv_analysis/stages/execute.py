@@ -14,7 +14,8 @@ __all__ = ["execute", "run_stages"]
 def execute(pipe, ctx: Context, *,
             on_error: Callable[[str, BaseException], bool] | None = None,
             done: Callable[[str, Any], None] | None = None,
-            start: Callable[[str], None] | None = None) -> Context:
+            start: Callable[[str], None] | None = None,
+            run: Callable[[Any, Context, Mapping[str, Any]], Any] | None = None) -> Context:
     """Run the stages of ``pipe`` (a :class:`~seanv_analysis.stages.pipeline.Pipeline`)
     in order on ``ctx``; each value that is not None is added to the context.
 
@@ -31,6 +32,9 @@ def execute(pipe, ctx: Context, *,
     done : called with a stage's name and its value (None: the stage had
         nothing to do, e.g. tracking without position-control runs) after
         it is added
+    run : ``run(stage module, ctx, options) -> value``, how a stage is run
+        (the batch runner's: its stored value when its inputs are unchanged,
+        :class:`seanv_analysis.batch.stage_memo.StageMemo`); None: ``module.run``
 
     Raises
     ------
@@ -48,14 +52,15 @@ def execute(pipe, ctx: Context, *,
             bar.set_postfix_str(stage.name, refresh=False)
             bar.refresh()
             _run_one(pipe, stage, ctx, STAGES[stage.name], tag,
-                     start=start, on_error=on_error, done=done)
+                     start=start, on_error=on_error, done=done, run=run)
             bar.update()
     finally:
         bar.close()
     return ctx
 
 
-def _run_one(pipe, stage, ctx: Context, mod, tag: str, *, start, on_error, done) -> None:
+def _run_one(pipe, stage, ctx: Context, mod, tag: str, *, start, on_error, done,
+             run=None) -> None:
     """One stage of :func:`execute`: its line before and after (``ctx.log``,
     with the time it took), its value added to the context."""
     import time
@@ -74,7 +79,7 @@ def _run_one(pipe, stage, ctx: Context, mod, tag: str, *, start, on_error, done)
         if missing:   # in the pipeline, but it failed or gave nothing
             raise DataError(f"nothing to work on: stage {', '.join(map(repr, missing))} "
                             "gave no result")
-        value = mod.run(ctx, stage.options)
+        value = mod.run(ctx, stage.options) if run is None else run(mod, ctx, stage.options)
     except Exception as exc:
         if on_error is None or not on_error(stage.name, exc):
             raise

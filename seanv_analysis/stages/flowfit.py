@@ -78,6 +78,12 @@ def run(ctx: Context, options: Mapping[str, Any]):
                     cam=opts["cam"], n_boot=opts["n_boot"], seed=opts["seed"])
 
 
+def raw_inputs(ctx: Context, options: Mapping[str, Any]) -> list[str]:
+    """None: the flow fit reads the per-run summary only (the data-set stage
+    cache's key, :mod:`seanv_analysis.batch.stage_memo`)."""
+    return []
+
+
 def write(fit, folder: Path) -> list[Path]:
     """``flowfit.json`` (the contract), ``flowfit_details.json``, ``model.json``
     and ``model.toml`` (the valve model, ``--model`` of the other commands),

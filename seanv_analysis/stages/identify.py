@@ -19,7 +19,7 @@ from .dataset import position_runs
 from .pipeline import MAX_N_BOOT, MAX_SEED, check_count
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "DESCRIPTION", "check_option", "run", "write",
-           "rig_toml", "servo_flow_runs"]
+           "rig_toml", "servo_flow_paths", "servo_flow_runs", "raw_inputs"]
 
 NAME = "identify"
 ORDER = 30
@@ -71,17 +71,32 @@ def run(ctx: Context, options: Mapping[str, Any]):
                         map_tasks=tasks_beside(ctx))
 
 
-def servo_flow_runs(ctx: Context, pos) -> list:
-    """The flow-step runs the servo is identified from when no
+def servo_flow_paths(ctx: Context, pos) -> list[str]:
+    """The flow-step run folders the servo is identified from when no
     position-control run ``pos`` has cam feedback (the first 120); else none."""
-    from ..io.reader import read_run
-
     if any("servo" in r.tables and "cam_deg" in r.tables["servo"]
            and r.tables["servo"]["cam_deg"].notna().any() for r in pos):
         return []
-    ds = ctx.result("ingest")
-    paths = ds.kind("flow_step")["path"].tolist()[:120]
-    return [ctx.loaded_runs[p] if p in ctx.loaded_runs else read_run(p, rig=ctx.rig) for p in paths]
+    return ctx.result("ingest").kind("flow_step")["path"].tolist()[:120]
+
+
+def servo_flow_runs(ctx: Context, pos) -> list:
+    """The runs of :func:`servo_flow_paths`, read."""
+    from ..io.reader import read_run
+
+    return [ctx.loaded_runs[p] if p in ctx.loaded_runs else read_run(p, rig=ctx.rig)
+            for p in servo_flow_paths(ctx, pos)]
+
+
+def raw_inputs(ctx: Context, options: Mapping[str, Any]) -> list[str]:
+    """The run folders whose files this stage reads itself, beyond the
+    per-run summary (the data-set stage cache's key,
+    :mod:`seanv_analysis.batch.stage_memo`): the position-control runs, and
+    when the servo is identified and they have no cam feedback, the flow
+    steps it is identified from."""
+    pos = [str(p) for p in ctx.result("ingest").kind("position_control")["path"]]
+    parts = {**OPTIONS, **options}["parts"]
+    return pos + (servo_flow_paths(ctx, position_runs(ctx)) if "servo" in parts else [])
 
 
 def rig_toml(result) -> str:
