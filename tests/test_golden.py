@@ -223,3 +223,18 @@ def test_estimates_of_the_pipeline_name_table_units_and_lie_in_their_intervals(g
         for key, ci in (("z0_mm", "z0_ci95_mm"),
                         ("C_mm3_s_deg2_sqrtMPa", "C_ci95_mm3_s_deg2_sqrtMPa")):
             assert f[ci][0] <= f[key] <= f[ci][1], (side, key)
+
+
+def _no_constant(name: str):
+    raise ValueError(f"{name} is not JSON")
+
+
+def test_every_json_output_is_strict_json(golden_run):
+    """NaN or Infinity in a file is not JSON (jq, a browser, a JSON schema
+    refuse it): every JSON file the paper pipeline writes parses strictly
+    (an unknown number is null)."""
+    _, out = golden_run
+    files = [p for p in out.rglob("*.json") if ".cache" not in p.parts]
+    assert len(files) >= 10
+    for p in files:
+        json.loads(p.read_text(), parse_constant=_no_constant)

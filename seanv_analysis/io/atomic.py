@@ -269,7 +269,13 @@ def write_text_atomic(path: str | Path, text: str) -> Path:
 
 
 def write_json_atomic(path: str | Path, obj: Any, *, indent: int = 2) -> Path:
-    return write_text_atomic(path, json.dumps(obj, indent=indent, sort_keys=False, default=_jsonable) + "\n")
+    """``obj`` as strict JSON (:func:`~seanv_analysis.jsonable.clean_json`:
+    NaN and infinities as null, numpy values as numbers and lists), atomically."""
+    from ..jsonable import clean_json
+
+    text = json.dumps(clean_json(obj), indent=indent, sort_keys=False, default=_jsonable,
+                      allow_nan=False)
+    return write_text_atomic(path, text + "\n")
 
 
 def _jsonable(o: Any):
