@@ -263,3 +263,65 @@ def test_a_figure_drawn_in_parts_is_a_task_per_part_and_the_same_files(tmp_path)
         assert [p.name for p in res.paths[name]] == [p.name for p in whole]
         for a, b in zip(res.paths[name], whole, strict=True):
             assert a.read_bytes() == b.read_bytes(), a.name
+
+
+def _sleep(seconds: float) -> float:
+    import time
+
+    time.sleep(seconds)
+    return seconds
+
+
+def test_figures_started_ahead_are_taken_redrawn_or_drawn_here(position_ctx, tmp_path):
+    """A figure started ahead on the background worker (``start_ahead``,
+    while the analysis runs) is taken when its inputs are unchanged, drawn
+    again when they changed since, and drawn on the pool when it had not
+    begun; the files are the bytes drawn here, and the background worker
+    runs at a lower CPU priority."""
+    from seanv_analysis.batch.executor import BACKGROUND_NICE, Executor
+    from seanv_analysis.stages import serial_tasks
+    from seanv_analysis.stages.figures import draw_figures, start_ahead
+
+    opts = {"figs": ["fig6_runs"], "formats": ["png"], "layout": "flat"}
+    ctx = position_ctx
+    here = draw_figures(ctx, ["fig6_runs"], tmp_path / "here", formats=("png",),
+                        per_run_folders=False).paths["fig6_runs"]
+    drawn: list[str] = []
+
+    def recording(func, items, **kwargs):
+        drawn.extend(name for _, name, *_ in items)
+        return serial_tasks(func, items, **kwargs)
+
+    def draw(folder: Path, *, stale: bool = False, busy: bool = False):
+        ctx.out_dir = folder
+        ctx.start_tasks = ex.start
+        if busy:   # the background worker is busy: the figure has not begun when drawn
+            ex.start(_sleep, [3.0])
+        start_ahead(ctx, opts)
+        entry = ctx.ahead["figures"]["fig6_runs"]
+        if not busy:   # the analysis took longer than the figure
+            entry[3].results()
+        if stale:  # its inputs changed since it was started
+            ctx.ahead["figures"]["fig6_runs"] = ("another key", *entry[1:])
+        ctx.map_tasks, ctx.task_slots = recording, 2
+        try:
+            return draw_figures(ctx, ["fig6_runs"], folder, formats=("png",),
+                                per_run_folders=False)
+        finally:
+            ctx.map_tasks, ctx.task_slots, ctx.start_tasks = serial_tasks, 1, None
+            ctx.out_dir = None
+
+    with Executor("process", workers=2) as ex:
+        assert ex.can_start
+        nice = ex.start(os.nice, [0]).results()
+        taken = draw(tmp_path / "taken")
+        assert drawn == []
+        redrawn = draw(tmp_path / "stale", stale=True)
+        assert drawn == ["fig6_runs"]
+        busy = draw(tmp_path / "busy", busy=True)
+        assert drawn == ["fig6_runs", "fig6_runs"]
+    assert nice == [(True, os.nice(0) + BACKGROUND_NICE)]
+    assert not Executor("serial").can_start
+    for res in (taken, redrawn, busy):
+        assert not res.problems and [p.name for p in res.paths["fig6_runs"]] == ["fig6.png"]
+        assert res.paths["fig6_runs"][0].read_bytes() == here[0].read_bytes()

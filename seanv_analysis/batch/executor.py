@@ -144,6 +144,7 @@ class Executor:
         self.client = client
         self._own_client = own_client
         self._pool: ProcessPoolExecutor | None = None
+        self._background: ProcessPoolExecutor | None = None   # :meth:`start`'s worker
 
     def __enter__(self) -> "Executor":
         return self
@@ -158,12 +159,15 @@ class Executor:
         pending tasks are cancelled and the pool's workers are killed (what
         they had finished is in the cache, written atomically; a later run
         computes the rest)."""
-        if self._pool is not None:
+        for name in ("_pool", "_background"):
+            pool = getattr(self, name)
+            if pool is None:
+                continue
             if wait:
-                self._pool.shutdown(wait=True, cancel_futures=True)
+                pool.shutdown(wait=True, cancel_futures=True)
             else:
-                _stop_pool(self._pool)   # interrupted: queued runs are not waited for
-            self._pool = None
+                _stop_pool(pool)   # interrupted: queued runs are not waited for
+            setattr(self, name, None)
         if self.client is not None and self._own_client:
             self.client.close()  # the connection only; the cluster keeps running
             self.client = None
@@ -279,6 +283,40 @@ class Executor:
         return [(r.ok, r.value if r.ok else r.error)
                 for r in self.map(func, items, kwargs=kwargs, desc=desc, quiet=quiet)]
 
+    @property
+    def can_start(self) -> bool:
+        """Whether :meth:`start` runs tasks beside this process (a local
+        process pool of two workers or more)."""
+        return self.kind == "process" and self.workers > 1
+
+    def start(self, func: Callable, items: Sequence[Any], *,
+              kwargs: dict[str, Any] | None = None) -> "Started":
+        """Submit ``func(item, **kwargs)`` for each item to a background
+        worker and return at once (:class:`Started`: cancel those not begun,
+        then wait for the others).
+
+        The background worker is one process of its own at a lower CPU
+        priority (nice +:data:`BACKGROUND_NICE`): it works on what the
+        command's process and the pool's workers leave idle (the figures whose
+        inputs exist while the analysis runs:
+        :func:`seanv_analysis.stages.figures.start_ahead`) and never holds up
+        a task of theirs in the pool's queue. Only where :attr:`can_start`."""
+        if not self.can_start:
+            raise ConfigError(f"executor: {self.describe()} starts no background task")
+        pool = self._background_pool()
+        return Started([pool.submit(_call, func, item, dict(kwargs or {})) for item in items])
+
+    def _background_pool(self) -> ProcessPoolExecutor:
+        if self._background is None:
+            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods()
+                                 and sys.platform.startswith("linux") else "spawn")
+            kernel_watch = (threading.current_thread() is threading.main_thread()
+                            and ctx.get_start_method() == "fork")
+            self._background = ProcessPoolExecutor(max_workers=1, mp_context=ctx,
+                                                   initializer=_background_init,
+                                                   initargs=(os.getpid(), kernel_watch))
+        return self._background
+
     def preload(self, modules: Sequence[str]) -> None:
         """Import ``modules`` here before a forked pool's workers start, so
         that they inherit them rather than each importing them again (the
@@ -304,6 +342,37 @@ class Executor:
         pool = self._process_pool()
         for _ in range(self.workers):
             pool.submit(func)         # not awaited: the pool keeps its own queue
+
+
+class Started:
+    """Tasks :meth:`Executor.start` submitted to its background worker."""
+
+    def __init__(self, futures: list):
+        self._futures = futures
+
+    def cancel_waiting(self) -> None:
+        """Cancel the tasks that have not begun (the caller does them itself)."""
+        for fut in self._futures:
+            fut.cancel()
+
+    @property
+    def whole(self) -> bool:
+        """No task was cancelled: each ran or runs."""
+        return not any(fut.cancelled() for fut in self._futures)
+
+    def results(self) -> list:
+        """Wait for the tasks: ``(ok, value or one-line error)`` each, in
+        order; None for a task cancelled."""
+        out: list = []
+        for fut in self._futures:
+            if fut.cancelled():
+                out.append(None)
+                continue
+            try:
+                out.append(tuple(fut.result()))
+            except Exception as exc:  # the process died
+                out.append((False, one_line_error(exc)))
+        return out
 
 
 def _cancel_quietly(client: Any, futures: list) -> None:
@@ -399,6 +468,21 @@ def _worker_init(parent_pid: int | None = None, kernel_watch: bool = False) -> N
         pa.set_cpu_count(1)
         pa.set_io_thread_count(1)
     except Exception:  # pragma: no cover - pyarrow always present
+        pass
+
+
+#: how much lower the CPU priority of :meth:`Executor.start`'s background
+#: worker is (Linux ``nice``: at +10 it gets about a tenth of a core its
+#: neighbours want, all of one they leave idle)
+BACKGROUND_NICE = 10
+
+
+def _background_init(parent_pid: int | None = None, kernel_watch: bool = False) -> None:
+    """:func:`_worker_init`, then a lower CPU priority (:data:`BACKGROUND_NICE`)."""
+    _worker_init(parent_pid, kernel_watch)
+    try:
+        os.nice(BACKGROUND_NICE)
+    except (OSError, AttributeError):  # pragma: no cover - not permitted, or no nice
         pass
 
 

@@ -440,6 +440,8 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             ctx.map_runs = mapper
             ctx.map_tasks = partial(ex.tasks, quiet=quiet)   # the figures, each a task
             ctx.task_slots = ex.workers
+            if ex.can_start:       # figures whose inputs exist start while the analysis runs
+                ctx.start_tasks = ex.start
             from ..stages.catalogue import task_modules
             from ..stages.figures import figure_input_modules, warm_figure_worker
 
@@ -451,6 +453,7 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             stages = StageMemo(out / CACHE_DIRNAME, enabled=not force)
             with one_blas_thread():     # the data-set stages, here (the workers have one)
                 _run_stages(pipe, ctx, result, after_ingest=warm, run=stages.run)
+            ctx.start_tasks = None      # the executor ends with this block
             result.computed, result.cached = mapper.computed, mapper.cached
             cache.save_index(force=True)
             rejected = cache.rejected + stages.rejected

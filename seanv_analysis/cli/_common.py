@@ -192,6 +192,7 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
 
             warm = partial(ex.warm, partial(warm_figure_worker, tuple(warm_modules)))
             ctx.map_tasks, ctx.task_slots = partial(ex.tasks, quiet=quiet), ex.workers
+            ctx.start_tasks = ex.start if ex.can_start else None
         if big:
             ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm)
         elif warm is not None:
@@ -200,6 +201,7 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
             yield ctx
         finally:  # the pool is gone after the block
             ctx.map_runs, ctx.map_tasks, ctx.task_slots = serial_map, serial_tasks, 1
+            ctx.start_tasks = None
 
 
 class _WarmAfter:

@@ -19,6 +19,10 @@ catalogue (:mod:`.catalogue`) finds it:
 ``write(result, folder) -> list[Path]``   its files, each written atomically
 ``expected(ds) -> bool``   optional: whether the data set would give its result
                  (a figure missing it is then worth a note)
+``start_ahead(ctx, options)``   optional: start on the workers, without waiting,
+                 the part of its work whose inputs exist already (called after
+                 each stage that ends at least one stage before it; the
+                 figures: :func:`.figures.start_ahead`)
 ``raw_inputs(ctx, options) -> [run folder]``   optional, a data-set stage: the runs
                  whose files it reads itself, beyond the per-run summary; the
                  batch runner then reuses its last value while its inputs are
@@ -284,6 +288,15 @@ class Context:
     #: 1 here): the figures stage splits a figure's formats into tasks of
     #: their own when fewer figures than this are to be drawn
     task_slots: int = 1
+    #: ``start_tasks(func, items, *, kwargs) -> started``: submits tasks to a
+    #: background worker without waiting (``started.cancel_waiting()``, then
+    #: ``started.results()``: what ``map_tasks`` would give, None for a task
+    #: cancelled; ``batch.executor.Executor.start``); None here: a later
+    #: stage then starts nothing ahead
+    start_tasks: Callable[..., Any] | None = None
+    #: work a later stage started ahead on the workers, by stage name
+    #: (the figures whose inputs existed, drawn while the analysis went on)
+    ahead: dict[str, Any] = field(default_factory=dict)
 
     @classmethod
     def for_data(cls, data: str | Path | Sequence[str | Path], *, rig: RigConfig | str | Path | None = None,

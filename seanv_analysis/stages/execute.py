@@ -48,15 +48,29 @@ def execute(pipe, ctx: Context, *,
     tag = f"[{pipe.name}] " if pipe.name else ""
     bar = progress(total=len(pipe.stages), desc=pipe.name or "stages", unit="stage")
     try:
-        for stage in pipe.stages:
+        for i, stage in enumerate(pipe.stages):
             bar.set_postfix_str(stage.name, refresh=False)
             bar.refresh()
             _run_one(pipe, stage, ctx, STAGES[stage.name], tag,
                      start=start, on_error=on_error, done=done, run=run)
+            _start_ahead(pipe.stages[i + 2:], ctx, STAGES)
             bar.update()
     finally:
         bar.close()
     return ctx
+
+
+def _start_ahead(later, ctx: Context, stages) -> None:
+    """Let each stage of ``later`` (the stages after the next one) start the
+    work whose inputs exist now on the workers (``start_ahead``: the figures
+    of the results so far, drawn beside the stages between); nothing where
+    tasks cannot be started without waiting (a single process)."""
+    if getattr(ctx, "start_tasks", None) is None:
+        return
+    for stage in later:
+        begin = getattr(stages[stage.name], "start_ahead", None)
+        if begin is not None:
+            begin(ctx, stage.options)
 
 
 def _run_one(pipe, stage, ctx: Context, mod, tag: str, *, start, on_error, done,

@@ -29,7 +29,7 @@ from .validate import position_paths
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "FiguresResult", "check_option", "run", "write",
            "draw_figures", "draw_figure_task", "results_for_figures", "selected_figures",
-           "draw_run_figure", "warm_figure_worker", "figure_input_modules"]
+           "draw_run_figure", "warm_figure_worker", "figure_input_modules", "start_ahead"]
 
 NAME = "figures"
 ORDER = 90
@@ -179,14 +179,62 @@ def run(ctx: Context, options: Mapping[str, Any]) -> FiguresResult:
     Figures are files by nature: this stage writes while it runs, and
     :func:`write` has nothing left to do.
     """
+    opts = {**OPTIONS, **options}
+    return draw_figures(ctx, opts["figs"], _folder(ctx, opts), formats=tuple(opts["formats"]),
+                        per_run_folders=opts["layout"] != "flat")
+
+
+def _folder(ctx: Context, opts: Mapping[str, Any]) -> Path:
+    """Where the figures go: the output folder itself ('flat'), else the
+    pipeline's ``figures/`` (claimed: swapped in whole after the stage)."""
     from ..io.atomic import claim_folder
 
-    opts = {**OPTIONS, **options}
     if opts["layout"] == "flat":
-        return draw_figures(ctx, opts["figs"], Path(ctx.out_dir), formats=tuple(opts["formats"]),
-                            per_run_folders=False)
-    folder = claim_folder(Path(ctx.out_dir) / FOLDER)  # the pipeline's folder, swapped in whole
-    return draw_figures(ctx, opts["figs"], folder, formats=tuple(opts["formats"]))
+        return Path(ctx.out_dir)
+    return claim_folder(Path(ctx.out_dir) / FOLDER)
+
+
+def start_ahead(ctx: Context, options: Mapping[str, Any]) -> None:
+    """Start drawing, on the executor's background worker (one process at a
+    lower CPU priority: ``ctx.start_tasks``) and without waiting, each
+    selected data-set figure whose inputs exist now and that is not started
+    already, while the stages between run here (they leave a core idle part
+    of the time: single-threaded steps of identify and discover). The
+    figures stage takes a figure drawn here when its key
+    (:func:`figure_key`: the content of its inputs) is still the same, and
+    draws those not begun by then itself; the files are the same bytes.
+    Nothing where no task can be started so (``ctx.start_tasks`` None) or a
+    figure would be reused."""
+    start = getattr(ctx, "start_tasks", None)
+    if start is None or ctx.out_dir is None:
+        return
+    opts = {**OPTIONS, **options}
+    formats = tuple(opts["formats"])
+    ahead = ctx.ahead.setdefault(NAME, {})
+    chosen = [f for f in selected_figures(opts["figs"]) if not f.per_run and f.name not in ahead]
+    have = results_for_figures(ctx, {n for f in chosen for n in f.needs})
+    ready = [f for f in chosen if all(n in have for n in f.needs)]
+    if not ready:
+        return
+    folder = _folder(ctx, opts)
+    keys = _FigureKeys(folder)
+    for fig in ready:
+        inputs = {n: have[n] for n in fig.needs}
+        key = figure_key(fig.name, inputs, formats, getattr(ctx, "rig", None))
+        if key is None or keys.reuse(fig.name, key, formats) is not None:
+            continue
+        tasks = [(*job, formats) for job in _jobs_of(fig, inputs, folder)]
+        ahead[fig.name] = (key, str(folder), tasks,
+                           start(draw_figure_task, tasks, kwargs={"formats": formats,
+                                                                  "rig": ctx.rig}))
+
+
+def _jobs_of(fig, inputs: Mapping[str, Any], folder: Path) -> list[tuple]:
+    """A data-set figure's drawing jobs: one, or one per part (:func:`_parts_of`)."""
+    split = _parts_of(fig, inputs)
+    if split is None:
+        return [("dataset", fig.name, inputs, str(folder))]
+    return [("part", fig.name, (inputs, part), str(folder)) for part in split]
 
 
 def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, ...] = ("png", "svg"),
@@ -210,6 +258,13 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
     folder = Path(folder)
     ctx.log(f"figures: drawing {figs if isinstance(figs, str) else ', '.join(map(str, figs))} "
             f"into {folder}")
+    # the figures started ahead (start_ahead): those not begun yet are drawn
+    # here; those begun are waited for after the rest (or, their inputs
+    # changed since, before the same files are drawn again)
+    ahead = getattr(ctx, "ahead", {}).pop(NAME, {})
+    for *_, started in ahead.values():
+        started.cancel_waiting()
+    taken: list[tuple[list, Any]] = []     # (tasks, started) of the figures drawn ahead
     keys = _FigureKeys(folder)
     chosen = selected_figures(figs)
     have = results_for_figures(ctx, {n for f in chosen if not f.per_run for n in f.needs})
@@ -242,20 +297,26 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
             drawn[fig.name] = reused
             continue
         fig_keys[fig.name] = key
-        split = _parts_of(fig, inputs)
-        if split is None:
-            jobs.append(("dataset", fig.name, inputs, str(folder)))
-        else:           # independent parts of one figure: a task each, side by side
-            jobs += [("part", fig.name, (inputs, part), str(folder)) for part in split]
+        early = ahead.pop(fig.name, None)
+        if early is not None and early[:2] == (key, str(folder)) and early[3].whole:
+            taken.append((early[2], early[3]))     # drawn ahead from the same inputs
+            continue
+        if early is not None:
+            early[3].results()      # its files are drawn again below: not while it writes them
+        jobs += _jobs_of(fig, inputs, folder)   # parts of one figure: a task each, side by side
+    for *_, started in ahead.values():      # (none: a figure started is a figure chosen)
+        started.results()
     map_tasks = getattr(ctx, "map_tasks", serial_tasks)
     tasks = _split_formats(jobs, tuple(formats), getattr(ctx, "task_slots", 1))
     outcomes = map_tasks(draw_figure_task, tasks, kwargs={"formats": tuple(formats),
                                                           "rig": ctx.rig}, desc="figures")
+    done_ahead = [pair for early_tasks, started in taken
+                  for pair in zip(early_tasks, started.results())]
     output_errors: list[str] = []
     per_run: dict[str, list[Path]] = {}
     parts: dict[str, list[Path]] = {}      # a data-set figure's files, over its tasks
     failed: set[str] = set()
-    for (kind, name, what, *_), (ok, value) in zip(tasks, outcomes):
+    for (kind, name, what, *_), (ok, value) in [*done_ahead, *zip(tasks, outcomes)]:
         if ok and "output_error" in value:
             output_errors.append(value["output_error"])
         elif not ok or "problem" in value:
