@@ -27,8 +27,9 @@ __all__ = ["run_cmd", "failures_to_stderr"]
                    "DASK_SCHEDULER_ADDRESS environment variable, if set (and --workers not given). "
                    "The cluster is never shut down by this command.")
 @click.option("--force", is_flag=True,
-              help="Recompute everything instead of reusing the last run, the per-run "
-                   "results or the data-set stages' in <out>/.cache.")
+              help="Recompute instead of reusing the last run, the per-run results or the "
+                   "data-set stages' in <out>/.cache (a figure whose inputs are unchanged and "
+                   "whose files are untouched is still reused).")
 @click.option("--rig", "rig_file", type=click.Path(exists=True, dir_okay=False, path_type=Path),
               help="Rig config TOML with only the keys you change. Default: data_schema/rig/default.toml.")
 @click.option("--json", "as_json", is_flag=True,

@@ -69,8 +69,12 @@ def _start_ahead(later, ctx: Context, stages) -> None:
         return
     for stage in later:
         begin = getattr(stages[stage.name], "start_ahead", None)
-        if begin is not None:
+        if begin is None:
+            continue
+        try:
             begin(ctx, stage.options)
+        except Exception as exc:   # only a head start: the stage does the work, and says why not
+            ctx.log(f"{stage.name}: nothing started ahead ({' '.join(str(exc).split())[:200]})")
 
 
 def _run_one(pipe, stage, ctx: Context, mod, tag: str, *, start, on_error, done,
