@@ -101,6 +101,33 @@ def test_serial_process_dask_identical(dataset, tmp_path, dask_cluster):
     assert serial.computed["ingest"] == 14 and dask.computed["ingest"] == 14
 
 
+def _pid_and_nice(_item) -> tuple[int, int]:
+    import os
+
+    return os.getpid(), os.nice(0)
+
+
+def test_background_worker_beside_a_dask_client(dask_cluster):
+    """With a Dask cluster the data-set stages run in this process, so work a
+    later stage starts ahead (the figures) goes to a background worker here:
+    a process of its own, spawned (not forked beside the client's threads),
+    at a lower CPU priority; not with a serial executor."""
+    import os
+
+    from dask.distributed import Client
+
+    from seanv_analysis.batch.executor import BACKGROUND_NICE, Executor, usable_cpus
+
+    with Client(dask_cluster) as client, Executor("dask", client=client) as ex:
+        assert ex.can_start == (usable_cpus() > 1)
+        if not ex.can_start:
+            pytest.skip("one processor: nothing runs beside this process")
+        (ok, (pid, nice)), = ex.start(_pid_and_nice, [0]).results()
+    assert ok and pid != os.getpid() and nice == os.nice(0) + BACKGROUND_NICE
+    with make_executor(workers=1) as serial:
+        assert not serial.can_start
+
+
 def test_scheduler_address_connects_and_leaves_cluster_running(dataset, tmp_path, dask_cluster):
     res = run_pipeline(INGEST_ONLY, dataset, out_dir=tmp_path / "o", quiet=True,
                        scheduler=dask_cluster.scheduler_address)

@@ -134,7 +134,11 @@ def test_codec_is_exact_and_refuses_other_classes():
     with pytest.raises(CodecError, match="allow-list"):
         decode({"t": "dataclass", "module": "os", "name": "system", "v": {}})
     with pytest.raises(CodecError, match="not a dataclass"):
-        decode({"t": "dataclass", "module": "seanv_analysis.config", "name": "load_rig", "v": {}})
+        decode({"t": "dataclass", "module": "seanv_analysis.fit.flowfit", "name": "fit_flow",
+                "v": {}})
+    with pytest.raises(CodecError, match="allow-list"):   # a dataclass, but no result
+        decode({"t": "dataclass", "module": "seanv_analysis.stages.base", "name": "Context",
+                "v": {}})
 
 
 def test_warnings_of_a_reused_stage_are_given_again(tmp_path, monkeypatch):

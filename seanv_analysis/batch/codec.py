@@ -32,29 +32,36 @@ class CodecError(ValueError):
     what :func:`encode` writes."""
 
 
-#: the modules whose dataclasses a cached result may hold (explicit
-#: allow-list: the results of the per-run work and of the data-set stages)
-DATACLASS_MODULES = (
-    "seanv_analysis.analysis.validate",
-    "seanv_analysis.config",
-    "seanv_analysis.discover.result",
-    "seanv_analysis.discover.static",
-    "seanv_analysis.fit.flowfit",
-    "seanv_analysis.fit._leakage",
-    "seanv_analysis.identify.result",
-    "seanv_analysis.models.effects",
-    "seanv_analysis.models.sealing",
-    "seanv_analysis.models.valve",
-    "seanv_analysis.stages.base",
-    "seanv_analysis.stages.discover",
-    "seanv_analysis.stages.validate",
-)
+#: the dataclasses a cached result may hold (explicit allow-list: the
+#: results of the per-run work and of the data-set stages): {module: the
+#: names of its dataclasses allowed, or None for every dataclass it defines
+#: (the result modules; the effects of the model registry)}
+DATACLASS_MODULES: dict[str, tuple[str, ...] | None] = {
+    "seanv_analysis.analysis.validate": None,
+    "seanv_analysis.config": ("RigConfig",),
+    "seanv_analysis.discover.result": None,
+    "seanv_analysis.discover.static": None,
+    "seanv_analysis.fit.flowfit": None,
+    "seanv_analysis.fit._leakage": None,
+    "seanv_analysis.identify.result": None,
+    "seanv_analysis.models.effects": None,
+    "seanv_analysis.models.sealing": None,
+    "seanv_analysis.models.valve": None,
+    "seanv_analysis.stages.base": ("FailedRun",),
+    "seanv_analysis.stages.discover": ("DiscoverResult",),
+    "seanv_analysis.stages.validate": ("ValidateResult",),
+}
+
+
+def _allowed(module: Any, name: Any) -> bool:
+    names = DATACLASS_MODULES.get(module, ()) if isinstance(module, str) else ()
+    return isinstance(name, str) and (names is None or name in names)
 
 
 def _dataclass_of(module: Any, name: Any) -> type:
-    """The dataclass ``module.name`` when the module is on the allow-list
-    (imported then, not before: a worker decoding a run's entry needs one)."""
-    if module not in DATACLASS_MODULES or not isinstance(name, str) or not name.isidentifier():
+    """The dataclass ``module.name`` when it is on the allow-list (its module
+    imported then, not before: a worker decoding a run's entry needs one)."""
+    if not _allowed(module, name) or not name.isidentifier():
         raise CodecError(f"dataclass {module}.{name} is not on the allow-list")
     cls = getattr(importlib.import_module(module), name, None)
     if not (isinstance(cls, type) and dataclasses.is_dataclass(cls) and cls.__module__ == module):
@@ -98,7 +105,7 @@ def encode(value: Any) -> Any:
     if isinstance(value, PurePath):
         return {"t": "path", "v": str(value)}
     cls = type(value)
-    if dataclasses.is_dataclass(value) and cls.__module__ in DATACLASS_MODULES:
+    if dataclasses.is_dataclass(value) and _allowed(cls.__module__, cls.__qualname__):
         return {"t": "dataclass", "module": cls.__module__, "name": cls.__qualname__,
                 "v": {f.name: encode(getattr(value, f.name)) for f in dataclasses.fields(value)}}
     raise CodecError(f"cannot store a {type(value).__name__} as plain data")

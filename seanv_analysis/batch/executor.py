@@ -285,9 +285,13 @@ class Executor:
 
     @property
     def can_start(self) -> bool:
-        """Whether :meth:`start` runs tasks beside this process (a local
-        process pool of two workers or more)."""
-        return self.kind == "process" and self.workers > 1
+        """Whether :meth:`start` runs tasks beside this process: a local
+        process pool of two workers or more, or a Dask cluster where this
+        machine has a second processor (the data-set stages run here, in
+        this process, whichever back end the per-run work goes to)."""
+        if self.kind == "process":
+            return self.workers > 1
+        return self.kind == "dask" and usable_cpus() > 1
 
     def start(self, func: Callable, items: Sequence[Any], *,
               kwargs: dict[str, Any] | None = None) -> "Started":
@@ -308,8 +312,11 @@ class Executor:
 
     def _background_pool(self) -> ProcessPoolExecutor:
         if self._background is None:
-            ctx = mp.get_context("fork" if "fork" in mp.get_all_start_methods()
-                                 and sys.platform.startswith("linux") else "spawn")
+            # forked as the pool's workers are; spawned beside a Dask client
+            # (its event loop's threads do not survive a fork)
+            fork = (self.kind == "process" and "fork" in mp.get_all_start_methods()
+                    and sys.platform.startswith("linux"))
+            ctx = mp.get_context("fork" if fork else "spawn")
             kernel_watch = (threading.current_thread() is threading.main_thread()
                             and ctx.get_start_method() == "fork")
             self._background = ProcessPoolExecutor(max_workers=1, mp_context=ctx,
