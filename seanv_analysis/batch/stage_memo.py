@@ -2,9 +2,11 @@
 
 The per-run cache (:mod:`.cache`) spares a re-run the per-run work; this one
 spares it the data-set stages (flow fit with its bootstrap, identify,
-validate, discover) whose inputs are the same as last time, when one run
-of the data set was edited in a way that left them alone (a sample outside
-a flow step's steady window, a new position-control run for tracking only).
+discover) whose inputs are the same as last time, when one run of the data
+set was edited in a way that left them alone (a sample outside a flow
+step's steady window). ``validate`` does not take part: its work is per run
+and cached per run already (its value would store the runs' overlays, 22 MB
+for the paper's two position runs, a second time).
 
 A stage takes part when it declares ``raw_inputs(ctx, options) -> [run folder]``:
 the runs whose files it reads itself, beyond the data set's per-run summary

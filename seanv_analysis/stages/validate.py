@@ -211,13 +211,6 @@ def run(ctx: Context, options: Mapping[str, Any]):
     return validate_model(ctx, ctx.valve, effects, options=options)
 
 
-def raw_inputs(ctx: Context, options: Mapping[str, Any]) -> list[str]:
-    """The run folders this stage reads itself, beyond the per-run summary
-    (the data-set stage cache's key, :mod:`seanv_analysis.batch.stage_memo`):
-    the position-control runs."""
-    return [str(p) for p in position_paths(ctx)]
-
-
 def write(result: ValidateResult, folder: Path) -> list[Path]:
     """validate.json, validate.txt, validate_table.parquet, validate_steps.parquet
     and ``validate_<run_id>.parquet`` (overlay data), atomically."""
