@@ -186,6 +186,15 @@ def test_warnings_of_a_reused_stage_are_given_again(tmp_path, monkeypatch):
         assert [str(w.message) for w in caught] == ["bootstrap did not converge"]
         assert caught[0].category is RuntimeWarning and value == {"z0_mm": -0.155}
     assert Stage.calls == 1 and memo.reused == ["flowfit"]
+    # an entry of another shape (its digest consistent: written by hand) is a miss
+    from seanv_analysis.batch.cache import write_entry
+
+    entry = read_entry(tmp_path / ".cache" / "stages", "flowfit")
+    write_entry(tmp_path / ".cache" / "stages", "flowfit", {**entry, "warnings": [1]})
+    with warnings.catch_warnings(record=True):
+        warnings.simplefilter("always")
+        StageMemo(tmp_path / ".cache").run(Stage, Ctx, {})
+    assert Stage.calls == 2
 
 
 def test_a_linked_or_tampered_stage_cache_is_never_followed(memo_runs, tmp_path):

@@ -93,12 +93,11 @@ class StageMemo:
             return mod.run(ctx, options)
         name = mod.NAME
         entry = read_entry(self.folder, name, rejected=self.rejected) if self.enabled else None
-        if (isinstance(entry, dict) and entry.get("schema") == _SCHEMA
-                and entry.get("key") == key and "value" in entry):
+        if _is_entry(entry) and entry["key"] == key:
             self.keys[name] = key
             self.reused.append(name)
-            for category, message in entry.get("warnings") or []:
-                warnings.warn(str(message), _category(category), stacklevel=2)
+            for category, message in entry["warnings"]:
+                warnings.warn(message, _category(category), stacklevel=2)
             return entry["value"]
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -110,6 +109,16 @@ class StageMemo:
                 "schema": _SCHEMA, "key": key, "warnings": given, "value": value}):
             self.keys[name] = key
         return value
+
+
+def _is_entry(entry: Any) -> bool:
+    """What :meth:`StageMemo.run` stores: its schema, a key, the warnings as
+    (category, message) text pairs and a value (anything else is a miss)."""
+    return (isinstance(entry, dict) and entry.get("schema") == _SCHEMA
+            and isinstance(entry.get("key"), str) and "value" in entry
+            and isinstance(entry.get("warnings"), list)
+            and all(isinstance(w, (list, tuple)) and len(w) == 2
+                    and all(isinstance(x, str) for x in w) for w in entry["warnings"]))
 
 
 def _category(name: Any) -> type[Warning]:
