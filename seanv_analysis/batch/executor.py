@@ -29,7 +29,8 @@ import sys
 import threading
 import time
 import traceback
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from collections import deque
+from concurrent.futures import Future, ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -145,6 +146,7 @@ class Executor:
         self._own_client = own_client
         self._pool: ProcessPoolExecutor | None = None
         self._background: ProcessPoolExecutor | None = None   # :meth:`start`'s worker
+        self._feed: _OneAtATime | None = None                  # and its queue
 
     def __enter__(self) -> "Executor":
         return self
@@ -159,6 +161,9 @@ class Executor:
         pending tasks are cancelled and the pool's workers are killed (what
         they had finished is in the cache, written atomically; a later run
         computes the rest)."""
+        if self._feed is not None:
+            self._feed.cancel_all()
+            self._feed = None
         for name in ("_pool", "_background"):
             pool = getattr(self, name)
             if pool is None:
@@ -307,8 +312,13 @@ class Executor:
         a task of theirs in the pool's queue. Only where :attr:`can_start`."""
         if not self.can_start:
             raise ConfigError(f"executor: {self.describe()} starts no background task")
-        pool = self._background_pool()
-        return Started([pool.submit(_call, func, item, dict(kwargs or {})) for item in items])
+        feed = self._background_feed()
+        return Started([feed.submit(func, item, dict(kwargs or {})) for item in items])
+
+    def _background_feed(self) -> "_OneAtATime":
+        if self._feed is None:
+            self._feed = _OneAtATime(self._background_pool())
+        return self._feed
 
     def _background_pool(self) -> ProcessPoolExecutor:
         if self._background is None:
@@ -351,6 +361,57 @@ class Executor:
             pool.submit(func)         # not awaited: the pool keeps its own queue
 
 
+class _OneAtATime:
+    """A one-process pool fed one task at a time: a pool hands its worker's
+    queue tasks ahead of the one it runs, and those cannot be cancelled any
+    more; here every task not running waits in this process, where it can."""
+
+    def __init__(self, pool: ProcessPoolExecutor):
+        self._pool = pool
+        self._waiting: deque = deque()
+        # re-entrant: a task that ends before its callback is added calls
+        # it at once, on the thread that holds the lock
+        self._lock = threading.RLock()
+        self._busy = False
+
+    def submit(self, func: Callable, item: Any, kwargs: dict[str, Any]) -> Future:
+        fut: Future = Future()
+        with self._lock:
+            self._waiting.append((fut, func, item, kwargs))
+            self._next()
+        return fut
+
+    def cancel_all(self) -> None:
+        with self._lock:
+            for fut, *_ in self._waiting:
+                fut.cancel()
+            self._waiting.clear()
+
+    def _next(self) -> None:
+        """Hand the worker the next task not cancelled (with the lock held)."""
+        while not self._busy and self._waiting:
+            fut, func, item, kwargs = self._waiting.popleft()
+            if not fut.set_running_or_notify_cancel():
+                continue        # cancelled while it waited
+            self._busy = True
+            try:
+                inner = self._pool.submit(_call, func, item, kwargs)
+            except Exception as exc:   # the pool is shut down or broken
+                self._busy = False
+                fut.set_exception(exc)
+                continue
+            inner.add_done_callback(lambda done, fut=fut: self._done(fut, done))
+
+    def _done(self, fut: Future, inner: Future) -> None:
+        try:
+            fut.set_result(inner.result())
+        except BaseException as exc:   # the process died, or the pool was shut down
+            fut.set_exception(exc)
+        with self._lock:
+            self._busy = False
+            self._next()
+
+
 class Started:
     """Tasks :meth:`Executor.start` submitted to its background worker."""
 
@@ -358,7 +419,8 @@ class Started:
         self._futures = futures
 
     def cancel_waiting(self) -> None:
-        """Cancel the tasks that have not begun (the caller does them itself)."""
+        """Cancel the tasks that have not begun (the caller does them
+        itself); the one running goes on."""
         for fut in self._futures:
             fut.cancel()
 
