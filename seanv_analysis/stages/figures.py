@@ -304,8 +304,8 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
         if early is not None:
             early[3].results()      # its files are drawn again below: not while it writes them
         jobs += _jobs_of(fig, inputs, folder)   # parts of one figure: a task each, side by side
-    for *_, started in ahead.values():      # (none: a figure started is a figure chosen)
-        started.results()
+    for *_, started in ahead.values():      # started, but reused or not drawn here after all
+        started.results()                   # (ended before the stage ends, never after)
     map_tasks = getattr(ctx, "map_tasks", serial_tasks)
     tasks = _split_formats(jobs, tuple(formats), getattr(ctx, "task_slots", 1))
     outcomes = map_tasks(draw_figure_task, tasks, kwargs={"formats": tuple(formats),

@@ -94,7 +94,9 @@ def raw_inputs(ctx: Context, options: Mapping[str, Any]) -> list[str]:
     :mod:`seanv_analysis.batch.stage_memo`): the position-control runs, and
     when the servo is identified and they have no cam feedback, the flow
     steps it is identified from."""
-    pos = [str(p) for p in ctx.result("ingest").kind("position_control")["path"]]
+    from .validate import position_paths
+
+    pos = [str(p) for p in position_paths(ctx)]
     parts = {**OPTIONS, **options}["parts"]
     return pos + (servo_flow_paths(ctx, position_runs(ctx)) if "servo" in parts else [])
 
