@@ -10,9 +10,13 @@ from typing import Sequence
 def modules_after(code: str, names: Sequence[str]) -> list[str]:
     """Which of the modules ``names`` a fresh interpreter holds after running
     ``code`` (sorted; its last stdout line)."""
-    script = (f"{code}\nimport sys\n"
-              f"print(sorted(m for m in {tuple(names)!r} if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+    return last_literal(f"{code}\nimport sys\n"
+                        f"print(sorted(m for m in {tuple(names)!r} if m in sys.modules))")
+
+
+def last_literal(code: str):
+    """The last line ``code`` prints in a fresh interpreter, as a Python literal."""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     return ast.literal_eval(out.stdout.strip().splitlines()[-1])
 

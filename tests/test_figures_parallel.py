@@ -228,6 +228,60 @@ def test_a_flow_fit_is_read_without_scipy(tmp_path):
     assert modules_after(code, ["seanv_analysis.fit", "scipy.optimize"]) == ["seanv_analysis.fit"]
 
 
+def test_a_warmed_worker_draws_fig6_without_importing_scipy(position_ctx, tmp_path):
+    """A figure worker warmed for ``tracking``'s figures (what its worker
+    processes run while the analysis goes on) has imported what Fig. 6
+    imports when it first draws (the load levels' running median,
+    ``scipy.ndimage``: 0.3-0.5 s of the first Fig. 6 a worker drew): drawing
+    it then imports no scipy module (without the figures' ``imports`` in
+    its warm-up, the figure imported scipy.ndimage)."""
+    import pickle
+
+    from fresh_process import last_literal
+
+    from seanv_analysis.cli._common import command_pipeline
+    from seanv_analysis.stages.figures import figure_imports, figure_input_modules
+
+    pipe = command_pipeline("tracking", [{"name": "tracking"}], ingest={"derive": True})
+    assert figure_imports(pipe) == ("seanv_analysis.analysis.tracking", "scipy.ndimage")
+    run = next(r for r in position_ctx.result_named("position_runs"))
+    (tmp_path / "run.pkl").write_bytes(pickle.dumps(run))
+
+    warm = figure_input_modules(pipe) + figure_imports(pipe)
+    code = (f"import pickle, sys\n"
+            f"from seanv_analysis.stages.figures import warm_figure_worker\n"
+            f"warm_figure_worker({warm!r})\n"
+            f"run = pickle.loads(open({str(tmp_path / 'run.pkl')!r}, 'rb').read())\n"
+            f"before = set(sys.modules)\n"
+            f"from seanv_analysis.plots import FIGURES\n"
+            f"FIGURES['fig6'].draw_run(run, {str(tmp_path / 'f')!r}, formats=('png',), "
+            f"rig=None)\n"
+            f"print(sorted(m for m in set(sys.modules) - before if m.startswith('scipy')))")
+    assert last_literal(code) == []
+
+
+def test_a_figure_declares_its_first_draw_imports_as_module_names():
+    """``Figure.imports``: module names (a single one as a tuple of one);
+    a pipeline's are its selected figures', each once; none without figures."""
+    from seanv_analysis.plots import FIGURES, Figure
+    from seanv_analysis.stages.figures import figure_imports
+    from seanv_analysis.stages.pipeline import load_pipeline
+
+    def draw(results, folder, *, formats):
+        return []
+
+    assert Figure(name="x", title="x", needs=("flowfit",), draw=draw,
+                  imports="scipy.ndimage").imports == ("scipy.ndimage",)
+    with pytest.raises(ValueError, match="imports"):
+        Figure(name="x", title="x", needs=("flowfit",), draw=draw, imports=("", 3))
+    assert FIGURES["validate_fit"].imports == FIGURES["fig6"].imports
+    assert figure_imports(load_pipeline("paper")) == ("seanv_analysis.analysis.tracking",
+                                                      "scipy.ndimage")
+    assert figure_imports(load_pipeline("flowfit")) == ()
+    assert figure_imports(load_pipeline({"stages": [{"name": "ingest"},
+                                                    {"name": "flowfit"}]})) == ()
+
+
 def test_a_figure_drawn_in_parts_is_a_task_per_part_and_the_same_files(tmp_path):
     """Fig. 7 (the data set's, then one per run) and validate's figure (an
     overlay per run, then the fit % chart) declare independent parts

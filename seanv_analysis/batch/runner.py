@@ -443,13 +443,14 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             if ex.can_start:       # figures whose inputs exist start while the analysis runs
                 ctx.start_tasks = ex.start
             from ..stages.catalogue import task_modules
-            from ..stages.figures import figure_input_modules, warm_figure_worker
+            from ..stages.figures import figure_imports, figure_input_modules, warm_figure_worker
 
             worker_modules = figure_input_modules(pipe) + task_modules(pipe)
             ex.preload(worker_modules)    # the workers start with them (forked at ingest)
             warm = None
             if any(has_role(s.name, "draws_figures") for s in pipe.stages):
-                warm = partial(ex.warm, partial(warm_figure_worker, worker_modules))
+                warm = partial(ex.warm, partial(warm_figure_worker, tuple(dict.fromkeys(
+                    [*worker_modules, *figure_imports(pipe)]))))
             stages = StageMemo(out / CACHE_DIRNAME, enabled=not force)
             with one_blas_thread():     # the data-set stages, here (the workers have one)
                 _run_stages(pipe, ctx, result, after_ingest=warm, run=stages.run)

@@ -163,14 +163,23 @@ AUTO_PARALLEL_MIN_RUNS = 64
 
 @contextmanager
 def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures: bool = False,
-                  warm_modules: Sequence[str] = ()):
+                  warm_modules: Sequence[str] = (), warm_imports: Sequence[str] = ()):
     """The :class:`~seanv_analysis.stages.Context` of a single command: per-run
     work in this process, or on all cores for large data sets (no cache)
     inside the block; in this process after it. With ``figures`` (the
     command draws some) the figures are tasks on all cores too, and the
     worker processes load matplotlib at once, while the analysis runs here,
     and import ``warm_modules`` (the modules of the results the figures will
-    be sent: :func:`seanv_analysis.stages.figures.warm_figure_worker`)."""
+    be sent: :func:`seanv_analysis.stages.figures.warm_figure_worker`;
+    imported here first, so the workers inherit them) and ``warm_imports``
+    (what the figures import when they first draw; only there).
+
+    No figure is started ahead (``ctx.start_tasks``) here, unlike in
+    ``run``: a command's analysis (1-2 s) is shorter than its workers'
+    warm-up, and a data-set figure drawn ahead on the low-priority worker
+    beside them was starved and became the figures' last task (``tracking``
+    on the paper's two position runs: Fig. 6 side by side 5.2 s instead of
+    1.2 s, the figures stage 4.2-4.8 s instead of 2.9-3.9 s)."""
     import multiprocessing as mp
     import os
     from functools import partial
@@ -190,9 +199,9 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
         if figures:
             from ..stages.figures import warm_figure_worker
 
-            warm = partial(ex.warm, partial(warm_figure_worker, tuple(warm_modules)))
+            warm = partial(ex.warm, partial(warm_figure_worker,
+                                            tuple(dict.fromkeys([*warm_modules, *warm_imports]))))
             ctx.map_tasks, ctx.task_slots = partial(ex.tasks, quiet=quiet), ex.workers
-            ctx.start_tasks = ex.start if ex.can_start else None
         if big:
             ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm)
         elif warm is not None:
@@ -201,7 +210,6 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
             yield ctx
         finally:  # the pool is gone after the block
             ctx.map_runs, ctx.map_tasks, ctx.task_slots = serial_map, serial_tasks, 1
-            ctx.start_tasks = None
 
 
 class _WarmAfter:
@@ -341,11 +349,12 @@ def _run_in(pipe, data, first, folder: Path, *, rig, model, quiet, folders, main
             written.extend(Path(p) for p in stages[name].write(value, folder / folders.get(name, ".")))
 
     from ..stages.catalogue import task_modules
-    from ..stages.figures import figure_input_modules
+    from ..stages.figures import figure_imports, figure_input_modules
 
     figures = any(s.name == "figures" for s in pipe.stages)
     with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet, figures=figures,
-                       warm_modules=figure_input_modules(pipe) + task_modules(pipe)) as ctx, \
+                       warm_modules=figure_input_modules(pipe) + task_modules(pipe),
+                       warm_imports=figure_imports(pipe)) as ctx, \
             warnings.catch_warnings(record=True):
         warnings.simplefilter("always")   # a result keeps what matters (skipped runs, notes)
         try:

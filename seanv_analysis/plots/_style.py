@@ -40,7 +40,7 @@ if hasattr(os, "register_at_fork"):
     os.register_at_fork(after_in_child=_forget_fonts_after_fork)
 
 __all__ = ["paper_style", "warm_up", "trace", "TRACE_PIXELS", "align_ylabels", "shade_high_load",
-           "shade_loads", "high_load_spans",
+           "shade_loads", "high_load_spans", "LOAD_LEVEL_IMPORTS",
            "legend_outside", "new_figure", "check_formats", "save_figure", "DEFAULT_FORMATS",
            "TARGET_COLOUR", "ACTUAL_COLOUR", "SIM_COLOUR", "SHADE_COLOUR"]
 
@@ -221,6 +221,12 @@ def shade_high_load(axes, spans, *, label: str | None = None) -> None:
         for j, (a, b) in enumerate(spans):
             ax.axvspan(a, b, color=SHADE_COLOUR, lw=0, zorder=0,
                        label=label if (i == 0 and j == 0) else None)
+
+
+#: what the figures that shade load levels import when they first draw
+#: (:func:`seanv_analysis.analysis.tracking.load_levels_mpag` and its running
+#: median): their registry entries' ``imports``, paid while a worker warms up
+LOAD_LEVEL_IMPORTS = ("seanv_analysis.analysis.tracking", "scipy.ndimage")
 
 
 def shade_loads(axes, t_s, level_mpag) -> list:

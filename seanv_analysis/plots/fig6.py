@@ -22,6 +22,7 @@ from ..signals.align import align_run
 from ._style import (
     ACTUAL_COLOUR,
     DEFAULT_FORMATS,
+    LOAD_LEVEL_IMPORTS,
     TARGET_COLOUR,
     align_ylabels,
     legend_outside,
@@ -155,9 +156,10 @@ def draw_run(run, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS,
 
 register_figure(Figure(
     name="fig6", number=6, needs=("runs",), per_run=True, run_kind="position_control",
-    draw_run=draw_run, shown_with=("tracking",), order=20,
+    draw_run=draw_run, shown_with=("tracking",), order=20, imports=LOAD_LEVEL_IMPORTS,
     title="Fig. 6: position control under load variation, one figure per run"))
 register_figure(Figure(
     name="fig6_runs", needs=("position_runs",), draw=draw_runs, shown_with=("tracking",), order=21,
+    imports=LOAD_LEVEL_IMPORTS,
     title="Fig. 6: the position-control runs side by side, (a) without and (b) with the flow "
           "model"))

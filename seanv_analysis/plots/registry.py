@@ -80,6 +80,11 @@ class Figure:
         writes one part's files, and without ``part`` all of them. The
         figures stage draws each part as a task of its own, side by side on
         the workers (None: the figure is one task)
+    imports : modules its drawing imports the first time it draws, beyond
+        matplotlib and the modules of its inputs (e.g. ``scipy.ndimage`` for
+        the load levels Fig. 6 shades): a worker process warming up for the
+        figures imports them then, while the analysis runs, rather than in
+        the first figure it draws (:func:`~seanv_analysis.stages.figures.warm_figure_worker`)
     """
 
     name: str
@@ -93,6 +98,7 @@ class Figure:
     shown_with: tuple[str, ...] = ()
     order: float = float("inf")
     parts: Callable[[Mapping[str, Any]], Sequence[Any]] | None = None
+    imports: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         where = f"figure {self.name!r}"
@@ -106,6 +112,10 @@ class Figure:
         if not needs or not all(isinstance(n, str) and n for n in needs):
             raise ValueError(f"{where}: needs {list(needs)!r}; expected one or more result "
                              "names")
+        imports = (self.imports,) if isinstance(self.imports, str) else tuple(self.imports)
+        object.__setattr__(self, "imports", imports)
+        if not all(isinstance(m, str) and m for m in imports):
+            raise ValueError(f"{where}: imports {list(imports)!r}; expected module names")
         if self.number is not None and (isinstance(self.number, bool) or not isinstance(self.number, int)):
             raise ValueError(f"{where}: number must be an int or None, got {self.number!r}")
         if self.per_run:

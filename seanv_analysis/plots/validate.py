@@ -12,6 +12,7 @@ from ..io.names import safe_name
 from ._style import (
     ACTUAL_COLOUR,
     DEFAULT_FORMATS,
+    LOAD_LEVEL_IMPORTS,
     SIM_COLOUR,
     TARGET_COLOUR,
     align_ylabels,
@@ -142,5 +143,6 @@ def draw(results, folder: Path, *, formats: Sequence[str] = DEFAULT_FORMATS,
 
 register_figure(Figure(
     name="validate_fit", needs=("validation",), draw=draw, parts=parts, order=40,
+    imports=LOAD_LEVEL_IMPORTS,
     title="Closed-loop validation: measured vs simulated position control, fit % per run "
           "and overlays"))

@@ -29,7 +29,8 @@ from .validate import position_paths
 
 __all__ = ["NAME", "NEEDS", "WRITES", "OPTIONS", "FiguresResult", "check_option", "run", "write",
            "draw_figures", "draw_figure_task", "results_for_figures", "selected_figures",
-           "draw_run_figure", "warm_figure_worker", "figure_input_modules", "start_ahead"]
+           "draw_run_figure", "warm_figure_worker", "figure_input_modules", "figure_imports",
+           "start_ahead"]
 
 NAME = "figures"
 ORDER = 90
@@ -121,10 +122,24 @@ def figure_input_modules(pipe: Any) -> tuple[str, ...]:
     return tuple(dict.fromkeys(mods))
 
 
+def figure_imports(pipe: Any) -> tuple[str, ...]:
+    """What the figures of pipeline ``pipe`` import the first time they draw
+    (:attr:`Figure.imports <seanv_analysis.plots.Figure>` of each selected
+    figure), each once; () without a figures stage. Imported by the workers
+    while they warm up (:func:`warm_figure_worker`), not by this process
+    before their fork (unlike :func:`figure_input_modules`): it never draws."""
+    stage = pipe.stage(NAME)
+    if stage is None:
+        return ()
+    figs = selected_figures({**OPTIONS, **stage.options}["figs"])
+    return tuple(dict.fromkeys(m for f in figs for m in f.imports))
+
+
 def warm_figure_worker(modules: Sequence[str] = ()) -> None:
     """What a figure worker runs while the analysis goes on: import
     ``modules`` (:func:`figure_input_modules`: the results the figures will
-    be sent are then read without their imports; and
+    be sent are then read without their imports; :func:`figure_imports`:
+    what the figures import when they first draw; and
     :func:`~seanv_analysis.stages.catalogue.task_modules`: the data-set
     stages' tasks run without theirs) and pay the first figure's costs
     (:func:`seanv_analysis.plots.warm_up`)."""
