@@ -318,6 +318,31 @@ def test_a_figure_drawn_in_parts_is_a_task_per_part_and_the_same_files(tmp_path)
         for a, b in zip(res.paths[name], whole, strict=True):
             assert a.read_bytes() == b.read_bytes(), a.name
 
+    # started ahead, its first part drawn there and the others not begun
+    # when the figures stage came (run paper: validate's figure, drawn ahead
+    # during discover, was drawn again whole): the part drawn is taken, the
+    # two others are drawn here, and the files are those of the whole figure
+    from concurrent.futures import Future
+
+    from seanv_analysis.batch.executor import Started
+    from seanv_analysis.stages.figures import _jobs_of, draw_figure_task, figure_key
+
+    folder = tmp_path / "ahead"
+    inputs = {"validation": results["validation"]}
+    tasks = [(*job, ("png",)) for job in _jobs_of(FIGURES["validate_fit"], inputs, folder)]
+    futures = [Future() for _ in tasks]
+    futures[0].set_result((True, draw_figure_task(tasks[0], formats=("png",), rig=ctx.rig)))
+    for fut in futures[1:]:
+        fut.cancel()
+    key = figure_key("validate_fit", inputs, ("png",), ctx.rig)
+    ctx.ahead = {"figures": {"validate_fit": (key, str(folder), tasks, Started(futures))}}
+    jobs.clear()
+    res = draw_figures(ctx, ["validate_fit"], folder, formats=("png",))
+    assert jobs == [("part", "validate_fit", 1), ("part", "validate_fit", "summary")]
+    assert [p.name for p in res.paths["validate_fit"]] == [p.name for p in whole]  # (drawn above)
+    for a, b in zip(res.paths["validate_fit"], whole, strict=True):
+        assert a.read_bytes() == b.read_bytes(), a.name
+
 
 def _sleep(seconds: float) -> float:
     import time

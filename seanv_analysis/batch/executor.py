@@ -427,7 +427,11 @@ class Started:
     @property
     def whole(self) -> bool:
         """No task was cancelled: each ran or runs."""
-        return not any(fut.cancelled() for fut in self._futures)
+        return all(self.begun())
+
+    def begun(self) -> list[bool]:
+        """For each task, in order: it ran or runs (it was not cancelled)."""
+        return [not fut.cancelled() for fut in self._futures]
 
     def results(self) -> list:
         """Wait for the tasks: ``(ok, value or one-line error)`` each, in

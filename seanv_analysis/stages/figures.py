@@ -275,7 +275,8 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
             f"into {folder}")
     # the figures started ahead (start_ahead): those not begun yet are drawn
     # here; those begun are waited for after the rest (or, their inputs
-    # changed since, before the same files are drawn again)
+    # changed since, before the same files are drawn again); of a figure in
+    # parts, the parts begun are taken and the others drawn here
     ahead = getattr(ctx, "ahead", {}).pop(NAME, {})
     for *_, started in ahead.values():
         started.cancel_waiting()
@@ -313,8 +314,10 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
             continue
         fig_keys[fig.name] = key
         early = ahead.pop(fig.name, None)
-        if early is not None and early[:2] == (key, str(folder)) and early[3].whole:
+        if early is not None and early[:2] == (key, str(folder)):
             taken.append((early[2], early[3]))     # drawn ahead from the same inputs
+            # the tasks (parts) not begun there, here (a task: (*job, formats))
+            jobs += [task[:4] for task, begun in zip(early[2], early[3].begun()) if not begun]
             continue
         if early is not None:
             early[3].results()      # its files are drawn again below: not while it writes them
@@ -325,8 +328,8 @@ def draw_figures(ctx: Context, figs: Any, folder: Path, *, formats: tuple[str, .
     tasks = _split_formats(jobs, tuple(formats), getattr(ctx, "task_slots", 1))
     outcomes = map_tasks(draw_figure_task, tasks, kwargs={"formats": tuple(formats),
                                                           "rig": ctx.rig}, desc="figures")
-    done_ahead = [pair for early_tasks, started in taken
-                  for pair in zip(early_tasks, started.results())]
+    done_ahead = [(task, res) for early_tasks, started in taken
+                  for task, res in zip(early_tasks, started.results()) if res is not None]
     output_errors: list[str] = []
     per_run: dict[str, list[Path]] = {}
     parts: dict[str, list[Path]] = {}      # a data-set figure's files, over its tasks
