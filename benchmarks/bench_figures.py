@@ -9,6 +9,9 @@ ratios, the 1-minute load average before and after each comparison.
   (target <= 1.0x);
 - ``tracking`` and ``validate`` on ``paper-position`` (two 95 s runs) with
   their figures against ``--no-figures`` (target <= 1.5x);
+- each comparison also records the CPU time of both commands with their
+  worker processes and the ratio the first could reach at best on this
+  machine's cores doing the work it does (``cpu_floor_ratio``);
 - ``ingest`` (summary and manifest; no ``--samples``) of many flow-step runs
   (``paper-flowsteps`` copied with new run ids until there are
   ``INGEST_RUNS``) against ``flowfit --no-figures`` on the same runs
@@ -45,27 +48,49 @@ CLI = [sys.executable, "-m", "seanv_analysis"]
 
 def _wall(argv: list[str], cwd: Path) -> float:
     """Wall time [s] of one cold process (``CI=1``: no progress bars)."""
+    return _timed(argv, cwd)[0]
+
+
+def _timed(argv: list[str], cwd: Path) -> tuple[float, float]:
+    """(wall, CPU) time [s] of one cold process and its children (its worker
+    processes): user + system time, from the children's resource usage."""
+    import resource
+
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     subprocess.run(argv, cwd=cwd, check=True, stdout=subprocess.DEVNULL,
                    stderr=subprocess.DEVNULL, env={**os.environ, "CI": "1"})
-    return time.perf_counter() - t0
+    wall = time.perf_counter() - t0
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
 
 
 def pairs(a: list[str], b: list[str], cwd: Path, n: int) -> dict:
     """``n`` interleaved (a, b) pairs after one uncounted pair: medians [s],
-    per-pair ratios a/b and their median, the load before and after."""
+    per-pair ratios a/b and their median, the load before and after; and
+    the CPU time [s] of each command with its workers (medians) and
+    ``cpu_floor_ratio``: a's CPU spread over every core of the machine,
+    over b's wall time, the least ratio a could reach without doing less
+    work (a ratio target below it needs a to spend less CPU, not to
+    overlap more)."""
     load0 = os.getloadavg()
-    ta, tb = [], []
+    ta, tb, ca, cb = [], [], [], []
     for i in range(n + 1):
-        x, y = _wall(a, cwd), _wall(b, cwd)
+        (x, cx), (y, cy) = _timed(a, cwd), _timed(b, cwd)
         if i:
             ta.append(x)
             tb.append(y)
+            ca.append(cx)
+            cb.append(cy)
     ratios = [x / y for x, y in zip(ta, tb)]
+    cores = os.cpu_count() or 1
     return {"pairs": n, "a_median_s": round(statistics.median(ta), 3),
             "b_median_s": round(statistics.median(tb), 3),
             "ratio_median": round(statistics.median(ratios), 3),
             "ratios": [round(r, 3) for r in ratios],
+            "a_cpu_median_s": round(statistics.median(ca), 3),
+            "b_cpu_median_s": round(statistics.median(cb), 3),
+            "cpu_floor_ratio": round(statistics.median(ca) / cores / statistics.median(tb), 3),
             "load_before": [round(v, 2) for v in load0],
             "load_after": [round(v, 2) for v in os.getloadavg()]}
 
