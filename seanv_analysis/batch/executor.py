@@ -191,17 +191,7 @@ class Executor:
 
     def _process_pool(self) -> ProcessPoolExecutor:
         if self._pool is None:
-            methods = mp.get_all_start_methods()
-            ctx = mp.get_context("fork" if "fork" in methods and sys.platform.startswith("linux")
-                                 else "spawn")
-            # a forked pool starts every worker at the first submit, on this
-            # thread: the kernel's parent-death signal is safe when it is the
-            # main thread (it fires when the forking thread ends)
-            kernel_watch = (threading.current_thread() is threading.main_thread()
-                            and ctx.get_start_method() == "fork")
-            self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx,
-                                             initializer=_worker_init,
-                                             initargs=(os.getpid(), kernel_watch))
+            self._pool = _new_pool(self.workers, fork=True, initializer=_worker_init)
         return self._pool
 
     @staticmethod
@@ -324,14 +314,8 @@ class Executor:
         if self._background is None:
             # forked as the pool's workers are; spawned beside a Dask client
             # (its event loop's threads do not survive a fork)
-            fork = (self.kind == "process" and "fork" in mp.get_all_start_methods()
-                    and sys.platform.startswith("linux"))
-            ctx = mp.get_context("fork" if fork else "spawn")
-            kernel_watch = (threading.current_thread() is threading.main_thread()
-                            and ctx.get_start_method() == "fork")
-            self._background = ProcessPoolExecutor(max_workers=1, mp_context=ctx,
-                                                   initializer=_background_init,
-                                                   initargs=(os.getpid(), kernel_watch))
+            self._background = _new_pool(1, fork=self.kind == "process",
+                                         initializer=_background_init)
         return self._background
 
     def preload(self, modules: Sequence[str]) -> None:
@@ -359,6 +343,20 @@ class Executor:
         pool = self._process_pool()
         for _ in range(self.workers):
             pool.submit(func)         # not awaited: the pool keeps its own queue
+
+
+def _new_pool(workers: int, *, fork: bool, initializer: Callable[..., None]
+              ) -> ProcessPoolExecutor:
+    """A process pool of ``workers``, forked where ``fork`` and Linux allow
+    it (else spawned); ``initializer(parent pid, kernel_watch)`` starts each
+    worker. A forked pool starts every worker at the first submit, on that
+    thread: the kernel's parent-death signal is safe when it is the main
+    thread (it fires when the forking thread ends)."""
+    fork = fork and "fork" in mp.get_all_start_methods() and sys.platform.startswith("linux")
+    ctx = mp.get_context("fork" if fork else "spawn")
+    kernel_watch = threading.current_thread() is threading.main_thread() and fork
+    return ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=initializer,
+                               initargs=(os.getpid(), kernel_watch))
 
 
 class _OneAtATime:
@@ -423,11 +421,6 @@ class Started:
         itself); the one running goes on."""
         for fut in self._futures:
             fut.cancel()
-
-    @property
-    def whole(self) -> bool:
-        """No task was cancelled: each ran or runs."""
-        return all(self.begun())
 
     def begun(self) -> list[bool]:
         """For each task, in order: it ran or runs (it was not cancelled)."""

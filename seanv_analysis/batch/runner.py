@@ -449,8 +449,8 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             ex.preload(worker_modules)    # the workers start with them (forked at ingest)
             warm = None
             if any(has_role(s.name, "draws_figures") for s in pipe.stages):
-                warm = partial(ex.warm, partial(warm_figure_worker, tuple(dict.fromkeys(
-                    [*worker_modules, *figure_imports(pipe)]))))
+                warm = partial(ex.warm, partial(warm_figure_worker,
+                                                worker_modules + figure_imports(pipe)))
             stages = StageMemo(out / CACHE_DIRNAME, enabled=not force)
             with one_blas_thread():     # the data-set stages, here (the workers have one)
                 _run_stages(pipe, ctx, result, after_ingest=warm, run=stages.run)

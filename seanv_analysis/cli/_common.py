@@ -200,7 +200,7 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
             from ..stages.figures import warm_figure_worker
 
             warm = partial(ex.warm, partial(warm_figure_worker,
-                                            tuple(dict.fromkeys([*warm_modules, *warm_imports]))))
+                                            (*warm_modules, *warm_imports)))
             ctx.map_tasks, ctx.task_slots = partial(ex.tasks, quiet=quiet), ex.workers
         if big:
             ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm)
