@@ -13,6 +13,7 @@ from seanv_analysis.io.run_tables import RunTables, table_columns
 from seanv_analysis.signals.align import align_run, align_run_columns
 from seanv_analysis.signals.derive import (
     derive_columns,
+    derive_flow,
     derive_samples,
     estimate_flow,
     summarize_run,
@@ -74,6 +75,31 @@ def test_numpy_path_equals_dataframe_path_bit_for_bit(make_run, tmp_path):
         assert summarize_run(lazy, method="peak") == summarize_run(framed, method="peak",
                                                                     derived=frame)
         assert estimate_flow(lazy) == estimate_flow(framed, derived=frame)
+
+
+def test_flow_columns_alone_equal_the_full_derivation(make_run, tmp_path):
+    """derive_flow (the replays' path: time, position, flow only) gives
+    derive_samples' numbers on its time base: a position-control run whose
+    servo log starts later and ends sooner than the encoder's (the span
+    every stream bounds), its encoder clock jittered (the derivative
+    resampled), and a simulated replay."""
+    from seanv_analysis.sim.run import simulate_cam_replay
+
+    run = read_run(make_run(tmp_path / "pos", kind="position_control", duration_s=3.0))
+    jittered = run.tables.columns("encoder")
+    t = jittered["t_s"].copy()
+    t[1::7] += 0.3 * (t[1] - t[0])      # 30 % of a step: beyond the uniform tolerance
+    run.tables["encoder"] = pd.DataFrame({**jittered, "t_s": t})
+    sim, _ = simulate_cam_replay(run.rig, cam_cmd=([0.0, 1.0], [-15.0, 5.0]), load=0.3,
+                                 duration_s=2.0, x0_mm=20.0)
+    for r in (read_run(make_run(tmp_path / "pos2", kind="position_control", duration_s=3.0)),
+              run, sim):
+        frame = derive_samples(r)
+        flow = derive_flow(r)
+        assert list(flow) == ["t_s", "position_mm", "q_mm3_s"]
+        for col, values in flow.items():
+            assert np.array_equal(values, frame[col].to_numpy(), equal_nan=True), col
+    assert derive_samples(run).attrs["velocity"]["resampled"]
 
 
 def test_csv_from_columns_equals_csv_from_frame(tmp_path):

@@ -20,6 +20,7 @@ either, with the residuals' effective sample size.
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -80,19 +81,45 @@ def validate_on_twin(runs: Sequence[Any], valve, rig, effects: Sequence[str] = (
 
 @dataclass
 class Replay:
-    """One run replayed open loop on the twin: ``overlay`` (t_s, q_mm3_s /
-    q_sim_mm3_s [mm^3/s], position_mm / position_sim_mm [mm]) on the measured
-    time base, ``row`` (fit_flow_pct [%], rmse_flow_mm3_s) and each sample's
-    segment (the reference step it follows)."""
+    """One run replayed open loop on the twin, on the measured time base:
+    ``t`` [s], measured and simulated flow ``q``, ``q_sim`` [mm^3/s] (NaN
+    outside the simulated span) and position ``x``, ``x_sim`` [mm], each
+    sample's segment (the reference step it follows). ``overlay`` (the same
+    columns as a table: t_s, q_mm3_s / q_sim_mm3_s, position_mm /
+    position_sim_mm) and ``row`` (fit_flow_pct [%], rmse_flow_mm3_s) are
+    made when first read: a search that replays a run per twin it tries
+    reads neither."""
 
     run_id: str
-    overlay: pd.DataFrame = field(repr=False)
-    row: dict[str, Any] = field(default_factory=dict)
+    t: np.ndarray = field(repr=False)
+    q: np.ndarray = field(repr=False)
+    q_sim: np.ndarray = field(repr=False)
+    x: np.ndarray = field(repr=False)
+    x_sim: np.ndarray = field(repr=False)
     segment: np.ndarray | None = field(default=None, repr=False)
+
+    @property
+    def flow_error(self) -> np.ndarray:
+        """Measured minus simulated flow [mm^3/s] per sample (NaN where either is)."""
+        return self.q - self.q_sim
+
+    @functools.cached_property
+    def overlay(self) -> pd.DataFrame:
+        return pd.DataFrame({"t_s": self.t, "q_mm3_s": self.q, "q_sim_mm3_s": self.q_sim,
+                             "position_mm": self.x, "position_sim_mm": self.x_sim})
+
+    @functools.cached_property
+    def row(self) -> dict[str, Any]:
+        from ..analysis.validate import fit_percent
+
+        r = self.flow_error
+        return {"run_id": self.run_id, "fit_flow_pct": fit_percent(self.q, self.q_sim),
+                "rmse_flow_mm3_s": float(np.sqrt(np.nanmean(r * r))),
+                "n_samples": int(r.size)}
 
     def segment_sse(self) -> np.ndarray:
         """Sum of squared flow errors [(mm^3/s)^2] per segment."""
-        r = (self.overlay["q_mm3_s"] - self.overlay["q_sim_mm3_s"]).to_numpy(float)
+        r = self.flow_error
         ok = np.isfinite(r)
         seg = self.segment if self.segment is not None else np.zeros(r.size, int)
         return np.bincount(seg[ok], weights=r[ok] ** 2, minlength=int(seg.max()) + 1)
@@ -165,8 +192,7 @@ def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
     """``run`` (position control, or its prepared :class:`ReplayTarget`)
     replayed on the twin ``rig`` from its logged cam command and load steps,
     from its first logged position; None when it cannot be replayed."""
-    from ..analysis.validate import fit_percent
-    from ..signals.derive import derive_columns
+    from ..signals.derive import derive_flow
     from ..sim.run import simulate_cam_replay
 
     tg = run if isinstance(run, ReplayTarget) else replay_target(run, rig)
@@ -175,20 +201,14 @@ def replay_run(run, valve, rig, effects: Sequence[str] = ()) -> Replay | None:
     sim, _ = simulate_cam_replay(rig, cam_cmd=tg.cmd, load=tg.load, duration_s=tg.duration_s,
                                  x0_mm=tg.x0_mm, valve=valve, effects=tuple(effects),
                                  run_id=f"{tg.run_id}-replay")
-    ds, _ = derive_columns(sim)    # numpy, the numbers of derive_samples
+    ds = derive_flow(sim)    # the numbers of derive_samples
     tsim = np.asarray(ds["t_s"], dtype=float)
 
     def on_t(col):      # NaN outside the simulated span
         return np.interp(tg.t, tsim, np.asarray(ds[col], dtype=float), left=np.nan, right=np.nan)
 
-    q_sim = on_t("q_mm3_s")
-    ov = pd.DataFrame({"t_s": tg.t, "q_mm3_s": tg.q, "q_sim_mm3_s": q_sim,
-                       "position_mm": tg.x, "position_sim_mm": on_t("position_mm")})
-    r = np.asarray(tg.q, dtype=float) - q_sim
-    row = {"run_id": tg.run_id, "fit_flow_pct": fit_percent(tg.q, q_sim),
-           "rmse_flow_mm3_s": float(np.sqrt(np.nanmean(r * r))),
-           "n_samples": int(r.size)}
-    return Replay(tg.run_id, ov, row, tg.segment)
+    return Replay(tg.run_id, tg.t, np.asarray(tg.q, dtype=float), on_t("q_mm3_s"), tg.x,
+                  on_t("position_mm"), tg.segment)
 
 
 def replay_targets(runs: Sequence[Any], rig) -> list[ReplayTarget]:
@@ -213,7 +233,8 @@ def flow_sse(validations, *, effective: bool = True) -> tuple[float, float, int]
     flow, NaN samples left out."""
     sse, n_eff, n = 0.0, 0.0 if effective else float("nan"), 0
     for v in validations:
-        r = (v.overlay["q_mm3_s"] - v.overlay["q_sim_mm3_s"]).to_numpy(float)
+        r = v.flow_error if isinstance(v, Replay) else \
+            (v.overlay["q_mm3_s"] - v.overlay["q_sim_mm3_s"]).to_numpy(float)
         r = r[np.isfinite(r)]
         if r.size < 10:
             continue

@@ -213,8 +213,7 @@ def _heldout_drop_p(before, after) -> float:
 
     d = []
     for b, a in zip(before, after):
-        eb = (b.overlay["q_mm3_s"] - b.overlay["q_sim_mm3_s"]).to_numpy(float)
-        ea = (a.overlay["q_mm3_s"] - a.overlay["q_sim_mm3_s"]).to_numpy(float)
+        eb, ea = b.flow_error, a.flow_error
         ok = np.isfinite(eb) & np.isfinite(ea)
         d.append(eb[ok] ** 2 - ea[ok] ** 2)
     d = np.concatenate(d) if d else np.zeros(0)

@@ -226,11 +226,14 @@ def align_run(run: Run, *, t_s: np.ndarray | None = None) -> pd.DataFrame:
     return align_streams(streams, t_s=t_s, base=base)
 
 
-def align_run_columns(run: Run, *, t_s: np.ndarray | None = None) -> dict[str, np.ndarray]:
+def align_run_columns(run: Run, *, t_s: np.ndarray | None = None,
+                      columns: Collection[str] | None = None) -> dict[str, np.ndarray]:
     """:func:`align_run` as {column: numpy array}, without pandas (the run's
     tables' DataFrames are not built): the same columns and numbers. On the
     encoder's time base its columns are views of the run's arrays (read
-    them, do not write)."""
+    them, do not write). ``columns``: only these value columns (and
+    ``t_s``), on the same time base as all of them (every stream still
+    bounds it)."""
     streams = {}
     for name in run.tables:
         try:
@@ -238,7 +241,8 @@ def align_run_columns(run: Run, *, t_s: np.ndarray | None = None) -> dict[str, n
         except KeyError:
             continue
         cols = table_columns(run.tables, name)
-        streams[name] = {c: cols[c] for c in wanted if c in cols}
+        streams[name] = {c: cols[c] for c in wanted
+                         if c in cols and (columns is None or c == "t_s" or c in columns)}
     base = "encoder" if "encoder" in streams else next(iter(streams))
     return align_columns(streams, t_s=t_s, base=base)
 
