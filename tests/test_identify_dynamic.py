@@ -93,3 +93,34 @@ def test_clean_position_runs_name_no_dynamic_effect(foreign_data):
     d = ctx.result("discover").discovery
     assert not d.position_control["found"], d.position_control["message"]
     assert d.verdict == "none", d.effects
+
+
+def test_bulk_search_from_the_middle_finds_the_grid_least_in_fewer_replays():
+    """Each value's bulk moduli are searched from the middle three of the
+    grid outwards: where the error is unimodal in B along the grid, the
+    least is the whole grid's (the same pair), in 3 replays (least inside)
+    or 4 (at an edge) instead of 5; where it is not, a least among those
+    evaluated."""
+    import math
+
+    from seanv_analysis.identify.dynamic import _BULK_FACTORS, _least_over_bulk
+
+    b0 = 150.0
+    where = {"inside": 1.15, "low": 0.4, "high": 3.0, "edge_low": 0.62}   # the error's least [x b0]
+    asked: list[tuple[str, float]] = []
+
+    def costs_of(pairs):
+        asked.extend(p for p in pairs if p not in asked)
+        return [(math.log(b / b0) - math.log(where[k])) ** 2 + 1.0 for k, b in pairs]
+
+    got = _least_over_bulk(costs_of, list(where), b0)
+    per_key = {k: sum(1 for a, _ in asked if a == k) for k in where}
+    assert per_key == {"inside": 3, "low": 4, "high": 4, "edge_low": 4}
+    for k in where:
+        grid = [(costs_of([(k, b0 * f)])[0], b0 * f) for f in _BULK_FACTORS]
+        assert got[k] == min(grid), k
+
+    # two dips: the search stays in the middle one, a least of those it evaluated
+    bumpy = _least_over_bulk(lambda pairs: [-1.0 if b == b0 * 0.5 else abs(b / b0 - 1.0)
+                                            for _, b in pairs], ["x"], b0)
+    assert bumpy["x"] == (0.0, b0)

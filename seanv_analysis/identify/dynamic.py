@@ -15,7 +15,8 @@ effect's value (see :mod:`.closedloop`).
 The line's bulk modulus was identified without the effect and may have
 taken part of it (a softer line mimics a delay: the two lie along one
 valley of the error), so it is refitted jointly with each candidate (a grid
-of both, then COBYQA's quadratic models on the value and log B, which
+of both, each value's bulk moduli searched from the middle of their grid
+outwards, then COBYQA's quadratic models on the value and log B, which
 smooth the error's roughness in B): the candidate must beat the base twin
 with its constants free. An effect is named when
 
@@ -388,8 +389,7 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
     # the base twin with its line free as well: a candidate must beat the line
     # refitted alone, not the line as identified (which may sit at the edge
     # of its range and keep the rig file's value)
-    base_costs = costs_of([(None, b0 * k) for k in _BULK_FACTORS])
-    sse0, base_bulk = min(zip(base_costs, (b0 * k for k in _BULK_FACTORS)))
+    sse0, base_bulk = _least_over_bulk(costs_of, [None], b0)[None]
     r0 = optimize.minimize_scalar(lambda lb: cost(None, float(f"{math.exp(lb):.5g}")),
                                   bounds=(math.log(base_bulk / 1.25), math.log(base_bulk * 1.25)),
                                   method="bounded", options={"xatol": 0.01, "maxiter": 12})
@@ -406,10 +406,9 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         # softer line mimics a delay, so the two lie along one valley): the
         # grid of both, then quadratic models of the error on (value, log B)
         # around its best point (:func:`_refine`)
-        points = [(v, b0 * k) for v in grid for k in _BULK_FACTORS]
-        sse1, best, bulk = min(
-            (c, v, b) for c, (v, b) in zip(costs_of([(f"{name}:{param}={v:g}", b)
-                                                     for v, b in points]), points))
+        values = {f"{name}:{param}={v:g}": v for v in grid}
+        sse1, best, bulk = min((c, values[spec], b) for spec, (c, b)
+                               in _least_over_bulk(costs_of, list(values), b0).items())
 
         def joint(z, name=name, param=param) -> float:
             return cost(f"{name}:{param}={max(z[0], 0.0):.4g}", float(f"{math.exp(z[1]):.5g}"))
@@ -501,6 +500,35 @@ def closed_loop_effects(train: Sequence[Any], held: Sequence[Any], valve, rig, *
         f.heldout_segments_p_value = _segment_drop_p(base, after, seed=seed)
         f.named = _confirmed(f, min_improvement, alpha_heldout / 2.0)
     return findings, base_held
+
+
+def _least_over_bulk(costs_of, keys: Sequence[Any], b0: float) -> dict[Any, tuple[float, float]]:
+    """{key: (least training SSE, its bulk modulus [MPa])} of each ``key``
+    (an effect spec; None: none) over the bulk moduli ``b0`` x
+    :data:`_BULK_FACTORS`, ``costs_of([(key, bulk), ...])`` giving the SSEs.
+
+    The middle three factors first, then outwards a factor a round while a
+    key's least lies at the edge of the factors it has (each round's new
+    pairs of every key together, on threads): where the SSE is unimodal in
+    B along the grid, the whole grid's least (the same pair, bit for bit),
+    in 3 or 4 replays of 5."""
+    n = len(_BULK_FACTORS)
+    span = {k: (n // 2 - 1, n // 2 + 1) for k in keys}
+    while True:
+        pairs = [(k, b0 * _BULK_FACTORS[i]) for k in keys
+                 for i in range(span[k][0], span[k][1] + 1)]
+        got = dict(zip(pairs, costs_of(pairs)))
+        least, grown = {}, False
+        for k in keys:
+            lo, hi = span[k]
+            i = min(range(lo, hi + 1), key=lambda j, k=k: (got[(k, b0 * _BULK_FACTORS[j])], j))
+            least[k] = (got[(k, b0 * _BULK_FACTORS[i])], b0 * _BULK_FACTORS[i])
+            if i == lo and lo > 0:
+                span[k], grown = (lo - 1, hi), True
+            elif i == hi and hi < n - 1:
+                span[k], grown = (lo, hi + 1), True
+        if not grown:
+            return least
 
 
 def _confirmed(f: DynamicFinding, min_improvement: float, alpha: float) -> bool:
