@@ -281,28 +281,17 @@ def _add_column(df: pd.DataFrame, name: str, values: np.ndarray) -> None:
     df[name] = pd.Series(values, index=df.index, copy=False)
 
 
-def _derivative_settings(run: Run, window_s: float | None,
-                         polyorder: int | None) -> tuple[float, int]:
-    """(window [s], polynomial order) of the derivative: the given ones, else
-    the rig's ``analysis`` settings."""
-    analysis = run.rig.analysis
-    return (float(analysis["derivative_window_s"]) if window_s is None else window_s,
-            int(analysis["derivative_polyorder"]) if polyorder is None else polyorder)
-
-
-def _encoder(run: Run) -> dict[str, np.ndarray] | None:
-    """The run's encoder table as {column: array}; None without rows."""
-    enc = table_columns(run.tables, "encoder") if "encoder" in run.tables else None
-    return enc if enc is not None and _n_rows(enc) else None
-
-
 def _derive(run: Run, align, *, window_s: float | None, polyorder: int | None, overlap: bool):
     """(aligned table, {velocity_mm_s, q_mm3_s, dp_supply_mpa, dp_drain_mpa},
     DerivativeInfo) of :func:`derive_samples`; ``align(run)`` gives the
     aligned table (a DataFrame or {column: array}); ``overlap``: a long
     record's derivative may run on a helper thread beside it."""
-    window_s, polyorder = _derivative_settings(run, window_s, polyorder)
-    enc = _encoder(run)
+    analysis = run.rig.analysis
+    window_s = float(analysis["derivative_window_s"]) if window_s is None else window_s
+    polyorder = int(analysis["derivative_polyorder"]) if polyorder is None else polyorder
+    enc = table_columns(run.tables, "encoder") if "encoder" in run.tables else None
+    if enc is not None and not _n_rows(enc):
+        enc = None
     derivative = helper = pending = None
     if enc is not None:
         derivative = functools.partial(velocity_mm_s, enc["t_s"], enc["position_mm"],
@@ -406,24 +395,21 @@ def derive_columns(run: Run, *, aligned: Mapping[str, np.ndarray] | None = None,
     return cols, info
 
 
+#: the aligned columns :func:`_derive` reads (beside ``t_s``)
+_DERIVE_READS = ("position_mm", "p_supply_mpag", "p_head_mpag", "p_tank_mpag")
+
+
 def derive_flow(run: Run, *, window_s: float | None = None,
                 polyorder: int | None = None) -> dict[str, np.ndarray]:
     """``t_s`` [s], ``position_mm`` [mm] and ``q_mm3_s`` [mm^3/s] of
-    :func:`derive_columns` (the same numbers, on the same time base), without
-    aligning the other columns: what a comparison of actuator flows needs
-    (identify's and discover's replays, one per twin they try). A run without
-    encoder rows takes :func:`derive_columns` whole."""
-    enc = _encoder(run)
-    if enc is None:
-        cols, _ = derive_columns(run, window_s=window_s, polyorder=polyorder)
-        return {k: cols[k] for k in ("t_s", "position_mm", "q_mm3_s")}
-    window_s, polyorder = _derivative_settings(run, window_s, polyorder)
-    t = align_run_columns(run, columns=("position_mm",))
-    v_enc, _ = velocity_mm_s(enc["t_s"], enc["position_mm"], window_s=window_s,
-                             polyorder=polyorder)
-    v = interp_sorted(t["t_s"], np.asarray(enc["t_s"], dtype=np.float64), v_enc, copy=False)
-    return {"t_s": t["t_s"], "position_mm": t["position_mm"],
-            "q_mm3_s": flow_from_velocity(v, run.rig.piston_area_mm2)}
+    :func:`derive_columns` (the same numbers, on the same time base), with
+    only the columns the derivation reads aligned: what a comparison of
+    actuator flows needs (identify's and discover's replays, one per twin
+    they try)."""
+    cols, derived, _ = _derive(run, lambda r: align_run_columns(r, columns=_DERIVE_READS),
+                               window_s=window_s, polyorder=polyorder, overlap=False)
+    return {"t_s": cols["t_s"], "position_mm": cols["position_mm"],
+            "q_mm3_s": derived["q_mm3_s"]}
 
 
 # ---------------------------------------------------------------------------
