@@ -293,6 +293,12 @@ class RunValidation:
     #: empty when none was made)
     segment_starts_s: np.ndarray = field(default_factory=lambda: np.zeros(0), repr=False)
 
+    @property
+    def flow_error(self) -> np.ndarray:
+        """Measured minus re-simulated (whole run) flow [mm^3/s] per sample
+        (NaN where either is)."""
+        return (self.overlay["q_mm3_s"] - self.overlay["q_sim_mm3_s"]).to_numpy(float)
+
 
 def _applicable(rec: dict[str, Any]) -> dict[str, Any]:
     """``rec`` without the gain key of the other controller (kp_* null)."""

@@ -233,8 +233,7 @@ def flow_sse(validations, *, effective: bool = True) -> tuple[float, float, int]
     flow, NaN samples left out."""
     sse, n_eff, n = 0.0, 0.0 if effective else float("nan"), 0
     for v in validations:
-        r = v.flow_error if isinstance(v, Replay) else \
-            (v.overlay["q_mm3_s"] - v.overlay["q_sim_mm3_s"]).to_numpy(float)
+        r = v.flow_error
         r = r[np.isfinite(r)]
         if r.size < 10:
             continue
