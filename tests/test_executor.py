@@ -72,3 +72,40 @@ def test_pool_results_in_input_order_with_errors_in_place():
 
 def _inverse(x: int) -> float:
     return 1.0 / x
+
+
+
+def test_imports_beside_start_after_the_workers_are_forked():
+    """``import_beside``: the pool's workers are forked before the thread
+    starts (a fork while a thread holds an import lock can leave a child
+    waiting on it forever), the modules are imported once the wait returns,
+    and the workers did not inherit them; the thread has ended when the
+    executor closes; a second call, the serial back end and an empty list do
+    nothing. In a fresh interpreter: a module no test has imported."""
+    from fresh_process import last_literal
+
+    code = """
+import sys, threading
+from seanv_analysis.batch.executor import make_executor, _nothing
+
+def has(module):
+    return module in sys.modules
+
+mod = "xml.dom.minidom"
+with make_executor(workers=2) as ex:
+    wait = ex.import_beside([mod])
+    forked = len(ex._pool._processes)
+    again = ex.import_beside(["xml.sax"]) is _nothing
+    wait()
+    here = mod in sys.modules
+    there = [r.value for r in ex.map(has, [mod] * 2, quiet=True)]
+    empty = ex.import_beside([]) is _nothing
+threads = [t.name for t in threading.enumerate() if t.name == "seanv-import-beside"]
+with make_executor(workers=1) as ex:
+    serial = ex.import_beside(["xml.sax"]) is _nothing and "xml.sax" not in sys.modules
+print((forked, again, here, there, empty, threads, serial))
+"""
+    forked, again, here, there, empty, threads, serial = last_literal(code)
+    assert forked == 2 and again and here and empty and serial
+    assert there == [False, False]
+    assert threads == []

@@ -404,3 +404,45 @@ def test_figures_started_ahead_are_taken_redrawn_or_drawn_here(position_ctx, tmp
     for res in (taken, redrawn, busy):
         assert not res.problems and [p.name for p in res.paths["fig6_runs"]] == ["fig6.png"]
         assert res.paths["fig6_runs"][0].read_bytes() == here[0].read_bytes()
+
+
+@pytest.mark.parametrize("stage", ["flowfit", "tracking", "validate"])
+def test_a_stage_imports_what_it_declares_to_import_beside_ingest(tmp_path, stage):
+    """A stage's ``IMPORTS`` (what a command's process imports on a thread
+    while its workers read the runs: ``stage_imports``) are what the stage
+    imports when it runs and writes, and ingest had not imported: a stale
+    entry would be imported for nothing, a missing one paid after ingest.
+    In a fresh interpreter."""
+    import json
+
+    import pandas as pd
+    from conftest import write_synthetic_dataset
+    from fresh_process import last_literal
+
+    from seanv_analysis.stages import STAGES
+    from seanv_analysis.stages.catalogue import stage_imports
+    from seanv_analysis.stages.pipeline import load_pipeline
+
+    root = write_synthetic_dataset(tmp_path / "data", n_flow=8, n_position=1, duration_s=2.0)
+    run = root / "pos000"                  # a load step (validate finds its onset)
+    p = pd.read_csv(run / "pressure.csv")
+    p.loc[p["t_s"] >= 1.0, "p_load_mpag"] += 0.1
+    p.to_csv(run / "pressure.csv", index=False)
+    meta = json.loads((run / "run.json").read_text())
+    (run / "run.json").write_text(json.dumps({**meta, "load_mpag": None}))
+    mods = STAGES[stage].IMPORTS
+    assert mods and set(mods) <= set(stage_imports(load_pipeline("paper")))
+    code = f"""
+import sys
+from seanv_analysis.stages import STAGES
+from seanv_analysis.stages.execute import run_stages
+ctx = run_stages({str(root)!r}, ["ingest"])
+after_ingest = [m for m in {mods!r} if m in sys.modules]
+ctx = run_stages({str(root)!r}, ["ingest", {stage!r}], options={{"flowfit": {{"n_boot": 0}}}}
+                 if {stage!r} == "flowfit" else None)
+STAGES[{stage!r}].write(ctx.result({stage!r}), __import__("pathlib").Path({str(tmp_path)!r}))
+print((after_ingest, [m for m in {mods!r} if m in sys.modules]))
+"""
+    after_ingest, after_stage = last_literal(code)
+    assert after_ingest == []
+    assert after_stage == list(mods)

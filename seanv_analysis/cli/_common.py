@@ -163,7 +163,8 @@ AUTO_PARALLEL_MIN_RUNS = 64
 
 @contextmanager
 def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures: bool = False,
-                  warm_modules: Sequence[str] = (), warm_imports: Sequence[str] = ()):
+                  warm_modules: Sequence[str] = (), warm_imports: Sequence[str] = (),
+                  main_imports: Sequence[str] = ()):
     """The :class:`~seanv_analysis.stages.Context` of a single command: per-run
     work in this process, or on all cores for large data sets (no cache)
     inside the block; in this process after it. With ``figures`` (the
@@ -172,7 +173,11 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
     and import ``warm_modules`` (the modules of the results the figures will
     be sent: :func:`seanv_analysis.stages.figures.warm_figure_worker`;
     imported here first, so the workers inherit them) and ``warm_imports``
-    (what the figures import when they first draw; only there).
+    (what the figures import when they first draw; only there). With the
+    runs read on all cores, this process imports ``main_imports`` (what its
+    stages will import: :func:`~seanv_analysis.stages.catalogue.stage_imports`)
+    meanwhile, on a thread (:meth:`~seanv_analysis.batch.executor.Executor.import_beside`),
+    which the stages after ingest wait for.
 
     No figure is started ahead (``ctx.start_tasks``) here, unlike in
     ``run``: a command's analysis (1-2 s) is shorter than its workers'
@@ -203,7 +208,8 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
                                             (*warm_modules, *warm_imports)))
             ctx.map_tasks, ctx.task_slots = partial(ex.tasks, quiet=quiet), ex.workers
         if big:
-            ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm)
+            imported = ex.import_beside(main_imports)
+            ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm, imported)
         elif warm is not None:
             warm()
         try:
@@ -213,21 +219,22 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
 
 
 class _WarmAfter:
-    """A run mapper that calls ``warm()`` once its first batch (ingest) has
-    ended: the workers are idle from then on, while the analysis runs in
-    the main process, and load matplotlib then rather than delaying the
-    runs' reading."""
+    """A run mapper that, once its first batch (ingest) has ended, waits for
+    ``imported()`` (this process's imports beside it) and calls ``warm()``:
+    the workers are idle from then on, while the analysis runs in the main
+    process, and load matplotlib then rather than delaying the runs'
+    reading."""
 
-    def __init__(self, mapper, warm):
-        self.mapper, self.warm = mapper, warm
+    def __init__(self, mapper, warm, imported=None):
+        self.mapper, self.after = mapper, [f for f in (imported, warm) if f is not None]
 
     def __call__(self, *args, **kwargs):
         try:
             return self.mapper(*args, **kwargs)
         finally:
-            if self.warm is not None:
-                self.warm, warm = None, self.warm
-                warm()
+            after, self.after = self.after, []
+            for then in after:
+                then()
 
 
 def command_pipeline(command: str, stages: Sequence[dict], *, ingest: dict | None = None,
@@ -348,13 +355,14 @@ def _run_in(pipe, data, first, folder: Path, *, rig, model, quiet, folders, main
         if value is not None and name != "ingest":
             written.extend(Path(p) for p in stages[name].write(value, folder / folders.get(name, ".")))
 
-    from ..stages.catalogue import task_modules
+    from ..stages.catalogue import stage_imports, task_modules
     from ..stages.figures import figure_imports, figure_input_modules
 
     figures = any(s.name == "figures" for s in pipe.stages)
     with stage_context(data, rig=rig, out_dir=folder, model=model, quiet=quiet, figures=figures,
                        warm_modules=figure_input_modules(pipe) + task_modules(pipe),
-                       warm_imports=figure_imports(pipe)) as ctx, \
+                       warm_imports=figure_imports(pipe),
+                       main_imports=stage_imports(pipe)) as ctx, \
             warnings.catch_warnings(record=True):
         warnings.simplefilter("always")   # a result keeps what matters (skipped runs, notes)
         try:

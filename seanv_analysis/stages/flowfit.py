@@ -35,6 +35,10 @@ OPTIONS: dict[str, Any] = {"sides": ["supply", "drain"], "procedure": "joint", "
                            "n_boot": 200, "seed": 0}
 
 
+#: what its code imports only when it runs (scipy.optimize: the fits;
+#: pyarrow.parquet: per_run.parquet), imported beside ingest
+#: (:func:`~seanv_analysis.stages.catalogue.stage_imports`)
+IMPORTS = ("scipy.optimize", "pyarrow.parquet")
 def check_option(key: str, value: Any) -> Any:
     if key == "sides" and (not isinstance(value, list) or not value
                            or any(v not in ("supply", "drain") for v in value)):

@@ -31,6 +31,10 @@ DESCRIPTION = "flow delay behind Q_ref and tracking RMSE of the position-control
 #: shift_s: delay of the flow behind Q_ref [s], 0..MAX_SHIFT_S (None: estimated);
 #: q_range: the Q_ref band of the RMSE [mm^3/s] (Fig. 7(b))
 OPTIONS: dict[str, Any] = {"shift_s": None, "q_range": [-2.5e3, 8e3]}
+#: what its code imports only when it runs (scipy.ndimage: the load
+#: levels' median filter; pyarrow.parquet: the per-run tables), imported
+#: beside ingest (:func:`~seanv_analysis.stages.catalogue.stage_imports`)
+IMPORTS = ("scipy.ndimage", "pyarrow.parquet")
 #: the largest delay a shift may compensate [s]: the paper's is 0.25 s; a
 #: shift of seconds compares the flow with a target it never followed
 #: (--shift 25 gave RMSE 1144 without a word)

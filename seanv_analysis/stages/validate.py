@@ -41,6 +41,10 @@ DESCRIPTION = "re-run each position-control run's controller on the simulated pl
 OPTIONS: dict[str, Any] = {"threshold_pct": 80.0, "controller_model": "rig", "effects": []}
 
 
+#: what its code imports only when it runs (scipy.ndimage: the load
+#: steps' onsets; pyarrow.parquet: the overlays' tables), imported
+#: beside ingest (:func:`~seanv_analysis.stages.catalogue.stage_imports`)
+IMPORTS = ("scipy.ndimage", "pyarrow.parquet")
 def check_option(key: str, value: Any) -> Any:
     if key == "threshold_pct":
         if (not isinstance(value, (int, float)) or isinstance(value, bool)
