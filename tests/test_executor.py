@@ -74,7 +74,6 @@ def _inverse(x: int) -> float:
     return 1.0 / x
 
 
-
 def test_imports_beside_start_after_the_workers_are_forked():
     """``import_beside``: the pool's workers are forked before the thread
     starts (a fork while a thread holds an import lock can leave a child
