@@ -193,20 +193,28 @@ def _valid_correlations(longs, shorts, pairs) -> np.ndarray:
     return np.array([np.fft.irfft(fl[i] * fs[j], nfft)[:n_long - n_short + 1] for i, j in pairs])
 
 
-def _pearson(per_block: np.ndarray, min_pairs: int = 3) -> np.ndarray:
-    """Pooled within-block correlation r(tau) from per-block sums.
+def _centred(per_block: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Each block's (n, C_xy, C_xx, C_yy), shape (n_blocks, 2 n_lag + 1)
+    each: its co- and variances' sums about the block's own means (as
+    Welch's cross-spectrum detrends each segment), from its sums
+    (:func:`_block_sums`). Computed once: a bootstrap resample sums the
+    blocks it picks (:func:`_pearson`)."""
+    n, sx, sy, sxx, syy, sxy = np.moveaxis(per_block, 1, 0)
+    inv = np.where(n > 0, 1.0 / np.where(n > 0, n, 1.0), 0.0)
+    return (n, sxy - sx * sy * inv, np.maximum(sxx - sx * sx * inv, 0.0),
+            np.maximum(syy - sy * sy * inv, 0.0))
 
-    Each block's covariance and variances are taken about that block's own
-    means (as Welch's cross-spectrum detrends each segment) and then summed:
+
+def _pearson(centred: tuple[np.ndarray, ...], pick: np.ndarray | None = None,
+             min_pairs: int = 3) -> np.ndarray:
+    """Pooled within-block correlation r(tau) of the blocks ``pick`` (all
+    when None) from their centred sums (:func:`_centred`):
     r = sum_b C_xy,b / sqrt(sum_b C_xx,b sum_b C_yy,b). Levels that differ
     from block to block (holds at different Q_ref) carry no timing and do
     not enter; for a single block this is the plain Pearson correlation.
     """
-    n, sx, sy, sxx, syy, sxy = np.moveaxis(per_block, 1, 0)
-    inv = np.where(n > 0, 1.0 / np.where(n > 0, n, 1.0), 0.0)
-    cxy = np.sum(sxy - sx * sy * inv, axis=0)
-    cxx = np.sum(np.maximum(sxx - sx * sx * inv, 0.0), axis=0)
-    cyy = np.sum(np.maximum(syy - sy * sy * inv, 0.0), axis=0)
+    n, cxy, cxx, cyy = centred if pick is None else (a[pick] for a in centred)
+    cxy, cxx, cyy = (np.sum(a, axis=0) for a in (cxy, cxx, cyy))
     var = cxx * cyy
     with np.errstate(invalid="ignore", divide="ignore"):
         r = cxy / np.sqrt(np.where(var > 0, var, np.nan))
@@ -290,7 +298,8 @@ def estimate_lag_segments(segments: Sequence[tuple[Any, Any, Any]], *, max_lag_s
         return LagEstimate(math.nan, None, math.nan, method, dt, 0, 0, lags_n * dt,
                            np.full(lags_n.size, np.nan), False, "no valid samples")
     per_block = np.concatenate(blocks)
-    r = _pearson(per_block)
+    centred = _centred(per_block)
+    r = _pearson(centred)
     lag, peak, edge = _peak(r, lags_n, dt)
     messages = []
     success = math.isfinite(lag)
@@ -310,7 +319,7 @@ def estimate_lag_segments(segments: Sequence[tuple[Any, Any, Any]], *, max_lag_s
         for j in range(n_boot):
             pick = np.concatenate((rng.choice(varying, varying.size),
                                    rng.choice(held, held.size) if held.size else held))
-            boot[j] = _peak(_pearson(per_block[pick]), lags_n, dt)[0]
+            boot[j] = _peak(_pearson(centred, pick), lags_n, dt)[0]
         boot = boot[np.isfinite(boot)]
         if boot.size >= 10:
             lo, hi = np.percentile(boot, [2.5, 97.5])
