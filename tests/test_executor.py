@@ -108,3 +108,35 @@ print((forked, again, here, there, empty, threads, serial))
     assert forked == 2 and again and here and empty and serial
     assert there == [False, False]
     assert threads == []
+
+
+def test_an_interrupted_executor_does_not_wait_for_its_imports(tmp_path, monkeypatch):
+    """Ctrl-C while the thread of ``import_beside`` imports: the executor
+    closes (``wait=False``, as on an interrupt) without waiting for it, and
+    a command's run mapper (:class:`seanv_analysis.cli._common._WarmAfter`)
+    neither waits for the imports nor warms the workers after a batch that
+    raised; after one that ended it does both, once, the imports first."""
+    import time
+
+    from seanv_analysis.cli._common import _WarmAfter
+
+    (tmp_path / "seanv_slow_import_probe.py").write_text("import time\ntime.sleep(5.0)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    t0 = time.monotonic()
+    ex = make_executor(workers=2)
+    ex.import_beside(["seanv_slow_import_probe"])
+    ex.close(wait=False)
+    assert time.monotonic() - t0 < 2.5
+
+    calls = []
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    mapper = _WarmAfter(interrupted, lambda: calls.append("warm"), lambda: calls.append("imported"))
+    with pytest.raises(KeyboardInterrupt):
+        mapper("ingest")
+    assert calls == []
+    mapper.mapper = lambda *args, **kwargs: "read"
+    assert mapper("ingest") == "read" and mapper("again") == "read"
+    assert calls == ["imported", "warm"]

@@ -223,18 +223,18 @@ class _WarmAfter:
     ``imported()`` (this process's imports beside it) and calls ``warm()``:
     the workers are idle from then on, while the analysis runs in the main
     process, and load matplotlib then rather than delaying the runs'
-    reading."""
+    reading. Not after a batch that raised (Ctrl-C: the command ends at
+    once, not after the imports)."""
 
     def __init__(self, mapper, warm, imported=None):
         self.mapper, self.after = mapper, [f for f in (imported, warm) if f is not None]
 
     def __call__(self, *args, **kwargs):
-        try:
-            return self.mapper(*args, **kwargs)
-        finally:
-            after, self.after = self.after, []
-            for then in after:
-                then()
+        out = self.mapper(*args, **kwargs)
+        after, self.after = self.after, []
+        for then in after:
+            then()
+        return out
 
 
 def command_pipeline(command: str, stages: Sequence[dict], *, ingest: dict | None = None,
