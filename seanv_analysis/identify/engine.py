@@ -94,10 +94,9 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     parts : which of :data:`PARTS` to identify
     n_boot : bootstrap resamples of the z0/C refit
     map_tasks : the executor's task mapper (worker processes or Dask): the
-        servo's, the friction's and the load regulator's fits and the flow
-        fits of the geometry part (the refit and y_c's interval edges) run
-        there as tasks, beside this process; the same numbers as without
-        (None: all here, the servo, friction and load parts on threads)
+        servo's fit and the flow fits of the geometry part (the refit and
+        y_c's interval edges) run there as tasks, beside this process; the
+        same numbers as without (None: all here, the servo on a thread)
 
     Returns
     -------
@@ -107,25 +106,13 @@ def identify_rig(summary: pd.DataFrame, rig, *, position_runs: Sequence[Any] = (
     if unknown:
         raise ValueError(f"parts: unknown {sorted(unknown)}; expected some of {list(PARTS)}")
     train_pos, held_pos = split_runs(position_runs)
-    with ThreadPoolExecutor(max_workers=3, thread_name_prefix="seanv-part") as pool:
-        # the parts that read only their logs and rig sections no part before
-        # them identifies run beside the geometry's, each result taken in its
-        # place (the same numbers): the servo's fit (its logs, the rig file's
-        # servo section), the friction's force balance (the flow steps'
-        # summary and the position runs' starts; the actuator, tube and
-        # fluid sections) and the load regulator's fit (the logged load
-        # pressure; the load section)
-        early = {"servo": (lambda: _servo_part(train_pos, held_pos, flow_runs, rig, map_tasks)),
-                 "friction": (lambda: _on_tasks(map_tasks, _friction_task, [summary],
-                                                {"rig": rig, "runs": position_runs},
-                                                "identify: friction")[0]),
-                 "load": (lambda: _on_tasks(map_tasks, _load_task, [(train_pos, held_pos)],
-                                            {"rig": rig}, "identify: load")[0])}
-        if not position_runs:
-            early.pop("load")
-        started = {part: pool.submit(run) for part, run in early.items() if part in parts}
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="seanv-servo") as pool:
+        # the servo's fit reads its logs and the rig file's servo section
+        # only: it runs beside the geometry's, its result taken in its place
+        servo = pool.submit(_servo_part, train_pos, held_pos, flow_runs, rig, map_tasks) \
+            if "servo" in parts else None
         return _identify(summary, rig, position_runs, train_pos, held_pos, parts, n_boot, seed,
-                         log, started, map_tasks)
+                         log, servo, map_tasks)
 
 
 def _on_tasks(map_tasks: TaskMapper | None, func: Callable, items: Sequence[Any],
@@ -164,16 +151,6 @@ def _servo_task(data: tuple[list, list], *, rig) -> tuple:
     return servo_constants(data[0], data[1], rig)
 
 
-def _friction_task(summary: pd.DataFrame, *, rig, runs: Sequence[Any]) -> tuple:
-    """Task: :func:`.friction.friction_constants` of the flow steps' ``summary``."""
-    return friction_constants(summary, rig, runs=runs)
-
-
-def _load_task(runs: tuple[Sequence[Any], Sequence[Any]], *, rig) -> tuple:
-    """Task: :func:`.load.load_constants` of (training, held-out) position runs."""
-    return load_constants(runs[0], runs[1], rig)
-
-
 def _flow_fit_task(item: tuple[Any, int, int], *, summary: pd.DataFrame):
     """Task: flowfit of ``summary`` with item = (rig, n_boot, seed)."""
     from ..fit import fit_flow
@@ -202,11 +179,10 @@ def _servo_part(train_pos: Sequence[Any], held_pos: Sequence[Any], flow_runs: Se
 
 def _identify(summary: pd.DataFrame, rig, position_runs: Sequence[Any],
               train_pos: Sequence[Any], held_pos: Sequence[Any], parts: Sequence[str],
-              n_boot: int, seed: int, log, started: dict[str, Future],
+              n_boot: int, seed: int, log, servo: Future | None,
               map_tasks: TaskMapper | None = None) -> Identification:
-    """:func:`identify_rig`'s parts in order; ``started``: {part: its
-    (constants, fits, notes), running} (the servo's: with the notes said
-    before them); ``map_tasks``: where the geometry part's flow fits run."""
+    """:func:`identify_rig`'s parts in order; ``servo``: the servo's part,
+    running; ``map_tasks``: where the geometry part's flow fits run."""
     from ..errors import FitError
     from ..fit import fit_flow
     from ..models import ValveModel
@@ -289,17 +265,17 @@ def _identify(summary: pd.DataFrame, rig, position_runs: Sequence[Any],
 
     if position_runs:
         current = take("controller", controller_constants(position_runs, valve, current))
-    if "servo" in started:
+    if servo is not None:
         log("identify: servo from its logs")
-        found, before = started["servo"].result()
+        found, before = servo.result()
         notes.extend(before)
         current = take("servo", found)
-    if "friction" in started:
+    if "friction" in parts:
         log("identify: friction from the flow steps' force balance")
-        current = take("friction", started["friction"].result())
-    if "load" in started:
+        current = take("friction", friction_constants(summary, current, runs=position_runs))
+    if "load" in parts and position_runs:
         log("identify: load regulator from the logged load pressure")
-        current = take("load", started["load"].result())
+        current = take("load", load_constants(train_pos, held_pos, current))
     if "flow_path" in parts:
         log("identify: flow-path lag from the position-control runs")
         spread = {c.key: tuple(c.ci95) for c in constants if c.key and c.identified}
