@@ -156,7 +156,9 @@ def task_modules(pipe: Any) -> tuple[str, ...]:
     start with them and a task does not pay the import (identify's: 0.7 s);
     also imported by :func:`seanv_analysis.stages.figures.warm_figure_worker`
     where a pipeline draws figures (for workers that were not forked)."""
-    return _declared(pipe, "TASK_MODULES")
+    mods = [m for s in pipe.stages if s.name in STAGES
+            for m in getattr(STAGES[s.name], "TASK_MODULES", ())]
+    return tuple(dict.fromkeys(mods))
 
 
 def stage_imports(pipe: Any) -> tuple[str, ...]:
@@ -166,13 +168,8 @@ def stage_imports(pipe: Any) -> tuple[str, ...]:
     on a thread while the workers read the runs
     (:meth:`seanv_analysis.batch.executor.Executor.import_beside`) instead
     of after them (``flowfit`` on 345 runs: 0.5-0.8 s)."""
-    return _declared(pipe, "IMPORTS")
-
-
-def _declared(pipe: Any, attr: str) -> tuple[str, ...]:
-    """The modules the stages of ``pipe`` list in their ``attr``, in stage
-    order, each once."""
-    mods = [m for s in pipe.stages if s.name in STAGES for m in getattr(STAGES[s.name], attr, ())]
+    mods = [m for s in pipe.stages if s.name in STAGES
+            for m in getattr(STAGES[s.name], "IMPORTS", ())]
     return tuple(dict.fromkeys(mods))
 
 
