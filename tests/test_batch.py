@@ -101,6 +101,40 @@ def test_serial_process_dask_identical(dataset, tmp_path, dask_cluster):
     assert serial.computed["ingest"] == 14 and dask.computed["ingest"] == 14
 
 
+def _pid_or_fail(item: int) -> tuple[int, int]:
+    import os
+
+    if item % 7 == 3:
+        raise ValueError(f"item {item} fails")
+    return item, os.getpid()
+
+
+def test_dask_tasks_go_in_chunks_each_item_its_own_outcome(dask_cluster):
+    """A long list goes to a Dask cluster in chunks, as to the process pool
+    (one task per item cost ingest of the paper's 242 runs 3.5-5.1 s against
+    1.1-1.4 s on 2 local workers): fewer tasks than items, every item's
+    outcome in the order of the items, a failing item's error its own."""
+    from dask.distributed import Client
+
+    from seanv_analysis.batch.executor import Executor
+
+    items = list(range(100))
+    with Client(dask_cluster) as client, Executor("dask", client=client) as ex:
+        before = len(client.run_on_scheduler(
+            lambda dask_scheduler: list(dask_scheduler.transition_log)))
+        out = ex.map(_pid_or_fail, items, quiet=True)
+        log = client.run_on_scheduler(lambda dask_scheduler: list(dask_scheduler.transition_log))
+    tasks = {entry[0] for entry in log[before:] if str(entry[0]).startswith("_call")}
+    assert 1 < len(tasks) < len(items) / 4, len(tasks)
+    assert [r.item for r in out] == items
+    for r in out:
+        if r.item % 7 == 3:
+            assert not r.ok and f"item {r.item} fails" in r.error
+        else:
+            assert r.ok and r.value[0] == r.item
+    assert len({r.value[1] for r in out if r.ok}) == 2      # both workers took chunks
+
+
 def _pid_and_nice(_item) -> tuple[int, int]:
     import os
 
