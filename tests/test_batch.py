@@ -135,6 +135,31 @@ def test_dask_tasks_go_in_chunks_each_item_its_own_outcome(dask_cluster):
     assert len({r.value[1] for r in out if r.ok}) == 2      # both workers took chunks
 
 
+def test_a_dask_cluster_runs_the_data_set_stages_parts_too(dataset, tmp_path, dask_cluster,
+                                                          monkeypatch):
+    """The tasks that run at once (``Context.task_slots``) on a Dask cluster
+    are its worker threads, as the workers of a local pool: with more than
+    one, identify's parts (geometry's flow fits, the servo, ...) are tasks
+    there. The runner gave the cluster 0 slots, so they ran here one after
+    another (``run paper``'s identify 12-14 s against 8-10 s locally)."""
+    from dask.distributed import Client
+
+    from seanv_analysis.batch.executor import make_executor
+    from seanv_analysis.stages import flowfit
+    from seanv_analysis.stages.base import tasks_beside
+
+    seen = []
+    fit = flowfit.run
+    monkeypatch.setattr(flowfit, "run", lambda ctx, options: (
+        seen.append((ctx.task_slots, tasks_beside(ctx) is ctx.map_tasks)), fit(ctx, options))[1])
+    with Client(dask_cluster) as client:
+        run_pipeline(FIT, dataset, out_dir=tmp_path / "dask", client=client, quiet=True)
+    run_pipeline(FIT, dataset, out_dir=tmp_path / "one", workers=1, quiet=True)
+    assert seen == [(2, True), (1, False)]
+    with make_executor(workers=2) as ex:
+        assert ex.slots == 2
+
+
 def _pid_and_nice(_item) -> tuple[int, int]:
     import os
 

@@ -211,6 +211,16 @@ class Executor:
             self._pool = _new_pool(self.workers, fork=True, initializer=_worker_init)
         return self._pool
 
+    @property
+    def slots(self) -> int:
+        """How many tasks run at once: the pool's workers, a Dask cluster's
+        worker threads, 1 in this process (``Context.task_slots``: a data-set
+        stage sends its independent parts to the executor where there are
+        more than one)."""
+        if self.kind == "dask":
+            return self._dask_threads()
+        return self.workers if self.kind == "process" else 1
+
     def _dask_threads(self) -> int:
         """The Dask cluster's worker threads (tasks it runs at once; 1 when
         it cannot say), asked once."""

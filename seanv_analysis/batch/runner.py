@@ -439,7 +439,7 @@ def _run_locked(pipe: Pipeline, ctx: Context, out: Path, *, command, reuse: bool
             mapper = CachedMapper(ex, cache, force=force, quiet=quiet)
             ctx.map_runs = mapper
             ctx.map_tasks = partial(ex.tasks, quiet=quiet)   # the figures, each a task
-            ctx.task_slots = ex.workers
+            ctx.task_slots = ex.slots     # > 1: identify's parts are tasks there too
             if ex.can_start:       # figures whose inputs exist start while the analysis runs
                 ctx.start_tasks = ex.start
             from ..stages.catalogue import task_modules
