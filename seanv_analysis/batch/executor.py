@@ -374,14 +374,7 @@ class Executor:
         modules the data-set stages' tasks run in and the figures' inputs,
         which this process imports anyway when it runs those stages:
         identify's costs a worker 0.7 s, the discovery result's 0.5 s).
-        Beside a Dask cluster, whose workers are not forked from here, this
-        process imports them on a thread while the cluster reads the runs
-        (:meth:`import_beside`; identify's took ``run paper`` 0.6 s at the
-        stage's start). Nothing for the serial back end, or once the workers
-        run."""
-        if self.kind == "dask":
-            self.import_beside(modules)
-            return
+        Nothing for the serial and Dask back ends, or once the workers run."""
         if self.kind != "process" or self._pool is not None:
             return
         import importlib
@@ -398,13 +391,11 @@ class Executor:
         forked first (a forked pool starts them all at its first task), and
         the thread is waited for before another fork (:meth:`start`'s
         background worker) and when the executor closes. Returns the wait;
-        call it before the stages run. Beside a Dask cluster (no fork here)
-        the same thread, started at once. Nothing (a wait that returns at
-        once) for the serial back end, without ``modules`` or once called."""
-        if self.kind == "serial" or not modules or self._importing is not None:
+        call it before the stages run. Nothing (a wait that returns at once)
+        for the serial and Dask back ends, without ``modules`` or once called."""
+        if self.kind != "process" or not modules or self._importing is not None:
             return _nothing
-        if self.kind == "process":
-            self._process_pool().submit(_nothing)      # every worker forked now
+        self._process_pool().submit(_nothing)      # every worker forked now
         self._importing = threading.Thread(target=_import_all, args=(tuple(modules),),
                                            name="seanv-import-beside", daemon=True)
         self._importing.start()
