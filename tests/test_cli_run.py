@@ -114,6 +114,18 @@ def test_run_bad_input_exit_2(args, match):
     assert "Traceback" not in r.output
 
 
+@pytest.mark.parametrize("args", [["run", "paper"], ["ingest"], ["flowfit"]])
+def test_missing_data_makes_no_output_folder(args, tmp_path, monkeypatch):
+    """DATA that is not there: exit 2 and one line naming it, before any
+    output folder is made (the default ``outputs/<name>/<command>/`` was
+    created, empty, by the writability probe)."""
+    monkeypatch.chdir(tmp_path)
+    r = invoke(*args, tmp_path / "nope", "--workers", "1", "-q") if args[0] == "run" else \
+        invoke(*args, tmp_path / "nope", "-q")
+    assert r.exit_code == 2 and "nope: not found" in r.output and "Traceback" not in r.output
+    assert not (tmp_path / "outputs").exists(), sorted(tmp_path.rglob("*"))
+
+
 def test_run_bad_pipeline_option_exit_2(data, tmp_path):
     pipe = tmp_path / "bad.toml"
     pipe.write_text('[[stages]]\nname = "ingest"\nmethod = "mean"\n')

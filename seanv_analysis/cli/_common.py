@@ -105,17 +105,20 @@ def check_out_dir(data: str | Path | Sequence[str | Path] | None, out: str | Pat
     Raises
     ------
     DataError
-        ``out`` would write over an input (symbolic links resolved, inodes
-        compared).
+        a data folder is missing or a file; ``out`` would write over an
+        input (symbolic links resolved, inodes compared).
     OutputError
         ``out`` is empty or cannot be written; with "." in ``owned`` (a
         command that replaces its folder whole), ``out`` holds files this
         package did not write.
     """
     from ..io.atomic import check_not_foreign
+    from ..io.dataset import check_data_root
     from ..io.outdir import check_out_dir as check
 
     datas = [] if data is None else [data] if isinstance(data, (str, Path)) else list(data)
+    for d in datas:     # DATA that is not there: said before any output folder is made
+        check_data_root(d)
     check(out, data=datas, files=files, owned=owned)
     out = Path(out)
     if "." in owned and out.is_dir() and not out.is_symlink() and any(out.iterdir()):

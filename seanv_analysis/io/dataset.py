@@ -72,6 +72,23 @@ def is_run_dir(path: str | Path) -> bool:
     return os.path.lexists(Path(path) / "run.json")
 
 
+def check_data_root(dataset: str | Path) -> Path:
+    """``dataset`` as a path, when it is a folder (a data set or a run).
+
+    Raises
+    ------
+    DataError
+        it does not exist, or is a file (one line naming it).
+    """
+    root = Path(dataset)
+    if not root.exists():
+        raise DataError("not found; expected a data set folder or a run folder", path=root)
+    if not root.is_dir():
+        raise DataError("is a file; expected a data set folder (sub-folders holding run.json) "
+                        "or a run folder", path=root)
+    return root
+
+
 def find_runs(dataset: str | Path) -> list[Path]:
     """Every folder at any depth under ``dataset`` (itself included) that holds
     ``run.json``, sorted by path. Hidden folders (name starting with '.') are
@@ -85,12 +102,7 @@ def find_runs(dataset: str | Path) -> list[Path]:
     DataError
         ``dataset`` does not exist or is not a folder.
     """
-    root = Path(dataset)
-    if not root.exists():
-        raise DataError("not found; expected a data set folder or a run folder", path=root)
-    if not root.is_dir():
-        raise DataError("is a file; expected a data set folder (sub-folders holding run.json) "
-                        "or a run folder", path=root)
+    root = check_data_root(dataset)
     if root.is_symlink():  # DATA given as a link: the user chose it, follow it
         root = root.resolve()
     found = []
