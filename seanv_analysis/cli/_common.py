@@ -209,7 +209,7 @@ def stage_context(data, *, rig, out_dir, model=None, quiet: bool = True, figures
 
             warm = partial(ex.warm, partial(warm_figure_worker,
                                             (*warm_modules, *warm_imports)))
-            ctx.map_tasks, ctx.task_slots = partial(ex.tasks, quiet=quiet), ex.workers
+            ctx.map_tasks, ctx.task_slots = partial(ex.tasks, quiet=quiet), ex.slots
         if big:
             imported = ex.import_beside(main_imports)
             ctx.map_runs = _WarmAfter(CachedMapper(ex, None, quiet=quiet), warm, imported)
