@@ -313,6 +313,78 @@ def test_bootstrap_jacobian_is_the_derivative_of_eq5():
                                    atol=1e-6 * np.abs(numeric).max())
 
 
+def _bootstrap_case(seed: int = 4):
+    """(side, runs, fit) of one side: a simulated summary with outliers,
+    repeats clustered as fit_flow clusters them."""
+    from seanv_analysis.fit._joint import fit_joint
+
+    model = ValveModel.from_rig(load_rig())
+    side = model.side("drain")
+    rng = np.random.default_rng(seed)
+    cams = np.repeat(rng.uniform(-40, -20, 14), 3)
+    theta, p1, dp = cams + rng.normal(0, 0.05, cams.size), rng.uniform(1, 3.3, cams.size), \
+        rng.uniform(0.5, 2, cams.size)
+    q = side_flow_of(side, theta, p1, dp) + rng.standard_t(2, cams.size) * 6.0
+    sigma = np.full(cams.size, 5.0)
+    fit = fit_joint(side, theta, p1, dp, q, sigma, z0_start_mm=side.z0_mm + 0.03)
+    return side, (theta, p1, dp, q, sigma), np.round(cams, 6), fit
+
+
+def side_flow_of(side, theta, p1, dp):
+    from seanv_analysis.fit._perload import side_flow
+
+    return side_flow(side, side.z0_mm, side.c_flow, theta, p1, dp)
+
+
+def _scipy_resample_fits(side, runs, clusters, fit, n_boot, seed):
+    """The bootstrap by one scipy least_squares call per resample (what
+    bootstrap_joint did before it fitted the resamples together)."""
+    from scipy.optimize import least_squares
+
+    from seanv_analysis.fit._joint import _cluster_members, _Eq5Residual, resample_indices
+
+    theta, p1, dp, q, sigma = runs
+    rng = np.random.default_rng(seed)
+    members = _cluster_members(q.size, clusters)
+    x0 = np.array([fit.z0_mm, fit.c_flow])
+    out = []
+    for _ in range(n_boot):
+        idx = resample_indices(rng, members)
+        if np.unique(theta[idx]).size < 2:
+            continue
+        r = _Eq5Residual(side, theta[idx], p1[idx], dp[idx], q[idx], sigma[idx])
+        out.append(least_squares(r.fun, x0, jac=r.jac, loss="soft_l1", f_scale=fit.f_scale,
+                                 x_scale=[0.01, abs(x0[1])]).x)
+    return np.array(out)
+
+
+@pytest.mark.parametrize("batched_iterations", [None, 1])
+def test_bootstrap_fits_equal_scipy_fits_of_each_resample(monkeypatch, batched_iterations):
+    """The resamples fitted together (iteratively reweighted Gauss-Newton on
+    the run counts) give scipy's least_squares estimate of every resample,
+    to its tolerance, and the same 95 % interval; with one iteration allowed
+    none converges and scipy refits each (the fallback), same numbers."""
+    import scipy.optimize
+
+    from seanv_analysis.fit import _joint
+
+    side, runs, clusters, fit = _bootstrap_case()
+    want = _scipy_resample_fits(side, runs, clusters, fit, 120, seed=7)
+    if batched_iterations is not None:
+        monkeypatch.setattr(_joint, "_BATCH_ITER", batched_iterations)
+    refits = []
+    scipy_fit = scipy.optimize.least_squares
+    monkeypatch.setattr(scipy.optimize, "least_squares",
+                        lambda *a, **k: refits.append(1) or scipy_fit(*a, **k))
+    got = _joint.bootstrap_joint(side, *runs, x_hat=(fit.z0_mm, fit.c_flow),
+                                 f_scale=fit.f_scale, n_boot=120, seed=7, clusters=clusters)
+    assert len(refits) == (120 if batched_iterations else 0)
+    assert got.shape == want.shape == (120, 2)
+    assert_allclose(got, want, rtol=2e-5, atol=0)
+    assert_allclose(np.percentile(got, [2.5, 97.5], axis=0),
+                    np.percentile(want, [2.5, 97.5], axis=0), rtol=1e-6)
+
+
 def test_params_and_eval_as_lmfit(paper_fit, paper_summary):
     """Issue 33: an lmfit-like way to a fit's numbers,
     ``fit.params["supply.C"].value / .stderr / .ci95`` and
