@@ -45,33 +45,31 @@ class JointFit:
     q_model_mm3_s: np.ndarray = field(repr=False)
 
 
-def _c_linear(basis: np.ndarray, q: np.ndarray, sigma: np.ndarray) -> float:
-    """Weighted least-squares C for Q = C * basis (basis: eq. 5 with C = 1)."""
-    w = 1.0 / sigma ** 2
-    den = float(np.sum(w * basis * basis))
-    return float(np.sum(w * basis * q) / den) if den > 0 else math.nan
-
-
-def _soft_l1(z: np.ndarray) -> float:
-    return float(np.sum(2.0 * (np.sqrt(1.0 + z * z) - 1.0)))
-
-
 def _start(side, theta, p1, dp, q, sigma, z0_guess: float) -> tuple[float, float]:
-    """Best (z0, C) on a z0 grid around ``z0_guess`` (C linear at each node)."""
-    best = (math.inf, z0_guess, math.nan)
-    mad_scale = None
-    for z0 in z0_guess + np.linspace(-_GRID_HALF_MM, _GRID_HALF_MM, _GRID_NODES):
-        basis = side_flow(side, z0, 1.0, theta, p1, dp)
-        c = _c_linear(basis, q, sigma)
-        if not math.isfinite(c):
-            continue
-        z = (q - c * basis) / sigma
-        if mad_scale is None:
-            mad_scale = max(1.4826 * float(np.median(np.abs(z))), 1e-6)
-        cost = _soft_l1(z / mad_scale)
-        if cost < best[0]:
-            best = (cost, float(z0), c)
-    return best[1], best[2]
+    """Best (z0, C) on a z0 grid around ``z0_guess``: C linear (weighted least
+    squares) at each node, the soft_l1 cost of the residuals scaled by their
+    1.4826 MAD at the grid's first node with a C; all nodes at once."""
+    nodes = z0_guess + np.linspace(-_GRID_HALF_MM, _GRID_HALF_MM, _GRID_NODES)
+    eq5 = _Eq5Residual(side, theta, p1, dp, q, sigma)
+    o = eq5.opening(nodes[:, None])[0]
+    basis = o * o * eq5.dpn                          # eq. (5) with C = 1, per node
+    w = 1.0 / sigma ** 2
+    den = np.sum(w * basis * basis, axis=1)
+    has_c = den > 0
+    c = np.full(nodes.size, math.nan)
+    c[has_c] = np.sum(w * basis[has_c] * q, axis=1) / den[has_c]
+    has_c &= np.isfinite(c)
+    if not has_c.any():
+        return z0_guess, math.nan
+    z = (q - c[has_c, None] * basis[has_c]) / sigma
+    mad_scale = max(1.4826 * float(np.median(np.abs(z[0]))), 1e-6)
+    cost = np.full(nodes.size, math.inf)
+    cost[has_c] = np.sum(2.0 * (np.sqrt(1.0 + (z / mad_scale) ** 2) - 1.0), axis=1)
+    cost[~np.isfinite(cost)] = math.inf
+    if not np.isfinite(cost).any():
+        return z0_guess, math.nan
+    k = int(np.argmin(cost))
+    return float(nodes[k]), float(c[k])
 
 
 def _solve(side, theta, p1, dp, q, sigma, x0, f_scale):
@@ -109,7 +107,7 @@ class _Eq5Residual:
 
     def opening(self, xs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(opening o [deg], threshold height z [mm]), each (B, runs), at the
-        rows of ``xs`` (B, 2)."""
+        z0 of the rows of ``xs`` (B, 2), or (B, 1) z0 alone."""
         z = xs[:, :1] - self.force_k
         d = self.theta - np.interp(z, self.z_tab, self.th_tab)
         return np.maximum(d if self.sign > 0 else -d, 0.0), z
