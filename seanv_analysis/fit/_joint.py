@@ -73,13 +73,12 @@ def _start(side, theta, p1, dp, q, sigma, z0_guess: float) -> tuple[float, float
 
 
 def _solve(side, theta, p1, dp, q, sigma, x0, f_scale):
-    def fun(x):
-        return (q - side_flow(side, x[0], x[1], theta, p1, dp)) / sigma
-
+    """scipy's least_squares of eq. (5) from ``x0``, soft_l1 loss, analytic Jacobian."""
     from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
 
-    return least_squares(fun, x0, loss="soft_l1", f_scale=f_scale,
-                         x_scale=[0.01, max(abs(x0[1]), 1e-3)], diff_step=[1e-5, 1e-6])
+    eq5 = _Eq5Residual(side, theta, p1, dp, q, sigma)
+    return least_squares(eq5.fun, x0, jac=eq5.jac, loss="soft_l1", f_scale=f_scale,
+                         x_scale=[0.01, max(abs(x0[1]), 1e-3)])
 
 
 class _Eq5Residual:
