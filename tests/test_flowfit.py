@@ -313,6 +313,26 @@ def test_bootstrap_jacobian_is_the_derivative_of_eq5():
                                    atol=1e-6 * np.abs(numeric).max())
 
 
+@pytest.mark.parametrize("opens_upward", [True, False])
+def test_per_load_jacobian_is_the_derivative_of_the_quadratic(opens_upward):
+    """fit_load's analytic Jacobian of (q - alpha max(+-(theta - theta_d), 0)^2)
+    / sigma against central differences."""
+    from seanv_analysis.fit._perload import _quadratic, _quadratic_residual_jac
+
+    rng = np.random.default_rng(5)
+    theta, q, sig = rng.uniform(-10, 10, 40), rng.uniform(0, 900, 40), rng.uniform(1, 5, 40)
+    x = np.array([-2.3, 14.0 if opens_upward else -14.0])
+
+    def r(p):
+        return (q - _quadratic(theta, p[0], p[1], opens_upward)) / sig
+
+    h = np.array([1e-6, 1e-6])
+    numeric = np.column_stack([(r(x + e * hi) - r(x - e * hi)) / (2 * hi) for e, hi in zip(np.eye(2), h)])
+    got = _quadratic_residual_jac(theta, *x, opens_upward, sig)
+    assert np.count_nonzero(got[:, 0]) >= 10       # open runs: the theta_d column is checked
+    np.testing.assert_allclose(got, numeric, rtol=0, atol=1e-5 * np.abs(numeric).max())
+
+
 def _bootstrap_case(seed: int = 4):
     """(side, runs, fit) of one side: a simulated summary with outliers,
     repeats clustered as fit_flow clusters them."""

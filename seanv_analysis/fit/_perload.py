@@ -112,6 +112,16 @@ def _quadratic(theta_deg, theta_d_deg, alpha, opens_upward: bool) -> np.ndarray:
     return alpha * np.maximum(d if opens_upward else -d, 0.0) ** 2
 
 
+def _quadratic_residual_jac(theta_deg, theta_d_deg, alpha, opens_upward: bool, sigma
+                            ) -> np.ndarray:
+    """(runs, 2) Jacobian of r = (q - alpha o^2) / sigma, o = max(s (theta -
+    theta_d), 0) (s = +1 opening upward, else -1): [d r / d theta_d, d r / d
+    alpha] = [2 s alpha o / sigma, -o^2 / sigma]."""
+    s = 1.0 if opens_upward else -1.0
+    o = np.maximum(s * (theta_deg - theta_d_deg), 0.0)
+    return np.column_stack([2.0 * s * alpha * o / sigma, -(o * o) / sigma])
+
+
 def fit_load(theta_deg, q_mm3_s, *, opens_upward: bool, sigma_mm3_s=None,
              theta_shift_deg=None) -> LoadFit:
     """Fit Q = alpha max(+-(theta - theta_d - s), 0)^2 to one load level.
@@ -121,7 +131,7 @@ def fit_load(theta_deg, q_mm3_s, *, opens_upward: bool, sigma_mm3_s=None,
     the load's median pressures, eq. 3+4), so theta_d is the threshold at a
     common reference. Start from a line through sqrt|Q| vs theta - s, then a
     soft_l1 least-squares fit of Q itself (residuals divided by
-    ``sigma_mm3_s`` when given). Needs 3 runs at >= 2 distinct cam angles
+    ``sigma_mm3_s`` when given; analytic Jacobian). Needs 3 runs at >= 2 distinct cam angles
     (of ``theta_deg`` itself: the shifts do not make repeats distinct).
     """
     theta_raw = np.asarray(theta_deg, dtype=float)
@@ -148,12 +158,15 @@ def fit_load(theta_deg, q_mm3_s, *, opens_upward: bool, sigma_mm3_s=None,
     def fun(p):
         return (q - _quadratic(theta, p[0], p[1], opens_upward)) / sig
 
+    def jac(p):
+        return _quadratic_residual_jac(theta, p[0], p[1], opens_upward, sig)
+
     r0 = fun([theta_d0, alpha0])
     f_scale = max(1.4826 * float(np.median(np.abs(r0 - np.median(r0)))), 1e-6)
     if sigma_mm3_s is not None:
         f_scale = 1.0
     from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
-    res = least_squares(fun, [theta_d0, alpha0], loss="soft_l1", f_scale=f_scale,
+    res = least_squares(fun, [theta_d0, alpha0], jac=jac, loss="soft_l1", f_scale=f_scale,
                         x_scale=[1.0, max(abs(alpha0), 1e-3)])
     theta_d, alpha = (float(v) for v in res.x)
     resid = q - _quadratic(theta, theta_d, alpha, opens_upward)
