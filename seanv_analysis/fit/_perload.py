@@ -131,8 +131,9 @@ def fit_load(theta_deg, q_mm3_s, *, opens_upward: bool, sigma_mm3_s=None,
     the load's median pressures, eq. 3+4), so theta_d is the threshold at a
     common reference. Start from a line through sqrt|Q| vs theta - s, then a
     soft_l1 least-squares fit of Q itself (residuals divided by
-    ``sigma_mm3_s`` when given; analytic Jacobian). Needs 3 runs at >= 2 distinct cam angles
-    (of ``theta_deg`` itself: the shifts do not make repeats distinct).
+    ``sigma_mm3_s`` when given; analytic Jacobian). Needs 3 runs at >= 2
+    distinct cam angles (of ``theta_deg`` itself: the shifts do not make
+    repeats distinct).
     """
     theta_raw = np.asarray(theta_deg, dtype=float)
     q = np.asarray(q_mm3_s, dtype=float)
