@@ -104,6 +104,27 @@ def test_aot_servo_equals_the_jit_and_takes_any_float_array(aot):
     assert y.shape == t[::3].shape and np.isfinite(y).all()
 
 
+def test_servo_response_reads_its_grid_as_np_interp_does():
+    """servo_response's interpolation on the servo's uniform step grid is
+    np.interp on that grid: inside, before its first and after its last
+    point (held), at a grid point, and NaN where the time is NaN."""
+    from seanv_analysis.sim.servo import _on_uniform_grid
+
+    rng = np.random.default_rng(2)
+    y = np.cumsum(rng.normal(0, 1, 2001))
+    t_first, step = 0.3, 5e-4
+    grid = t_first + step * np.arange(y.size)
+    t = np.concatenate([rng.uniform(grid[0] - 0.1, grid[-1] + 0.1, 500), grid[[0, 7, -1]],
+                        [np.nan]])
+    got = _on_uniform_grid(y, t_first, step, t)
+    want = np.interp(t, grid, y)
+    assert np.isnan(got[-1]) and np.isnan(want[-1])
+    np.testing.assert_allclose(got[:-1], want[:-1], rtol=0, atol=1e-9)
+    before, after = t[:-1] < grid[0], t[:-1] > grid[-1]
+    assert before.any() and after.any()
+    assert (got[:-1][before] == y[0]).all() and (got[:-1][after] == y[-1]).all()
+
+
 def test_importing_the_simulator_does_not_import_numba():
     code = ("import sys; import seanv_analysis.sim, seanv_analysis.sim.scenarios, "
             "seanv_analysis.sim.servo, seanv_analysis.sim.control; "

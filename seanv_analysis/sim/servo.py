@@ -29,8 +29,8 @@ def servo_response(t_cmd_s, cmd_deg, t_out_s, *, dead_time_s: float, time_consta
     The servo acts on the command of ``dead_time_s`` earlier and follows it
     with d(theta)/dt = clip((target - theta) / tau, -rate, rate), integrated
     exactly on a ``step_s`` grid (the simulator's step) and interpolated
-    linearly at ``t_out_s``. ``theta0_deg``: angle at the first instant
-    (default: the first command).
+    linearly at ``t_out_s`` (held at the grid's ends). ``theta0_deg``: angle
+    at the first instant (default: the first command).
     """
     t_cmd = np.ascontiguousarray(t_cmd_s, dtype=float)
     cmd = np.ascontiguousarray(cmd_deg, dtype=float)
@@ -44,5 +44,18 @@ def servo_response(t_cmd_s, cmd_deg, t_out_s, *, dead_time_s: float, time_consta
     pp[_SERVO_RATE] = max(float(max_rate_deg_s), 1e-6)
     theta0 = float(cmd[0]) if theta0_deg is None else float(theta0_deg)
     y = compiled.servo_track()(t_cmd, cmd, t0, float(step_s), n, float(dead_time_s), pp, theta0)
-    grid = t0 + step_s * np.arange(1, n + 1)
-    return np.interp(t_out, grid, y)
+    return _on_uniform_grid(y, t0 + step_s, step_s, t_out)
+
+
+def _on_uniform_grid(y: np.ndarray, t_first: float, step: float, t) -> np.ndarray:
+    """``y`` (sampled at ``t_first + k step``) linearly interpolated at ``t``,
+    held at its ends (``np.interp`` without building the grid: the servo's is
+    ~2000 points a second of log, ``t`` 50-100); NaN where ``t`` is."""
+    t = np.asarray(t, dtype=float)
+    pos = np.clip((t - t_first) / step, 0.0, y.size - 1.0)
+    finite = np.isfinite(pos)
+    pos = np.where(finite, pos, 0.0)
+    i = np.minimum(pos.astype(np.int64), max(y.size - 2, 0))
+    frac = pos - i
+    out = y[i] + frac * (y[np.minimum(i + 1, y.size - 1)] - y[i])
+    return np.where(finite, out, np.nan)
