@@ -48,14 +48,16 @@ def servo_response(t_cmd_s, cmd_deg, t_out_s, *, dead_time_s: float, time_consta
 
 
 def _on_uniform_grid(y: np.ndarray, t_first: float, step: float, t) -> np.ndarray:
-    """``y`` (sampled at ``t_first + k step``) linearly interpolated at ``t``,
-    held at its ends (``np.interp`` without building the grid: the servo's is
-    ~2000 points a second of log, ``t`` 50-100); NaN where ``t`` is."""
+    """``y`` (at least 2 samples, at ``t_first + k step``) linearly
+    interpolated at ``t``, held at its ends (``np.interp`` without building
+    the grid: the servo's has 2000 points a second of log); NaN where ``t``
+    is."""
     t = np.asarray(t, dtype=float)
     pos = np.clip((t - t_first) / step, 0.0, y.size - 1.0)
     finite = np.isfinite(pos)
-    pos = np.where(finite, pos, 0.0)
-    i = np.minimum(pos.astype(np.int64), max(y.size - 2, 0))
-    frac = pos - i
-    out = y[i] + frac * (y[np.minimum(i + 1, y.size - 1)] - y[i])
-    return np.where(finite, out, np.nan)
+    pos[~finite] = 0.0
+    i = np.minimum(pos.astype(np.int64), y.size - 2)
+    y0 = y[i]
+    out = y0 + (pos - i) * (y[i + 1] - y0)
+    out[~finite] = np.nan
+    return out
