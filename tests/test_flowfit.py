@@ -292,7 +292,7 @@ def test_paper_flowsteps_simulated_recovers_truth(tmp_path, rig, name):
 def test_bootstrap_jacobian_is_the_derivative_of_eq5():
     """The bootstrap's analytic Jacobian of eq. (5) against central differences,
     and its residual equal to side_flow's, on both sides."""
-    from seanv_analysis.fit._joint import _Eq5Residual
+    from seanv_analysis.fit._joint import Eq5Residual
     from seanv_analysis.fit._perload import side_flow
 
     model = ValveModel.from_rig(load_rig())
@@ -302,7 +302,7 @@ def test_bootstrap_jacobian_is_the_derivative_of_eq5():
         theta, p1, dp = rng.uniform(-40, 10, 60), rng.uniform(1, 3.3, 60), rng.uniform(0.5, 2, 60)
         x = np.array([side.z0_mm, side.c_flow])
         q = side_flow(side, *x, theta, p1, dp) + rng.normal(0, 5, 60)
-        r = _Eq5Residual(side, theta, p1, dp, q, np.full(60, 4.0))
+        r = Eq5Residual(side, theta, p1, dp, q, np.full(60, 4.0))
         assert np.array_equal(r.fun(x), (q - side_flow(side, *x, theta, p1, dp)) / 4.0)
         h = np.array([1e-7, 1e-6])
         numeric = np.column_stack([(r.fun(x + e * hi) - r.fun(x - e * hi)) / (2 * hi)
@@ -361,7 +361,7 @@ def _scipy_resample_fits(side, runs, clusters, fit, n_boot, seed):
     bootstrap_joint did before it fitted the resamples together)."""
     from scipy.optimize import least_squares
 
-    from seanv_analysis.fit._joint import _cluster_members, _Eq5Residual, resample_indices
+    from seanv_analysis.fit._joint import Eq5Residual, _cluster_members, resample_indices
 
     theta, p1, dp, q, sigma = runs
     rng = np.random.default_rng(seed)
@@ -372,7 +372,7 @@ def _scipy_resample_fits(side, runs, clusters, fit, n_boot, seed):
         idx = resample_indices(rng, members)
         if np.unique(theta[idx]).size < 2:
             continue
-        r = _Eq5Residual(side, theta[idx], p1[idx], dp[idx], q[idx], sigma[idx])
+        r = Eq5Residual(side, theta[idx], p1[idx], dp[idx], q[idx], sigma[idx])
         out.append(least_squares(r.fun, x0, jac=r.jac, loss="soft_l1", f_scale=fit.f_scale,
                                  x_scale=[0.01, abs(x0[1])]).x)
     return np.array(out)

@@ -11,8 +11,10 @@
   (:func:`cluster_covariance`, :func:`soft_l1_weights`,
   :func:`prior_sd_mm3_s_per_mpa`, and :class:`SideRuns`: one side's flow
   steps for a fit of eq. (5) with the seat leakage, which ``identify``'s
-  needle-geometry fit takes too).
+  needle-geometry fit takes too), and :class:`Eq5Residual`: eq. (5)'s
+  scaled residual on fixed runs with its analytic Jacobian in z0 and C.
 """
+from ._joint import Eq5Residual
 from ._leakage import (
     LeakageFit,
     SideRuns,
@@ -33,4 +35,4 @@ from .flowfit import (
 
 __all__ = ["FlowFit", "SideFit", "Parameter", "LeakageFit", "fit_flow", "PROCEDURES",
            "LEAKAGE_MODES", "UNITS", "PEAK_BIAS", "cluster_covariance", "soft_l1_weights",
-           "prior_sd_mm3_s_per_mpa", "SideRuns"]
+           "prior_sd_mm3_s_per_mpa", "SideRuns", "Eq5Residual"]

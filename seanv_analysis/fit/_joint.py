@@ -21,7 +21,7 @@ from ..models import ValveSide, signed_power
 from ..models.sealing import fluid_force_n
 from ._perload import _stderr, side_flow
 
-__all__ = ["JointFit", "fit_joint", "bootstrap_joint", "resample_indices"]
+__all__ = ["JointFit", "fit_joint", "bootstrap_joint", "resample_indices", "Eq5Residual"]
 
 #: half-width [mm] and nodes of the start grid over z0
 _GRID_HALF_MM = 0.15
@@ -50,7 +50,7 @@ def _start(side, theta, p1, dp, q, sigma, z0_guess: float) -> tuple[float, float
     squares) at each node, the soft_l1 cost of the residuals scaled by their
     1.4826 MAD at the grid's first node with a C; all nodes at once."""
     nodes = z0_guess + np.linspace(-_GRID_HALF_MM, _GRID_HALF_MM, _GRID_NODES)
-    eq5 = _Eq5Residual(side, theta, p1, dp, q, sigma)
+    eq5 = Eq5Residual(side, theta, p1, dp, q, sigma)
     o = eq5.opening(nodes[:, None])[0]
     basis = o * o * eq5.dpn                          # eq. (5) with C = 1, per node
     w = 1.0 / sigma ** 2
@@ -76,12 +76,12 @@ def _solve(side, theta, p1, dp, q, sigma, x0, f_scale):
     """scipy's least_squares of eq. (5) from ``x0``, soft_l1 loss, analytic Jacobian."""
     from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
 
-    eq5 = _Eq5Residual(side, theta, p1, dp, q, sigma)
+    eq5 = Eq5Residual(side, theta, p1, dp, q, sigma)
     return least_squares(eq5.fun, x0, jac=eq5.jac, loss="soft_l1", f_scale=f_scale,
                          x_scale=[0.01, max(abs(x0[1]), 1e-3)])
 
 
-class _Eq5Residual:
+class Eq5Residual:
     """Scaled residual r = (q - Q(z0, C)) / sigma of eq. (5) on fixed runs, and
     its analytic Jacobian [d r / d z0 (1/mm), d r / d C], at one parameter
     vector x = (z0, C) or at B of them (rows of a (B, 2) array: one
@@ -154,7 +154,7 @@ def _soft_l1_cost(r: np.ndarray, counts: np.ndarray, f_scale: float) -> np.ndarr
     return f2 * np.sum(counts * (np.sqrt(1.0 + r * r / f2) - 1.0), axis=1)
 
 
-def _fit_resamples(res: _Eq5Residual, counts: np.ndarray, x0: np.ndarray, f_scale: float,
+def _fit_resamples(res: Eq5Residual, counts: np.ndarray, x0: np.ndarray, f_scale: float,
                    x_scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(z0, C) minimising the soft_l1 cost of each resample at once.
 
@@ -269,7 +269,7 @@ def bootstrap_joint(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_m
     their runs together): repeats of one condition share its systematic
     errors, so they are not independent. Each resample starts from
     ``x_hat`` (the main fit) with the same per-run noise scales and
-    ``f_scale``, with the analytic Jacobian of eq. (5) (:class:`_Eq5Residual`);
+    ``f_scale``, with the analytic Jacobian of eq. (5) (:class:`Eq5Residual`);
     all resamples are fitted together (:func:`_fit_resamples`), and scipy's
     ``least_squares`` refits any that did not converge there. Returns an
     (n_ok, 2) array in resample order; resamples with fewer than 2 distinct
@@ -286,14 +286,14 @@ def bootstrap_joint(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_m
     if not draws:
         return np.empty((0, 2))
     counts = np.stack([np.bincount(idx, minlength=q.size) for idx in draws]).astype(float)
-    xs, ok = _fit_resamples(_Eq5Residual(side, theta, p1, dp, q, sigma), counts, x0, f_scale,
+    xs, ok = _fit_resamples(Eq5Residual(side, theta, p1, dp, q, sigma), counts, x0, f_scale,
                             x_scale)
     keep = ok.copy()
     if not ok.all():
         from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
     for i in np.flatnonzero(~ok):       # scipy's solver where the batched fit did not converge
         idx = draws[i]
-        r = _Eq5Residual(side, theta[idx], p1[idx], dp[idx], q[idx], sigma[idx])
+        r = Eq5Residual(side, theta[idx], p1[idx], dp[idx], q[idx], sigma[idx])
         sol = least_squares(r.fun, x0, jac=r.jac, loss="soft_l1", f_scale=f_scale,
                             x_scale=x_scale)
         keep[i] = sol.status > 0 and bool(np.all(np.isfinite(sol.x)))

@@ -40,7 +40,7 @@ import numpy as np
 
 from ..estimate import Estimate
 from ..models import ValveSide
-from ._joint import _Eq5Residual
+from ._joint import Eq5Residual
 
 __all__ = ["SideRuns", "LeakageFit", "leak_dp_mpa", "fit_leakage", "cluster_covariance",
            "soft_l1_weights", "prior_sd_mm3_s_per_mpa"]
@@ -221,7 +221,7 @@ def fit_leakage(parts: Sequence[SideRuns], *, upper_mm3_s_per_mpa: float,
                         f"{float(np.ptp(xl_all)) if np.all(np.isfinite(xl_all)) else math.nan:.2f} "
                         "MPa only: the seat leakage cannot be told from eq. (5)")
         return keep
-    models = [_Eq5Residual(p.side, p.theta_deg, p.p1_mpa, p.dp_mpa, p.q_mm3_s, p.sigma_mm3_s)
+    models = [Eq5Residual(p.side, p.theta_deg, p.p1_mpa, p.dp_mpa, p.q_mm3_s, p.sigma_mm3_s)
               for p in parts]
     k = len(parts)
     g_prior, s_prior = float(default_mm3_s_per_mpa), float(prior_sd_mm3_s_per_mpa)
