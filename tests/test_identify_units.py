@@ -122,6 +122,45 @@ def test_geometry_reproduces_a_foreign_threshold(side, x_c, y_c):
     assert g.rmse_mm3_s < g.rmse_default_mm3_s
 
 
+def test_geometry_fit_jacobian_is_the_derivative_of_its_residual():
+    """The geometry fit's Jacobian (eq. 5's analytic z0 and C columns per
+    side, a forward difference in y_c, -dp_leak / sigma for g, the prior's
+    row) against central differences of the fit's residual, both sides
+    with y_c free and the leakage fitted."""
+    from seanv_analysis.fit import SideRuns
+    from seanv_analysis.identify import geometry
+
+    model = ValveModel.from_rig(RIG)
+    runs = {}
+    for name, load in (("supply", (0.1, 0.3, 0.5)), ("drain", (0.2, 0.4))):
+        side = model.side(name)
+        theta, p1, dp, q, lv = _flow_steps(side, load)
+        runs[name] = SideRuns(side, theta, p1, dp, q, 0.02 * np.abs(q) + 5.0,
+                              np.linspace(-1.0, 2.0, q.size), load_level=lv)
+    layout = geometry._Layout(list(runs), ("supply", "drain"), True)
+    y_fixed = {n: float(r.side.geometry.needle_y_c_mm) for n, r in runs.items()}
+    x = np.array([v for n, r in runs.items()
+                  for v in (r.side.z0_mm + 0.01, r.side.c_flow * 1.05, y_fixed[n] * 1.02)] + [2.0])
+    hi = np.full(x.size, np.inf)
+    g_fixed, sd = 3.0, 1.5
+
+    def resid(p):
+        g = layout.leak(p, g_fixed)
+        return np.concatenate([geometry._side_resid(runs[n], layout.side_x(p, n, y_fixed[n]), g)
+                               for n in layout.names] + [[(g - g_fixed) / sd]])
+
+    got = geometry._jacobian(runs, layout, x, y_fixed, g_fixed, hi, True, sd)
+    h = 1e-7 * np.maximum(np.abs(x), 1.0)     # within one node of eq. (4)'s table
+    numeric = np.column_stack([(resid(x + e * hj) - resid(x - e * hj)) / (2 * hj)
+                               for e, hj in zip(np.eye(x.size), h)])
+    assert got.shape == numeric.shape == (sum(r.q_mm3_s.size for r in runs.values()) + 1, 7)
+    scale = np.abs(numeric).max(axis=0)
+    assert np.all(scale > 0)
+    # z0, C, g: exact (1e-8); y_c: a forward difference (its truncation, ~1e-4)
+    err = np.abs(got - numeric).max(axis=0) / scale
+    assert np.all(err[[0, 1, 3, 4, 6]] < 1e-7) and np.all(err[[2, 5]] < 1e-3), err
+
+
 def test_geometry_not_identified_from_one_load():
     base = ValveModel.from_rig(RIG).side("supply")
     theta, p1, dp, q, load = _flow_steps(base, (0.3,))

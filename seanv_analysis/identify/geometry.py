@@ -43,7 +43,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..estimate import widen_interval
-from ..fit import SideRuns, cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
+from ..fit import Eq5Residual, SideRuns, cluster_covariance, prior_sd_mm3_s_per_mpa, soft_l1_weights
 from ..fit.flowfit import C_KEY
 from ..models import ValveSide, fluid_force_n
 from .result import Constant
@@ -132,22 +132,21 @@ class _Layout:
 
 def _fit(runs: dict[str, SideRuns], x0, lo, hi, f_scale, layout: _Layout, y_fixed, g_fixed,
          g_prior_sd: float = math.inf, starts: Sequence[float] | None = None):
-    """least_squares from ``x0`` (a few starts of the free y_c); returns (x,
-    solution, residual function). A fitted leakage conductance has the prior
-    N(``g_fixed``, ``g_prior_sd``^2): one more residual."""
+    """least_squares from ``x0`` (a few starts of the free y_c), with
+    :func:`_jacobian`; returns (x, solution, residual function). A fitted
+    leakage conductance has the prior N(``g_fixed``, ``g_prior_sd``^2): one
+    more residual."""
     prior = layout.fit_leak and math.isfinite(g_prior_sd)
 
     def resid(p):
-        out = []
         g = layout.leak(p, g_fixed)
-        for n in layout.names:
-            r = runs[n]
-            q = _predict(r.side, layout.side_x(p, n, y_fixed[n]), r.theta_deg, r.p1_mpa, r.dp_mpa)
-            z = (r.q_mm3_s - q - g * r.dp_leak_mpa) / r.sigma_mm3_s
-            out.append(np.where(np.isfinite(z), z, 1e3))
+        out = [_side_resid(runs[n], layout.side_x(p, n, y_fixed[n]), g) for n in layout.names]
         if prior:
             out.append(np.array([(g - g_fixed) / g_prior_sd]))
         return np.concatenate(out)
+
+    def jac(p):
+        return _jacobian(runs, layout, p, y_fixed, g_fixed, hi, prior, g_prior_sd)
 
     x_scale = []
     for n, free in zip(layout.names, layout.free):
@@ -161,11 +160,66 @@ def _fit(runs: dict[str, SideRuns], x0, lo, hi, f_scale, layout: _Layout, y_fixe
             if free:
                 p0[layout.slices[n].stop - 1] *= k
         p0 = np.clip(p0, np.add(lo, 1e-9), np.subtract(hi, 1e-9))
-        sol = least_squares(resid, p0, bounds=(lo, hi), loss="soft_l1", f_scale=f_scale,
-                            x_scale=x_scale, diff_step=1e-5)
+        sol = least_squares(resid, p0, jac=jac, bounds=(lo, hi), loss="soft_l1",
+                            f_scale=f_scale, x_scale=x_scale)
         if best is None or sol.cost < best.cost:
             best = sol
     return np.asarray(best.x, float), best, resid
+
+
+#: relative forward step of y_c in the fit's Jacobian (its z0, C and g columns are exact)
+_Y_C_REL_STEP = 1e-5
+
+
+def _side_resid(r: SideRuns, x, g: float) -> np.ndarray:
+    """One side's rows of :func:`_fit`'s residual at its (z0, C, y_c) ``x``
+    and the leakage conductance ``g``: (q - Q - g dp_leak) / sigma, 1e3
+    where no flow is computed (eq. 4 not invertible, or no number)."""
+    z = (r.q_mm3_s - _predict(r.side, x, r.theta_deg, r.p1_mpa, r.dp_mpa)
+         - g * r.dp_leak_mpa) / r.sigma_mm3_s
+    return np.where(np.isfinite(z), z, 1e3)
+
+
+def _jacobian(runs: dict[str, SideRuns], layout: _Layout, p: np.ndarray, y_fixed, g_fixed,
+              hi, prior: bool, g_prior_sd: float) -> np.ndarray:
+    """Jacobian of :func:`_fit`'s residual: a side's rows move with its own
+    z0 and C (eq. 5's analytic derivatives, :class:`~seanv_analysis.fit.Eq5Residual`,
+    at its y_c) and y_c (a forward difference of that side's rows alone,
+    :data:`_Y_C_REL_STEP` of |y_c|, backward at its upper bound), every
+    flow row with g (-dp_leak / sigma), the prior's row with g alone; rows
+    at the residual's sentinel (no flow computed) move with nothing."""
+    n_rows = sum(runs[n].q_mm3_s.size for n in layout.names) + (1 if prior else 0)
+    out = np.zeros((n_rows, layout.size))
+    g = layout.leak(p, g_fixed)
+    row = 0
+    for n, free in zip(layout.names, layout.free):
+        r, sl = runs[n], layout.slices[n]
+        rows = slice(row, row + r.q_mm3_s.size)
+        row += r.q_mm3_s.size
+        x = layout.side_x(p, n, y_fixed[n])
+        f0 = _side_resid(r, x, g)
+        moving = f0 != 1e3
+        try:
+            eq5 = Eq5Residual(_with(r.side, *x), r.theta_deg, r.p1_mpa, r.dp_mpa, r.q_mm3_s,
+                              r.sigma_mm3_s)
+        except ValueError:      # eq. (4) not monotonic for this y_c: no flow, no slope
+            continue
+        xs = np.array([[x[0], x[1]]])
+        o, z = eq5.opening(xs)
+        d_z0, d_c = eq5.jacobian(xs, o, z)
+        out[rows, sl.start] = np.where(moving, d_z0[0], 0.0)
+        out[rows, sl.start + 1] = np.where(moving, d_c[0], 0.0)
+        if free:
+            y = float(x[2])
+            h = _Y_C_REL_STEP * max(abs(y), 1.0)
+            h = -h if y + h > hi[sl.stop - 1] else h
+            f1 = _side_resid(r, (x[0], x[1], y + h), g)
+            out[rows, sl.stop - 1] = np.where(moving, (f1 - f0) / ((y + h) - y), 0.0)
+        if layout.fit_leak:
+            out[rows, -1] = np.where(moving, -r.dp_leak_mpa / r.sigma_mm3_s, 0.0)
+    if prior:
+        out[-1, -1] = 1.0 / g_prior_sd
+    return out
 
 
 def _raw_jacobian(fun, x, lo, hi) -> np.ndarray:
