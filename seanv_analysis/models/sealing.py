@@ -54,11 +54,12 @@ def needle_height_core(theta_deg, needle_x_c_mm, needle_y_c_mm, needle_head_radi
     """Eq. (4) on plain numbers (sign of the constant term corrected, see
     :func:`needle_height_mm`) [mm]."""
     t = np.radians(theta_deg)
+    cos_t, sin_t = np.cos(t), np.sin(t)
     phi = math.radians(cam_slope_deg)
     r = needle_head_radius_mm
     tp = math.tan(phi)
-    return ((needle_x_c_mm - r * math.sin(phi) * np.cos(t)) * tp * np.cos(t)
-            - (needle_y_c_mm - r * tp * np.sin(t)) * tp * np.sin(t)
+    return ((needle_x_c_mm - r * math.sin(phi) * cos_t) * tp * cos_t
+            - (needle_y_c_mm - r * tp * sin_t) * tp * sin_t
             + (z_p_mm - r * math.cos(phi)) - z_c0_mm)
 
 
