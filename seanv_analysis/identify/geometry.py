@@ -137,16 +137,17 @@ def _fit(runs: dict[str, SideRuns], x0, lo, hi, f_scale, layout: _Layout, y_fixe
     leakage conductance has the prior N(``g_fixed``, ``g_prior_sd``^2): one
     more residual."""
     prior = layout.fit_leak and math.isfinite(g_prior_sd)
+    last: dict[str, Any] = {}
 
     def resid(p):
         g = layout.leak(p, g_fixed)
-        out = [_side_resid(runs[n], layout.side_x(p, n, y_fixed[n]), g) for n in layout.names]
-        if prior:
-            out.append(np.array([(g - g_fixed) / g_prior_sd]))
-        return np.concatenate(out)
+        sides = [_side_resid(runs[n], layout.side_x(p, n, y_fixed[n]), g) for n in layout.names]
+        last["p"], last["sides"] = np.array(p, copy=True), sides
+        return np.concatenate(sides + ([np.array([(g - g_fixed) / g_prior_sd])] if prior else []))
 
-    def jac(p):
-        return _jacobian(runs, layout, p, y_fixed, g_fixed, hi, prior, g_prior_sd)
+    def jac(p):     # the sides' rows at p: scipy asks for the Jacobian where it just evaluated
+        at_p = last["sides"] if "p" in last and np.array_equal(last["p"], p) else None
+        return _jacobian(runs, layout, p, y_fixed, g_fixed, hi, prior, g_prior_sd, at_p)
 
     x_scale = []
     for n, free in zip(layout.names, layout.free):
@@ -181,23 +182,25 @@ def _side_resid(r: SideRuns, x, g: float) -> np.ndarray:
 
 
 def _jacobian(runs: dict[str, SideRuns], layout: _Layout, p: np.ndarray, y_fixed, g_fixed,
-              hi, prior: bool, g_prior_sd: float) -> np.ndarray:
+              hi, prior: bool, g_prior_sd: float,
+              at_p: Sequence[np.ndarray] | None = None) -> np.ndarray:
     """Jacobian of :func:`_fit`'s residual: a side's rows move with its own
     z0 and C (eq. 5's analytic derivatives, :class:`~seanv_analysis.fit.Eq5Residual`,
     at its y_c) and y_c (a forward difference of that side's rows alone,
     :data:`_Y_C_REL_STEP` of |y_c|, backward at its upper bound), every
     flow row with g (-dp_leak / sigma), the prior's row with g alone; rows
-    at the residual's sentinel (no flow computed) move with nothing."""
+    at the residual's sentinel (no flow computed) move with nothing.
+    ``at_p``: each side's rows of the residual at ``p`` where known."""
     n_rows = sum(runs[n].q_mm3_s.size for n in layout.names) + (1 if prior else 0)
     out = np.zeros((n_rows, layout.size))
     g = layout.leak(p, g_fixed)
     row = 0
-    for n, free in zip(layout.names, layout.free):
+    for k, (n, free) in enumerate(zip(layout.names, layout.free)):
         r, sl = runs[n], layout.slices[n]
         rows = slice(row, row + r.q_mm3_s.size)
         row += r.q_mm3_s.size
         x = layout.side_x(p, n, y_fixed[n])
-        f0 = _side_resid(r, x, g)
+        f0 = at_p[k] if at_p is not None else _side_resid(r, x, g)
         moving = f0 != 1e3
         try:
             eq5 = Eq5Residual(_with(r.side, *x), r.theta_deg, r.p1_mpa, r.dp_mpa, r.q_mm3_s,
