@@ -104,6 +104,34 @@ def test_aot_servo_equals_the_jit_and_takes_any_float_array(aot):
     assert y.shape == t[::3].shape and np.isfinite(y).all()
 
 
+def test_aot_controller_replay_equals_the_jit_and_loads_no_numba(aot):
+    """Both controllers replayed over logged ticks (a NaN position, a NaN
+    head pressure): the ahead-of-time function gives the JIT's commands bit
+    for bit, and a process that replays imports no numba (its first JIT
+    call took 1.4-1.7 s there, for a 2 ms replay)."""
+    from seanv_analysis.sim.control_law import controller_replay as jit_replay
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    x_ref = np.repeat([0.0, 30.0, 15.0, 30.0], n // 4)
+    x = np.cumsum(rng.normal(0, 0.3, n)) + 10.0
+    ps, ph, pt = np.full(n, 3.3), 2.0 + rng.normal(0, 0.1, n), np.zeros(n)
+    x[100], ph[200] = np.nan, np.nan
+    for c in (FlowModelController.from_rig(RIG), CamController.from_rig(RIG)):
+        kind, cp, tables = c.jit_spec()
+        want = jit_replay(kind, cp, *tables, c.initial_state().packed(), x_ref, x, ps, ph, pt)
+        got = c.replay(x_ref, x, ps, ph, pt)
+        assert np.array_equal(got, want, equal_nan=True) and np.isnan(got).sum() == 1
+    code = ("import sys, numpy as np; from seanv_analysis import load_rig; "
+            "from seanv_analysis.sim.control import FlowModelController; "
+            "c = FlowModelController.from_rig(load_rig()); "
+            "c.replay(np.full(9, 30.0), np.zeros(9), np.full(9, 3.3), np.full(9, 2.0), np.zeros(9)); "
+            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('numba', 'llvmlite')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True).stdout.strip()
+    assert out == "[]"
+
+
 def test_servo_response_reads_its_grid_as_np_interp_does():
     """servo_response's interpolation on the servo's uniform step grid is
     np.interp on that grid: inside, before its first and after its last

@@ -52,8 +52,8 @@ from typing import Any, Callable
 from ._pp import PP
 from ._sources import cache_base, hash_compiled_sources, private_cache_folder
 
-__all__ = ["simulate_kernel", "servo_track", "aot_module_path", "aot_status", "build_aot",
-           "stop_all", "SimulationStopped"]
+__all__ = ["simulate_kernel", "servo_track", "controller_replay", "aot_module_path", "aot_status",
+           "build_aot", "stop_all", "SimulationStopped"]
 
 log = logging.getLogger(__name__)
 
@@ -67,6 +67,7 @@ SIGNATURES = {
                         + ", ".join([_F8] * 8 + ["i8"] + [_F8] * 13
                                     + ["f8[:,::1]", "i8", "f8", "f8", "f8", "f8"]) + ")"),
     "servo_track": f"{_F8}({_F8}, {_F8}, f8, f8, i8, f8, {_F8}, f8)",
+    "controller_replay": f"{_F8}(i8, " + ", ".join([_F8] * 13) + ")",
 }
 
 _loaded: dict[str, Callable] = {}
@@ -83,6 +84,14 @@ def simulate_kernel() -> Callable:
 def servo_track() -> Callable:
     """:func:`.kernel.servo_track`: ahead-of-time compiled, else numba's JIT."""
     return _function("servo_track")
+
+
+def controller_replay() -> Callable:
+    """:func:`.control_law.controller_replay` (a controller over logged
+    ticks; identify's controller part): ahead-of-time compiled, else
+    numba's JIT (whose first call in a process took 1.4-1.7 s for a 2 ms
+    replay)."""
+    return _function("controller_replay")
 
 
 def aot_status() -> str | None:
@@ -189,7 +198,7 @@ def _function(name: str) -> Callable:
                     from . import kernel  # numba: compiles or loads numba's cache
 
                     fn = getattr(kernel, name)
-                _loaded[name] = fn = _stoppable(fn, name)
+                _loaded[name] = fn = _stoppable(fn, name) if name in _CALLS else fn
     return fn
 
 
@@ -208,6 +217,7 @@ _STOPPED = False
 #: plant steps above which a main-thread call runs on a helper thread (~0.3 s)
 _HELPER_STEPS = 1_000_000
 #: where each entry point takes its packed parameters, and its plant steps
+#: (the controller's replay, milliseconds long, has no stop slot)
 _CALLS = {"simulate_kernel": (0, lambda args: float(args[-5]) * float(args[0][PP.SUBSTEPS])),
           "servo_track": (6, lambda args: float(args[4]))}
 

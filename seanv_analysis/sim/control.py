@@ -153,12 +153,13 @@ class _PController:
         of one length, from :meth:`initial_state`), in one compiled loop; NaN
         where the reference or the position is not finite (the tick is
         skipped), a non-finite supply or head pressure taken as 0 MPaG."""
-        from .control_law import controller_replay  # numba, on first use
+        from . import compiled  # ahead of time (numba's JIT where it cannot be built)
 
         kind, cp, tables = self.jit_spec()
         arrays = [np.ascontiguousarray(a, dtype=float) for a in
                   (x_ref_mm, x_mm, p_supply_mpag, p_head_mpag, p_tank_mpag)]
-        return controller_replay(kind, cp, *tables, self.initial_state().packed(), *arrays)
+        return compiled.controller_replay()(int(kind), cp, *tables,
+                                            self.initial_state().packed(), *arrays)
 
     def _cp(self, kp: float, hold: float) -> np.ndarray:
         cp = np.empty(CP_SIZE)

@@ -80,7 +80,7 @@ from ._pp import (
     PP,
     PP_SIZE,
 )
-from .control_law import controller_step
+from .control_law import controller_replay, controller_step  # noqa: F401 (exported: .compiled)
 
 __all__ = ["simulate_kernel", "servo_track", "PP", "PP_SIZE", "MODE_SCHEDULE", "OUT_FAST", "OUT_SLOW"]
 

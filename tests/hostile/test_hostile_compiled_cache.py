@@ -42,7 +42,7 @@ def fresh(monkeypatch, tmp_path):
 
     def load(path):
         calls["load"].append(path.read_bytes())
-        return types.SimpleNamespace(simulate_kernel=lambda *a: "aot", servo_track=lambda *a: "aot")
+        return types.SimpleNamespace(**{name: (lambda *a: "aot") for name in compiled.SIGNATURES})
 
     monkeypatch.setattr(compiled, "build_aot", build)
     monkeypatch.setattr(compiled, "_load", load)
