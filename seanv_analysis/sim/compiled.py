@@ -1,13 +1,14 @@
 """The simulator's compiled entry points, compiled ahead of time where possible.
 
-numba compiles the plant kernel and the servo track (:mod:`.kernel`) from
-the package's Python source. Even from numba's on-disk cache a process pays
+numba compiles the plant kernel, the servo track and the controllers'
+replay over logged ticks (:mod:`.kernel`, :mod:`.control_law`) from the
+package's Python source. Even from numba's on-disk cache a process pays
 about 1.4 s before its first call: numba's import (0.5 s) and its compiler's
 set-up while loading the cache (0.9 s). The kernel simulates the 190 s of
 ``simulate paper-position`` in 0.07 s, so that set-up was most of the command,
 and of every pool worker's start.
 
-So the same two functions are also compiled ahead of time (``numba.pycc``:
+So the same functions are also compiled ahead of time (``numba.pycc``:
 the same source through the same LLVM, for this processor; equal to the JIT
 bit for bit, ``tests/test_compiled.py``) into an extension module in the
 user cache folder, which loads in a millisecond without importing numba. It
