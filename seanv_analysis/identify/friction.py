@@ -212,15 +212,23 @@ def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S,
     last held instant). With ``with_rate``: (force [N], its rate of rise
     [N/s] over the :data:`_RATE_WINDOW_S` before the start (a line through
     |force|), the held position [mm]) per start."""
+    starts = _hold_starts(run, rig)
+    return [] if starts is None else _events(*starts, window_s=window_s, with_rate=with_rate)
+
+
+def _hold_starts(run, rig) -> tuple[np.ndarray, np.ndarray, list] | None:
+    """(t [s], force [N], [(index of the last held sample, held position
+    [mm])]) of the run's starts from a hold (:func:`breakaway_events`);
+    None without a position, the pressures, an encoder step or 100 samples."""
     from ..errors import DataError
     from ..signals.align import align_run
 
     try:
         d = align_run(run)
     except DataError:
-        return []
+        return None
     if not {"position_mm", "p_head_mpag", "p_load_mpag"} <= set(d.columns):
-        return []
+        return None
     t = d["t_s"].to_numpy(float)
     x = d["position_mm"].to_numpy(float)
     f = (d["p_head_mpag"].to_numpy(float) * rig.piston_area_mm2
@@ -228,8 +236,8 @@ def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S,
     steps = np.diff(np.unique(np.round(x[np.isfinite(x)], 6)))
     res = float(np.min(steps[steps > 0])) if np.any(steps > 0) else 0.0
     if res <= 0 or t.size < 100:
-        return []
-    out = []
+        return None
+    starts = []
     i, n = 0, t.size
     t_arr, (t, x) = t, (t.tolist(), x.tolist())    # the sample loop on floats: ~3x faster
     while i < n - 1:
@@ -245,17 +253,25 @@ def breakaway_events(run, rig, *, window_s: float = _FORCE_WINDOW_S,
             while k < n and abs(x[k] - ref) <= 3 * res and t[k] - t[j] < 0.05:
                 k += 1
             if k < n and abs(x[k] - ref) > 3 * res:
-                w = (t_arr >= t[j] - window_s - 1e-9) & (t_arr <= t[j])
-                fw = f[w]
-                fw = fw[np.isfinite(fw)]
-                if fw.size and not with_rate:
-                    out.append(float(abs(np.median(fw))))
-                elif fw.size:
-                    wr = (t_arr >= t[j] - _RATE_WINDOW_S - 1e-9) & (t_arr <= t[j]) & np.isfinite(f)
-                    rate = (float(np.polyfit(t_arr[wr], np.abs(f[wr]), 1)[0])
-                            if wr.sum() > 3 else 0.0)
-                    out.append((float(abs(np.median(fw))), rate, float(ref)))
+                starts.append((j, ref))
         i = j + 1
+    return t_arr, f, starts
+
+
+def _events(t: np.ndarray, f: np.ndarray, starts: list, *, window_s: float,
+            with_rate: bool) -> list:
+    """:func:`breakaway_events`' values at the ``starts`` of :func:`_hold_starts`."""
+    out = []
+    for j, ref in starts:
+        w = (t >= t[j] - window_s - 1e-9) & (t <= t[j])
+        fw = f[w]
+        fw = fw[np.isfinite(fw)]
+        if fw.size and not with_rate:
+            out.append(float(abs(np.median(fw))))
+        elif fw.size:
+            wr = (t >= t[j] - _RATE_WINDOW_S - 1e-9) & (t <= t[j]) & np.isfinite(f)
+            rate = float(np.polyfit(t[wr], np.abs(f[wr]), 1)[0]) if wr.sum() > 3 else 0.0
+            out.append((float(abs(np.median(fw))), rate, float(ref)))
     return out
 
 
@@ -270,7 +286,11 @@ def _breakaway(runs, rig, coulomb: float) -> dict[str, Any] | None:
     the valve-side pressure's lead (:func:`_line_lead_n`)."""
     win, end, lead = [], [], []
     for r in runs:
-        a, b = breakaway_events(r, rig), breakaway_events(r, rig, window_s=0.0, with_rate=True)
+        starts = _hold_starts(r, rig)       # one scan of the run for both estimators
+        if starts is None:
+            continue
+        a = _events(*starts, window_s=_FORCE_WINDOW_S, with_rate=False)
+        b = _events(*starts, window_s=0.0, with_rate=True)
         if len(a) == len(b):
             win += a
             end += [e[0] for e in b]
