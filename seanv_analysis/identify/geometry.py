@@ -170,15 +170,17 @@ def _fit(runs: dict[str, SideRuns], x0, lo, hi, f_scale, layout: _Layout, y_fixe
 
 #: relative forward step of y_c in the fit's Jacobian (its z0, C and g columns are exact)
 _Y_C_REL_STEP = 1e-5
+#: the fit's residual of a run whose flow cannot be computed (eq. 4 not invertible, NaN)
+_NO_FLOW = 1e3
 
 
 def _side_resid(r: SideRuns, x, g: float) -> np.ndarray:
     """One side's rows of :func:`_fit`'s residual at its (z0, C, y_c) ``x``
-    and the leakage conductance ``g``: (q - Q - g dp_leak) / sigma, 1e3
+    and the leakage conductance ``g``: (q - Q - g dp_leak) / sigma, :data:`_NO_FLOW`
     where no flow is computed (eq. 4 not invertible, or no number)."""
     z = (r.q_mm3_s - _predict(r.side, x, r.theta_deg, r.p1_mpa, r.dp_mpa)
          - g * r.dp_leak_mpa) / r.sigma_mm3_s
-    return np.where(np.isfinite(z), z, 1e3)
+    return np.where(np.isfinite(z), z, _NO_FLOW)
 
 
 def _jacobian(runs: dict[str, SideRuns], layout: _Layout, p: np.ndarray, y_fixed, g_fixed,
@@ -201,7 +203,7 @@ def _jacobian(runs: dict[str, SideRuns], layout: _Layout, p: np.ndarray, y_fixed
         row += r.q_mm3_s.size
         x = layout.side_x(p, n, y_fixed[n])
         f0 = at_p[k] if at_p is not None else _side_resid(r, x, g)
-        moving = f0 != 1e3
+        moving = f0 != _NO_FLOW
         try:
             eq5 = Eq5Residual(_with(r.side, *x), r.theta_deg, r.p1_mpa, r.dp_mpa, r.q_mm3_s,
                               r.sigma_mm3_s)
