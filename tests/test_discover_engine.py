@@ -220,3 +220,14 @@ def test_spearman_is_scipys(pairs):
     assert p_lb == pytest.approx(stats.chi2.sf(q, h), rel=1e-9, abs=1e-300)
     f, p_f = _f_test(10.0 + abs(y[0]), 2, 10.0, 3, x.size + 3)
     assert p_f == pytest.approx(stats.f.sf(f, 1, x.size), rel=1e-9)
+
+
+def test_side_masks_are_made_once_and_cannot_be_changed():
+    from seanv_analysis.discover.static import FlowData
+
+    data = FlowData.from_summary(synth_summary(0))
+    m = data.on_side("drain")
+    assert m is data.on_side("drain") and np.array_equal(m, data.side == "drain")
+    with pytest.raises(ValueError):
+        m[0] = not m[0]
+    assert np.array_equal(data.subset(m).on_side("drain"), np.ones(int(m.sum()), bool))

@@ -161,3 +161,28 @@ def test_compiled_threshold_inverse_equals_numpy_interp():
         x = np.random.default_rng(0).uniform(z[0] - 1.0, z[-1] + 1.0, 500)
         got = np.array([J.angle_for_height(v, z, th) for v in x])
         np.testing.assert_allclose(got, np.interp(x, z, th), rtol=0, atol=1e-12)
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.floats(4.0, 80.0), st.booleans())
+def test_height_table_is_eq4_on_its_grid_bit_for_bit(y_c, below):
+    """The inversion table (made from the grid's cached cosines and sines)
+    is eq. (4) of needle_height_mm at the same angles, exactly."""
+    from dataclasses import replace
+
+    from seanv_analysis.models import needle_height_mm
+    from seanv_analysis.models.sealing import _TABLE_POINTS, _TABLE_RANGE_DEG
+
+    geom = ValveModel.from_rig(load_rig()).side("supply").geometry
+    geom = replace(geom, needle_y_c_mm=-y_c if below else y_c)
+    theta = np.linspace(*_TABLE_RANGE_DEG, _TABLE_POINTS)
+    try:
+        z_tab, theta_tab = geom.height_table
+    except ValueError:
+        z = needle_height_mm(theta, geom)
+        assert not (np.all(np.diff(z) > 0) or np.all(np.diff(z) < 0))
+        return
+    z = needle_height_mm(theta, geom)
+    if theta_tab[0] > theta_tab[-1]:
+        z, theta = z[::-1], theta[::-1]
+    assert np.array_equal(z_tab, z) and np.array_equal(theta_tab, theta)

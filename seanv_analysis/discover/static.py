@@ -82,6 +82,18 @@ class FlowData:
     def __post_init__(self):
         if self.load_mpag is None:
             object.__setattr__(self, "load_mpag", np.full(self.q_mm3_s.shape, np.nan))
+        object.__setattr__(self, "_side_masks", {})
+
+    def on_side(self, side: str) -> np.ndarray:
+        """``side == side`` of each run, made once per data set and side (a
+        fit evaluates the model tens of thousands of times on the same runs);
+        read-only: copy it to change it."""
+        mask = self._side_masks.get(side)
+        if mask is None:
+            mask = np.asarray(self.side == side)
+            mask.flags.writeable = False
+            self._side_masks[side] = mask
+        return mask
 
     def __len__(self) -> int:
         return int(self.q_mm3_s.size)
@@ -168,7 +180,7 @@ class EffectSpec:
 
 
 def _side_mask(data: FlowData, side: str) -> np.ndarray:
-    return np.ones(len(data), bool) if side == "both" else data.side == side
+    return np.ones(len(data), bool) if side == "both" else data.on_side(side)
 
 
 def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[EffectSpec, np.ndarray]]
@@ -181,11 +193,11 @@ def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[E
     n = len(data)
     exponent = {s: model.side(s).dp_exponent for s in ("supply", "drain")}
     terms = fx.FlowTerms(
-        theta_deg=data.theta_deg.astype(float).copy(),
-        p_head_mpag=data.p_head_mpag.astype(float).copy(),
+        theta_deg=data.theta_deg.astype(float),       # (copies: effects edit the terms)
+        p_head_mpag=data.p_head_mpag.astype(float),
         z0_offset_mm=np.zeros(n),
         c_multiplier=np.ones(n),
-        dp_exponent=np.where(data.side == "supply", exponent["supply"], exponent["drain"]),
+        dp_exponent=np.where(data.on_side("supply"), exponent["supply"], exponent["drain"]),
         q_max_mm3_s=np.full(n, np.inf))
     for spec, values in effects.values():
         p = dict(zip(spec.params, values), **spec.fixed)
@@ -194,7 +206,7 @@ def predict_static(model: ValveModel, data: FlowData, effects: dict[str, tuple[E
         terms.corrections[known:] = [replace(c, side=spec.side) for c in terms.corrections[known:]]
     q = np.zeros(n)
     for s in ("supply", "drain"):
-        m = data.side == s
+        m = data.on_side(s)
         if not m.any():
             continue
         vs = model.side(s)

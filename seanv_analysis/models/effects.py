@@ -135,11 +135,13 @@ def saturate_flow(q, q_max, sharpness=8.0):
     Rows with a non-finite ``q_max`` are returned unchanged.
     """
     q = np.asarray(q, dtype=float)
-    q_max = np.broadcast_to(np.asarray(q_max, dtype=float), q.shape)
-    out = q.copy()
+    q_max = np.asarray(q_max, dtype=float)
     m = np.isfinite(q_max)
-    if m.any():     # (none capped, the usual case: nothing to do)
-        out[m] = saturate_flow_core(q[m], q_max[m], sharpness)
+    if not m.any():     # none capped, the usual case: nothing to do
+        return q.copy()
+    q_max, m = np.broadcast_to(q_max, q.shape), np.broadcast_to(m, q.shape)
+    out = q.copy()
+    out[m] = saturate_flow_core(q[m], q_max[m], sharpness)
     return out
 
 

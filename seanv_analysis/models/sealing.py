@@ -54,7 +54,13 @@ def needle_height_core(theta_deg, needle_x_c_mm, needle_y_c_mm, needle_head_radi
     """Eq. (4) on plain numbers (sign of the constant term corrected, see
     :func:`needle_height_mm`) [mm]."""
     t = np.radians(theta_deg)
-    cos_t, sin_t = np.cos(t), np.sin(t)
+    return _needle_height_trig(np.cos(t), np.sin(t), needle_x_c_mm, needle_y_c_mm,
+                               needle_head_radius_mm, cam_slope_deg, z_p_mm, z_c0_mm)
+
+
+def _needle_height_trig(cos_t, sin_t, needle_x_c_mm, needle_y_c_mm, needle_head_radius_mm,
+                        cam_slope_deg, z_p_mm, z_c0_mm):
+    """Eq. (4) from cos and sin of the cam angle (:func:`needle_height_core`) [mm]."""
     phi = math.radians(cam_slope_deg)
     r = needle_head_radius_mm
     tp = math.tan(phi)
@@ -141,6 +147,19 @@ class NeedleGeometry:
         return angle_for_height_core(z_mm, z, theta)
 
 
+@lru_cache(maxsize=1)
+def _table_grid() -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cam angles [deg] eq. (4) is tabulated at, and their cosines and
+    sines: the same for every geometry (a fit of the needle centre tabulates
+    thousands), made once; read-only."""
+    theta = np.linspace(*_TABLE_RANGE_DEG, _TABLE_POINTS)
+    t = np.radians(theta)
+    grid = (theta, np.cos(t), np.sin(t))
+    for a in grid:
+        a.flags.writeable = False
+    return grid
+
+
 @lru_cache(maxsize=256)
 def _height_table(geometry: NeedleGeometry) -> tuple[np.ndarray, np.ndarray]:
     """(z [mm] increasing, theta [deg]) tabulating eq. (4) of ``geometry``,
@@ -153,8 +172,10 @@ def _height_table(geometry: NeedleGeometry) -> tuple[np.ndarray, np.ndarray]:
     ValueError
         eq. (4) is not monotonic over the table's range (not cached).
     """
-    theta = np.linspace(*_TABLE_RANGE_DEG, _TABLE_POINTS)
-    z = needle_height_mm(theta, geometry)
+    theta, cos_t, sin_t = _table_grid()
+    g = geometry
+    z = _needle_height_trig(cos_t, sin_t, g.needle_x_c_mm, g.needle_y_c_mm,
+                            g.needle_head_radius_mm, g.cam_slope_deg, g.z_p_mm, g.z_c0_mm)
     dz = np.diff(z)
     if not (np.all(dz > 0) or np.all(dz < 0)):
         raise ValueError(
