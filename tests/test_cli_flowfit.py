@@ -86,7 +86,7 @@ def test_json_outputs_and_manifest(dataset, tmp_path):
 
 
 def test_report_and_one_side(dataset, tmp_path):
-    res = invoke(dataset, "--out", tmp_path, "--side", "drain", "--n-boot", 0)
+    res = invoke(dataset, "--out", tmp_path, "--side", "drain", "--n-boot", 0, "--formats", "png")
     assert res.exit_code == 0, res.output
     assert "drain: ok" in res.stdout and "supply" not in res.stdout.split("excluded")[0]
     assert "z0 =" in res.stdout and f"outputs: {tmp_path}" in res.stdout
@@ -104,7 +104,7 @@ def test_bad_run_exit_1_results_still_written(dataset, tmp_path):
     bad = data / "supply-l0.3-c0.0"
     (bad / "encoder.csv").unlink()
     out = tmp_path / "out"
-    res = invoke(data, "--out", out, "--json", "--n-boot", 0)
+    res = invoke(data, "--out", out, "--json", "--n-boot", 0, "--formats", "png")
     assert res.exit_code == 1
     assert "1 bad run(s) skipped" in res.stderr and "supply-l0.3-c0.0" in res.stderr
     doc = json.loads(res.stdout)

@@ -26,7 +26,7 @@ def invoke(*args, env=None):
 
 def test_run_shipped_pipeline_by_name(data, tmp_path):
     out = tmp_path / "o"
-    r = invoke("run", "tracking", data, "--out", out, "--workers", "1", "--quiet")
+    r = invoke("run", "tracking", data, "--out", out, "--workers", "1", "--quiet", "--formats", "png")
     assert r.exit_code == 0, r.output
     assert "runs: 8 found, 8 read (6 flow_step, 2 position_control), 0 failed" in r.output
     assert f"report: {out / 'report.html'}" in r.output

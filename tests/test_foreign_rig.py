@@ -64,7 +64,8 @@ def test_ingest_reads_every_run(foreign):
 
 def test_flowfit_recovers_the_foreign_valve(foreign):
     root, truth = foreign
-    doc = run_cli("flowfit", root / "data" / "flow", "--out", root / "out" / "flowfit", "--json")
+    doc = run_cli("flowfit", root / "data" / "flow", "--out", root / "out" / "flowfit", "--json",
+                  "--no-figures")
     for side, z0, c in (("supply", truth.supply_z0_mm, truth.supply_c),
                         ("drain", truth.drain_z0_mm, truth.drain_c)):
         got = doc[side]

@@ -164,7 +164,7 @@ def test_command_manifest_lists_outputs_with_hashes(two_datasets, tmp_path):
 
     first, _ = two_datasets
     out = tmp_path / "out"
-    res = CliRunner().invoke(cli, ["tracking", str(first), "--out", str(out)])
+    res = CliRunner().invoke(cli, ["tracking", str(first), "--out", str(out), "--formats", "png"])
     assert res.exit_code == 0, res.output
     manifest = json.loads((out / "manifest.json").read_text())
     listed = {e["path"]: e for e in manifest["outputs"]}

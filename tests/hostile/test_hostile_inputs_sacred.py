@@ -121,11 +121,13 @@ def test_reruns_replace_their_own_folders(data, tmp_path):
     """The marker makes the run's own folders replaceable: a second run swaps
     them in anew, and a stage dropped from the pipeline retires its folder."""
     out = tmp_path / "out"
-    assert invoke("run", "tracking", data, "--out", out, "-q", "--force").exit_code in (0, 1)
+    assert invoke("run", "tracking", data, "--out", out, "-q", "--force",
+                  "--formats", "png").exit_code in (0, 1)
     assert (out / "tracking" / OWNER_MARKER).is_file() and (out / "figures" / OWNER_MARKER).is_file()
     stale = out / "tracking" / "stale.txt"
     stale.write_text("from an earlier run")
-    assert invoke("run", "tracking", data, "--out", out, "-q", "--force").exit_code in (0, 1)
+    assert invoke("run", "tracking", data, "--out", out, "-q", "--force",
+                  "--formats", "png").exit_code in (0, 1)
     assert not stale.exists() and (out / "tracking" / OWNER_MARKER).is_file()
 
 
