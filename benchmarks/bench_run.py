@@ -26,6 +26,11 @@ Data: the first 240 runs of ``paper-flowsteps`` and the two runs of
   flow steps (flow fit, identify, discover, Fig. 4) runs again (reported,
   no target).
 
+Each command's CPU time (user + system, its worker processes included) is
+recorded beside its wall time, with the wall time it allows at best on the
+machine's cores (``*_cpu_bound_s``: CPU / cores): a wall-time target below
+that bound needs less work, not more parallelism.
+
 Every comparison records the 1-minute load average before and after it;
 the first pair of each warms the page cache and is not counted.
 Quick mode (``SEANV_BENCH_QUICK=1`` or ``--quick``): 1 counted pair each.
@@ -35,6 +40,7 @@ from __future__ import annotations
 
 import json
 import os
+import resource
 import shutil
 import socket
 import statistics
@@ -58,18 +64,23 @@ ENV = {**os.environ, "CI": "1", "MPLBACKEND": "Agg"}
 
 
 def _run(argv: list[str], out: Path, *, fresh: bool = True) -> dict:
-    """One cold command writing into ``out``: wall [s], exit code, stage times."""
+    """One cold command writing into ``out``: wall [s], CPU [s] (user + system
+    of the command and the worker processes it waited for; not a Dask
+    cluster's), exit code, stage times."""
     if fresh and out.exists():
         shutil.rmtree(out)
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     rc = subprocess.run([*argv, "--out", str(out), "-q"], stdout=subprocess.DEVNULL,
                         stderr=subprocess.DEVNULL, env=ENV).returncode
     wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
     try:
         stages = json.loads((out / "result.json").read_text())["timings_s"]
     except (OSError, ValueError, KeyError):
         stages = {}
-    return {"wall_s": round(wall, 3), "exit_code": rc,
+    return {"wall_s": round(wall, 3), "cpu_s": round(cpu, 2), "exit_code": rc,
             "stages_s": {k: round(v, 2) for k, v in stages.items()}}
 
 
@@ -94,13 +105,19 @@ def compare(a: list[str], b: list[str], out: Path, n: int) -> dict:
 
 
 def _paired(ra: list[dict], rb: list[dict], load0: list[float], names=("a", "b")) -> dict:
-    """Medians of the runs ``ra`` and ``rb`` (counted pairs, in order), the
-    per-pair ratios a/b and their median, the exit codes, the last pair's
-    stage times, the load before (``load0``) and now."""
+    """Medians of the runs ``ra`` and ``rb`` (counted pairs, in order): wall
+    and CPU time, and the wall time the CPU time allows at best on this
+    machine's cores (CPU / cores: a command that keeps every core busy the
+    whole time); the per-pair ratios a/b and their median, the exit codes,
+    the last pair's stage times, the load before (``load0``) and now."""
     a, b = names
     ratios = [x["wall_s"] / y["wall_s"] for x, y in zip(ra, rb)]
+    cores = os.cpu_count() or 1
+    cpu = {n: statistics.median(r["cpu_s"] for r in rs) for n, rs in ((a, ra), (b, rb))}
     return {"pairs": len(ratios), f"{a}_median_s": round(statistics.median(r["wall_s"] for r in ra), 3),
             f"{b}_median_s": round(statistics.median(r["wall_s"] for r in rb), 3),
+            f"{a}_cpu_median_s": round(cpu[a], 2), f"{b}_cpu_median_s": round(cpu[b], 2),
+            f"{a}_cpu_bound_s": round(cpu[a] / cores, 2), f"{b}_cpu_bound_s": round(cpu[b] / cores, 2),
             "ratio_median": round(statistics.median(ratios), 3),
             "ratios": [round(r, 3) for r in ratios],
             "exit_codes": sorted({r["exit_code"] for r in ra + rb}),
