@@ -52,17 +52,27 @@ def _wall(argv: list[str], cwd: Path) -> float:
 
 
 def _timed(argv: list[str], cwd: Path) -> tuple[float, float]:
-    """(wall, CPU) time [s] of one cold process and its children (its worker
-    processes): user + system time, from the children's resource usage."""
+    """(wall, CPU) time [s] of one cold process (:func:`run_timed`)."""
+    wall, cpu, _ = run_timed(argv, cwd=cwd)
+    return wall, cpu
+
+
+def run_timed(argv: list[str], *, cwd: Path | None = None, env: dict | None = None,
+              check: bool = True) -> tuple[float, float, int]:
+    """(wall [s], CPU [s], exit code) of one cold process and its children
+    (its worker processes): CPU is user + system time, from the children's
+    resource usage. ``env`` default: this one with ``CI=1`` (no progress
+    bars); ``check``: a non-zero exit raises."""
     import resource
 
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    subprocess.run(argv, cwd=cwd, check=True, stdout=subprocess.DEVNULL,
-                   stderr=subprocess.DEVNULL, env={**os.environ, "CI": "1"})
+    rc = subprocess.run(argv, cwd=cwd, check=check, stdout=subprocess.DEVNULL,
+                        stderr=subprocess.DEVNULL,
+                        env=env if env is not None else {**os.environ, "CI": "1"}).returncode
     wall = time.perf_counter() - t0
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
+    return wall, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime), rc
 
 
 def pairs(a: list[str], b: list[str], cwd: Path, n: int) -> dict:

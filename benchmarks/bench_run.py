@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import json
 import os
-import resource
 import shutil
 import socket
 import statistics
@@ -50,7 +49,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from .bench_figures import CLI, replicate, subset
+from .bench_figures import CLI, replicate, run_timed, subset
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "run.json"
@@ -69,13 +68,7 @@ def _run(argv: list[str], out: Path, *, fresh: bool = True) -> dict:
     cluster's), exit code, stage times."""
     if fresh and out.exists():
         shutil.rmtree(out)
-    before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t0 = time.perf_counter()
-    rc = subprocess.run([*argv, "--out", str(out), "-q"], stdout=subprocess.DEVNULL,
-                        stderr=subprocess.DEVNULL, env=ENV).returncode
-    wall = time.perf_counter() - t0
-    after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    wall, cpu, rc = run_timed([*argv, "--out", str(out), "-q"], env=ENV, check=False)
     try:
         stages = json.loads((out / "result.json").read_text())["timings_s"]
     except (OSError, ValueError, KeyError):
