@@ -27,11 +27,13 @@ MAKE_STARTED := $(shell date +%s)
 demo: $(STAMP)
 	$(PY) -m seanv_analysis.demo --started-at $(MAKE_STARTED) --installed-at $(STAMP)
 
-# two pytest-xdist workers (the 2-core machine): about 13-16 CPU-minutes of
-# tests (most of it closed-loop identification and discovery) in about 6.5-8.5
+# two pytest-xdist workers (the 2-core machine): about 11.5-16 CPU-minutes of
+# tests (most of it closed-loop identification and discovery, their flow and
+# static fits, and the figures of the commands tested whole) in about 6-8.5
 # min on a clean clone (2026-11-28: 7 min 13 s, and 8 min 26 s later that day;
 # 8 min 34 s and 9 min 59 s with the install; in the evening 6 min 27 s and
-# 6 min 45 s, 7 min 26 s and 7 min 42 s with it). One seed per case here; the
+# 6 min 45 s, 7 min 26 s and 7 min 42 s with it; late evening 6 min 16 s, 7 min
+# 22 s with it, 11.5 CPU-minutes; a third worker: 13 s slower). One seed per case here; the
 # multi-seed acceptance sweeps and their rates are make bench's
 # (benchmarks/bench_discover.py, bench_identify.py, bench_coverage.py)
 TEST_WORKERS ?= 2
