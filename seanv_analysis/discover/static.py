@@ -85,9 +85,9 @@ class FlowData:
         object.__setattr__(self, "_side_masks", {})
 
     def on_side(self, side: str) -> np.ndarray:
-        """``side == side`` of each run, made once per data set and side (a
-        fit evaluates the model tens of thousands of times on the same runs);
-        read-only: copy it to change it."""
+        """The runs of ``side`` ('supply'/'drain'): ``self.side == side``, made
+        once per data set and side (a fit evaluates the model tens of
+        thousands of times on the same runs); read-only: copy it to change it."""
         mask = self._side_masks.get(side)
         if mask is None:
             mask = np.asarray(self.side == side)
