@@ -335,7 +335,7 @@ def geometry_sides(model: ValveModel, data: FlowData, *, min_force_span_n: float
     of the base model, so it cannot pass for an effect)."""
     out = []
     for s in ("supply", "drain"):
-        m = data.side == s
+        m = data.on_side(s)
         if m.sum() < 8:
             continue
         p1, dp = side_pressures(s, data.p_supply_mpag[m], data.p_head_mpag[m], data.p_tank_mpag[m])
@@ -363,7 +363,7 @@ def fit_static(model: ValveModel, data: FlowData, sigma: np.ndarray, *,
     is robust (``soft_l1`` with f_scale = 2, i.e. residuals beyond ~2 sigma
     count less) so a few bad runs cannot drag C.
     """
-    present = [s for s in fit_sides if np.any(data.side == s)]
+    present = [s for s in fit_sides if data.on_side(s).any()]
     geometry = tuple(geometry)
     with_geom = [s for s in present if s in geometry]
     names = []
@@ -473,7 +473,7 @@ def _jacobian_structure(data: FlowData, present: list[str], with_geom: list[str]
         return None
     cols = []
     for s in present:
-        rows = np.asarray(data.side == s)
+        rows = data.on_side(s)
         cols += [rows] * (3 if s in with_geom else 2)
     if leak:
         cols.append(np.ones(len(data), bool))
