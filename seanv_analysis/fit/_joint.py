@@ -289,9 +289,9 @@ def bootstrap_joint(side: ValveSide, theta_deg, p1_mpa, dp_mpa, q_mm3_s, sigma_m
     xs, ok = _fit_resamples(Eq5Residual(side, theta, p1, dp, q, sigma), counts, x0, f_scale,
                             x_scale)
     keep = ok.copy()
-    if not ok.all():
-        from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
     for i in np.flatnonzero(~ok):       # scipy's solver where the batched fit did not converge
+        from scipy.optimize import least_squares  # lazy: reading a fit needs no scipy
+
         idx = draws[i]
         r = Eq5Residual(side, theta[idx], p1[idx], dp[idx], q[idx], sigma[idx])
         sol = least_squares(r.fun, x0, jac=r.jac, loss="soft_l1", f_scale=f_scale,
